@@ -1,0 +1,261 @@
+"""Load and validate a microgrid case file (TOML): the data of the paper's Section IV as typed, immutable objects."""
+
+from __future__ import annotations
+
+import tomllib
+from functools import cached_property
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+HOURS = 24
+DATA_DIR = Path(__file__).parent / "data"
+
+NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+Hour = Annotated[int, Field(ge=1, le=HOURS)]
+Duration = Annotated[int, Field(ge=1, le=HOURS)]
+Profile = Annotated[list[NonNeg], Field(min_length=HOURS, max_length=HOURS)]
+SignedProfile = Annotated[list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=HOURS, max_length=HOURS)]
+
+
+class CaseError(ValueError):
+    """A case file that cannot be used; the message names the file and the field."""
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class Unit(_Frozen):
+    """A dispatchable unit i in G: limits of (3), ramps of (4)-(5), minimum up/down times of (6)-(7), cost F."""
+
+    name: str
+    cost: NonNeg
+    p_min: NonNeg
+    p_max: Pos
+    min_up: Duration
+    min_down: Duration
+    ramp_up: Pos
+    ramp_down: Pos
+    startup_cost: NonNeg = 0.0
+    shutdown_cost: NonNeg = 0.0
+    initial_on: bool = False
+    provenance: dict[str, str] = {}
+
+    @model_validator(mode="after")
+    def _limits(self):
+        if self.p_min > self.p_max:
+            raise ValueError(f"p_min ({self.p_min}) > p_max ({self.p_max})")
+        return self
+
+
+class Renewable(_Frozen):
+    """A nondispatchable unit: its hourly availability forecast, which scenarios perturb."""
+
+    name: str
+    capacity: NonNeg
+    forecast: Profile
+    provenance: dict[str, str] = {}
+
+    @model_validator(mode="after")
+    def _within_capacity(self):
+        worst = max(self.forecast)
+        if worst > self.capacity:
+            raise ValueError(f"forecast ({worst}) exceeds capacity ({self.capacity})")
+        return self
+
+
+class Storage(_Frozen):
+    """The energy storage i in S: power limits (8)-(9), energy (11)-(12), minimum charge/discharge times (13)-(14)."""
+
+    name: str
+    c_max: Pos
+    p_dch_min: NonNeg
+    p_dch_max: Pos
+    p_ch_min: NonNeg
+    p_ch_max: Pos
+    min_charge: Duration
+    min_discharge: Duration
+    c_initial: NonNeg
+    provenance: dict[str, str] = {}
+
+    @model_validator(mode="after")
+    def _limits(self):
+        if self.p_dch_min > self.p_dch_max:
+            raise ValueError(f"p_dch_min ({self.p_dch_min}) > p_dch_max ({self.p_dch_max})")
+        if self.p_ch_min > self.p_ch_max:
+            raise ValueError(f"p_ch_min ({self.p_ch_min}) > p_ch_max ({self.p_ch_max})")
+        if self.c_initial > self.c_max:
+            raise ValueError(f"c_initial ({self.c_initial}) > c_max ({self.c_max})")
+        return self
+
+
+class AdjustableLoad(_Frozen):
+    """An adjustable load d in D: power limits (15), energy E_d within [alpha, beta] (16), minimum operating time (17)."""
+
+    name: str
+    d_min: NonNeg
+    d_max: Pos
+    energy: Pos
+    alpha: Hour
+    beta: Hour
+    min_up: Duration
+    provenance: dict[str, str] = {}
+
+    @model_validator(mode="after")
+    def _deliverable(self):
+        if self.d_min > self.d_max:
+            raise ValueError(f"d_min ({self.d_min}) > d_max ({self.d_max})")
+        if self.alpha > self.beta:
+            raise ValueError(f"window alpha ({self.alpha}) > beta ({self.beta})")
+        hours = self.beta - self.alpha + 1
+        if self.energy > self.d_max * hours + 1e-9:
+            raise ValueError(
+                f"energy {self.energy} MWh cannot be delivered in hours {self.alpha}-{self.beta} "
+                f"at d_max {self.d_max} MW (at most {self.d_max * hours:g} MWh)"
+            )
+        if self.min_up > hours:
+            raise ValueError(f"min_up ({self.min_up} h) is longer than the window {self.alpha}-{self.beta}")
+        return self
+
+
+class Grid(_Frozen):
+    """The point of common coupling: P_M^max of (18), the DMO's award P^sch of (19), penalty c and value of lost load."""
+
+    p_m_max: Pos
+    p_sch: SignedProfile
+    penalty: NonNeg
+    voll: Pos
+    iso_price: SignedProfile
+    provenance: dict[str, str] = {}
+
+
+class FixedLoad(_Frozen):
+    forecast: Profile
+    provenance: dict[str, str] = {}
+
+
+class Uncertainty(_Frozen):
+    """Half-widths of the uniform forecast errors, as fractions of the forecast."""
+
+    load: Annotated[float, Field(ge=0, lt=1)]
+    wind: Annotated[float, Field(ge=0, le=1)] = 0.0
+    solar: Annotated[float, Field(ge=0, le=1)] = 0.0
+    provenance: dict[str, str] = {}
+
+    def for_renewable(self, name: str) -> float:
+        """The error bound of a renewable: its own if named, else the wind bound."""
+        return getattr(self, name, self.wind)
+
+
+class CaseInfo(_Frozen):
+    name: str
+    description: str = ""
+    provenance: dict[str, str] = {}
+
+
+class Case(_Frozen):
+    """A whole microgrid case. Array views (``unit_array`` and friends) feed the vectorised model."""
+
+    case: CaseInfo
+    grid: Grid
+    fixed_load: FixedLoad
+    uncertainty: Uncertainty
+    units: Annotated[list[Unit], Field(min_length=1)]
+    renewables: list[Renewable] = []
+    storage: Storage | None = None
+    loads: list[AdjustableLoad] = []
+
+    @model_validator(mode="after")
+    def _unique_names(self):
+        names = [x.name for x in (*self.units, *self.renewables, *self.loads)]
+        if self.storage is not None:
+            names.append(self.storage.name)
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"names must be unique, repeated: {', '.join(dup)}")
+        return self
+
+    @property
+    def name(self) -> str:
+        return self.case.name
+
+    def unit_array(self, field: str) -> np.ndarray:
+        """One field of every unit, as an array over G."""
+        return np.array([getattr(u, field) for u in self.units], dtype=float)
+
+    def load_array(self, field: str) -> np.ndarray:
+        """One field of every adjustable load, as an array over D."""
+        return np.array([getattr(d, field) for d in self.loads], dtype=float)
+
+    @cached_property
+    def load_windows(self) -> np.ndarray:
+        """(D, 24) 0/1: hour t lies in [alpha_d, beta_d] of (16)."""
+        hours = np.arange(1, HOURS + 1)
+        return np.array([(d.alpha <= hours) & (hours <= d.beta) for d in self.loads], dtype=float).reshape(
+            len(self.loads), HOURS
+        )
+
+    def with_grid(self, **changes) -> "Case":
+        """A copy with grid fields replaced (award, penalty...), validated again."""
+        return self.model_validate({**self.model_dump(), "grid": {**self.grid.model_dump(), **changes}})
+
+
+def _field_path(loc: tuple, data: dict) -> str:
+    """Render a pydantic error location as ``units[G3].p_min``, using names where the list items have them."""
+    out, node = "", data
+    for part in loc:
+        if isinstance(part, int):
+            item = node[part] if isinstance(node, list) and part < len(node) else None
+            label = item.get("name") if isinstance(item, dict) else None
+            out += f"[{label or part}]"
+            node = item
+        else:
+            out += f".{part}" if out else str(part)
+            node = node.get(part) if isinstance(node, dict) else None
+    return out
+
+
+def parse_case(data: dict, source: str = "<case>") -> Case:
+    """Validate a case given as a dict; any problem raises CaseError naming the source and the field."""
+    try:
+        return Case.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = _field_path(tuple(err["loc"]), data)
+        msg = err["msg"].removeprefix("Value error, ")
+        if err["type"] == "missing":
+            msg = "missing field"
+        more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+        raise CaseError(f"{source}: {where or 'case'}: {msg}{more}") from None
+
+
+def case_path(name_or_path: str | Path) -> Path:
+    """A built-in case name (``paper``) or a path to a TOML file."""
+    builtin = DATA_DIR / f"{name_or_path}.toml"
+    if builtin.is_file():
+        return builtin
+    return Path(name_or_path)
+
+
+def load_case(name_or_path: str | Path) -> Case:
+    """Read and validate a case file; raises CaseError with one line naming the file and the field."""
+    path = case_path(name_or_path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise CaseError(f"case file not found: {path} (built-in cases: {', '.join(builtin_cases())})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CaseError(f"cannot read case file {path}: {exc}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise CaseError(f"{path}: not valid TOML: {exc}") from None
+    return parse_case(data, str(path))
+
+
+def builtin_cases() -> list[str]:
+    return sorted(p.stem for p in DATA_DIR.glob("*.toml"))
