@@ -1,0 +1,44 @@
+"""One scheduling instance: a case, its scenario set and the award/penalty it is solved against."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenarios.case import Case
+from scenarios.generation import ScenarioSet, make_scenarios
+
+from .model import Params
+from .schedule import Schedule
+from .solve import solve
+
+
+@dataclass(frozen=True)
+class Instance:
+    case: Case
+    scen: ScenarioSet
+    params: Params
+
+    def solve(self, **options) -> Schedule:
+        return solve(self.case, self.scen, self.params, **options)
+
+
+def make_instance(
+    case: Case,
+    *,
+    scenarios: int = 10,
+    subperiods: int = 6,
+    island_hours: int = 1,
+    transfer_scale: float = 1.0,
+    penalty: float | None = None,
+    seed: int = 0,
+    sample_size: int | None = None,
+    cost_convention: str = "real",
+) -> Instance:
+    """The case's Table I award scaled by ``transfer_scale`` (Fig. 3), its penalty unless given (Fig. 5), and
+    ``scenarios`` reduced from a seeded sample with ``island_hours`` of islanding each (Fig. 2)."""
+    scen = make_scenarios(case, scenarios, subperiods, island_hours, seed=seed, sample_size=sample_size)
+    p_sch = np.asarray(case.grid.p_sch, float) * transfer_scale
+    c = case.grid.penalty if penalty is None else float(penalty)
+    return Instance(case, scen, Params(p_sch, c, cost_convention))
