@@ -1,0 +1,118 @@
+"""Encode messages as compact UTF-8 JSON and decode received bytes, refusing anything invalid with a one-line reason."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+
+from pydantic import ValidationError
+
+from .schemas import DMO, KINDS, MESSAGE_ADAPTER, SCHEMA_VERSION, Envelope, Message, Rejection
+
+MAX_PAYLOAD_BYTES = 1 << 20
+_MAX_REASON = 300
+
+
+class MessageError(ValueError):
+    """A payload or key that cannot be accepted. ``str(err)`` is the one-line reason, ``err.code`` its category
+    (one of schemas.REJECT_CODES), so receivers can count rejections by category and log the reason."""
+
+    def __init__(self, reason: str, code: str = "invalid"):
+        reason = " ".join(reason.split())
+        if len(reason) > _MAX_REASON:
+            reason = reason[:_MAX_REASON - 3] + "..."
+        super().__init__(reason)
+        self.reason = reason
+        self.code = code
+
+
+def encode(msg: Envelope) -> bytes:
+    """The wire form of a message: compact UTF-8 JSON with every field present."""
+    payload = msg.__pydantic_serializer__.to_json(msg)
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise MessageError(_oversize(len(payload)), "oversize")
+    return payload
+
+
+def decode(payload: bytes, expected_kind: str | None = None) -> Message:
+    """Parse and validate one received payload; raises MessageError (and nothing else) when it is unacceptable."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        raise MessageError(f"payload must be bytes, not {type(payload).__name__}", "not_json")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise MessageError(_oversize(len(payload)), "oversize")
+    try:
+        msg = MESSAGE_ADAPTER.validate_json(payload)
+    except ValidationError as err:
+        raise _diagnose(bytes(payload), err) from None
+    if expected_kind is not None and msg.kind != expected_kind:
+        raise MessageError(f"expected kind {expected_kind!r}, got {msg.kind!r}", "wrong_key")
+    return msg
+
+
+def _oversize(size: int) -> str:
+    return f"payload is {size} bytes, over the {MAX_PAYLOAD_BYTES}-byte limit"
+
+
+def _diagnose(payload: bytes, err: ValidationError) -> MessageError:
+    """Turn a validation failure into the most useful single reason: the envelope first, then the first bad field."""
+    errors = err.errors(include_url=False, include_input=False)
+    if errors[0]["type"] == "json_invalid":
+        return MessageError(f"not JSON: {errors[0]['ctx'].get('error', errors[0]['msg'])}", "not_json")
+    kind = None
+    try:
+        data = json.loads(payload)
+    except (ValueError, RecursionError):
+        pass  # the two parsers disagree on an edge case: report pydantic's finding below
+    else:
+        if not isinstance(data, dict):
+            return MessageError(f"not a JSON object but {_json_type(data)}", "not_object")
+        if "kind" not in data:
+            return MessageError("missing field 'kind'", "unknown_kind")
+        kind = data["kind"]
+        if not isinstance(kind, str) or kind not in KINDS:
+            return MessageError(f"unknown kind {_short(kind)}; kinds are {', '.join(KINDS)}", "unknown_kind")
+        version = data.get("schema_version")
+        if isinstance(version, int) and not isinstance(version, bool) and version > SCHEMA_VERSION:
+            return MessageError(f"schema_version {version} is newer than supported {SCHEMA_VERSION}",
+                                "unsupported_version")
+    first = errors[0]
+    loc = first["loc"][1:] if first["loc"] and first["loc"][0] == kind else first["loc"]
+    where = _field_path(loc)
+    what = str(first["ctx"]["error"]) if first["type"] == "value_error" else first["msg"]
+    more = len(errors) - 1
+    text = f"invalid {kind or 'message'}: {where + ': ' if where else ''}{what}"
+    return MessageError(text + (f" (and {more} more)" if more else ""), "invalid")
+
+
+def _field_path(loc: tuple) -> str:
+    path = ""
+    for part in loc:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
+    return path
+
+
+def _json_type(value) -> str:
+    return {list: "an array", str: "a string", bool: "a boolean", int: "a number", float: "a number",
+            type(None): "null"}.get(type(value), type(value).__name__)
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def make_rejection(key: str, payload: bytes, error: MessageError, *, market_day: str,
+                   offender: str | None = None, received_at: int | None = None) -> Rejection:
+    """The Rejection the DMO publishes for a refused payload, so the recording keeps it with its reason."""
+    kind = None
+    try:
+        data = json.loads(bytes(payload).decode("utf-8"))
+        if isinstance(data, dict) and isinstance(data.get("kind"), str):
+            kind = data["kind"][:64]
+    except (ValueError, RecursionError):
+        pass
+    return Rejection(sender=DMO, market_day=market_day, key=key[:512], code=error.code, reason=error.reason,
+                     offender=offender, rejected_kind=kind, payload_size=len(payload),
+                     payload_sha256=hashlib.sha256(payload).hexdigest(),
+                     received_at=time.time_ns() if received_at is None else received_at)
