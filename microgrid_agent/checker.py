@@ -304,7 +304,7 @@ def _check_balance_and_grid(f: _Findings, case: Case, a: dict, k: int, p_sch: np
 
 
 def _cost(case: Case, a: dict, up: np.ndarray, down: np.ndarray, mismatch: np.ndarray, penalty: float,
-          weight: float) -> CostBreakdown:
+          weight: float, import_price) -> CostBreakdown:
     """Objective (1): expected generation, curtailment and mismatch energy cost, plus first-stage start-up cost."""
     pr = a["scenarios.probability"]
     generation = weight * float(np.einsum("g,gsn,s->", case.unit_array("cost"), a["dispatch.p_unit"], pr))
@@ -312,7 +312,12 @@ def _cost(case: Case, a: dict, up: np.ndarray, down: np.ndarray, mismatch: np.nd
                     + (case.unit_array("shutdown_cost")[:, None] * down).sum())
     curtailment = weight * case.grid.voll * float(pr @ a["dispatch.load_shed"].sum(axis=1))
     mismatch_cost = 0.0 if math.isinf(penalty) else weight * penalty * float(pr @ mismatch.sum(axis=1))
-    return CostBreakdown(generation=generation, startup=startup, curtailment=curtailment, penalty=mismatch_cost)
+    energy = 0.0
+    if import_price is not None:
+        price = np.repeat(np.asarray(import_price, float), a["dispatch.p_m"].shape[1] // HOURS)
+        energy = weight * float(pr @ (a["dispatch.p_m"] * price).sum(axis=1))
+    return CostBreakdown(generation=generation, startup=startup, curtailment=curtailment, penalty=mismatch_cost,
+                         energy=energy)
 
 
 def _close(x: float, y: float) -> bool:
@@ -320,12 +325,13 @@ def _close(x: float, y: float) -> bool:
 
 
 def check_schedule(case: Case, scenarios: ScenarioSet, schedule: Schedule, p_sch=None, penalty: float | None = None,
-                   tol: float = 1e-5) -> CheckReport:
+                   tol: float = 1e-5, import_price=None) -> CheckReport:
     """Verify every constraint of ``schedule`` in every scenario and recompute its expected cost.
 
     ``p_sch`` (24,) defaults to the case's award, ``penalty`` to the schedule's (``inf`` forbids any positive
     mismatch). Violations beyond ``tol`` (widened to tol x magnitude for balance, energy and state of charge) are
-    reported by equation number; the recomputed objective must match ``schedule.objective``.
+    reported by equation number; the recomputed objective must match ``schedule.objective``. ``import_price``
+    (24,) $/MWh prices P_M, as the bidding model does.
     """
     p_sch = case.grid.p_sch if p_sch is None else p_sch
     penalty = float(schedule.penalty if penalty is None else penalty)
@@ -348,12 +354,12 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: Schedule, p_sch
     _check_loads(f, case, a, k, dt)
     mismatch = _check_balance_and_grid(f, case, a, k, a["p_sch"], penalty)
 
-    cost = _cost(case, a, up, down, mismatch, penalty, weight)
+    cost = _cost(case, a, up, down, mismatch, penalty, weight, import_price)
     objective = cost.total
     if not _close(objective, float(schedule.objective)):
         f.note(f"(1) objective: schedule states {schedule.objective:.10g}, recomputed {objective:.10g} "
                f"(off by {schedule.objective - objective:.6g})")
-    for term, value in cost.as_dict().items():
+    for term, value in {**cost.as_dict(), "energy": cost.energy}.items():
         stated = getattr(schedule.cost, term)
         if not _close(value, float(stated)):
             f.note(f"(1) cost breakdown {term}: schedule states {stated:.10g}, recomputed {value:.10g}")

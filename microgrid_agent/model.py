@@ -31,6 +31,7 @@ class Params:
     penalty: float
     cost_convention: str = "real"
     mismatch: Mismatch = "positive-part"
+    import_price: np.ndarray | None = None  # (24,) $/MWh paid for P_M, for bidding (microgrid_agent/bidding.py)
 
 
 @dataclass
@@ -250,6 +251,8 @@ def _objective(case: Case, scen: ScenarioSet, params: Params, ix: _Index, v: dic
     }
     if np.isfinite(params.penalty):
         terms["penalty"] = cp.sum(cp.multiply(pr * params.penalty, v["dP"]))
+    if params.import_price is not None:
+        terms["energy"] = cp.sum(cp.multiply(pr * np.repeat(params.import_price, ix.K), v["PM"]))
     return terms
 
 
@@ -277,9 +280,14 @@ def _variables(case: Case, scen: ScenarioSet, ix: _Index) -> dict[str, cp.Variab
     return v
 
 
-def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.ndarray] | None = None) -> Model:
-    """Build objective (1) s.t. (2)-(21) for the scenario set; ``fixed`` pins first-stage variables by name
-    (``I``, ``u``, ``v``, ``z``), e.g. to evaluate a given commitment (VSS, brute force)."""
+def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.ndarray] | None = None,
+          pinned: tuple[int, dict[str, np.ndarray]] | None = None) -> Model:
+    """Build objective (1) s.t. (2)-(21) for the scenario set.
+
+    ``fixed`` pins first-stage variables by name (``I``, ``u``, ``v``, ``z``), e.g. to evaluate a given commitment
+    (VSS, brute force). ``pinned = (n0, values)`` pins second-stage variables (``P``, ``Pst``, ``D``...) in the
+    sub-periods before n0 to values of their full shape: the past of a day being operated (realtime.py).
+    """
     ix = _Index(scen.S, scen.subperiods)
     v = _variables(case, scen, ix)
     cons = _units(case, ix, v) + _balance(case, scen, ix, v) + _grid(case, scen, params, ix, v)
@@ -290,6 +298,10 @@ def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.nda
     for name, value in (fixed or {}).items():
         if name in v:
             cons.append(v[name] == np.asarray(value, float).reshape(v[name].shape))
+    if pinned is not None and pinned[0] > 0:
+        n0, values = pinned
+        cons += [v[name][:, :n0] == np.asarray(value, float).reshape(v[name].shape)[:, :n0]
+                 for name, value in values.items() if name in v]
     terms = _objective(case, scen, params, ix, v)
     problem = cp.Problem(cp.Minimize(sum(terms.values())), cons)
     return Model(problem, v, case, scen, params, terms)

@@ -37,14 +37,16 @@ class CostBreakdown:
     startup: float
     curtailment: float
     penalty: float
+    energy: float = 0.0  # grid energy at a given import price: only the bidding model prices it
 
     @property
     def total(self) -> float:
-        return self.generation + self.startup + self.curtailment + self.penalty
+        return self.generation + self.startup + self.curtailment + self.penalty + self.energy
 
     def as_dict(self) -> dict[str, float]:
-        return {"generation": self.generation, "startup": self.startup,
-                "curtailment": self.curtailment, "penalty": self.penalty}
+        out = {"generation": self.generation, "startup": self.startup,
+               "curtailment": self.curtailment, "penalty": self.penalty}
+        return out | ({"energy": self.energy} if self.energy else {})
 
 
 @dataclass(frozen=True)

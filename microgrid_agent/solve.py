@@ -29,11 +29,13 @@ def solve(
     gap: float = 0.005,
     time_limit: float | None = None,
     fixed: dict[str, np.ndarray] | None = None,
+    pinned: tuple[int, dict[str, np.ndarray]] | None = None,
     verbose: bool = False,
 ) -> Schedule:
-    """Solve the extensive form to relative gap ``gap``; the bound is HiGHS's MIP dual bound (valid)."""
+    """Solve the extensive form to relative gap ``gap``; the bound is HiGHS's MIP dual bound (valid).
+    ``fixed`` and ``pinned`` are as in ``model.build``."""
     start = time.perf_counter()
-    model = build(case, scen, params, fixed)
+    model = build(case, scen, params, fixed, pinned)
     options = {"mip_rel_gap": gap}
     if time_limit is not None:
         options["time_limit"] = float(time_limit)
