@@ -69,7 +69,7 @@ def jsonable(obj):
 
 
 def _money(x: float) -> str:
-    return "inf" if math.isinf(x) else f"${x:,.0f}"
+    return "$inf" if math.isinf(x) else f"${x:,.0f}"
 
 
 def render(schedule: Schedule, out: dict) -> str:
