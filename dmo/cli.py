@@ -3,18 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
+import os
 import sys
 
 from scenarios.case import CaseError
 
+from .console import UsageError
+
 EXIT_USAGE = 2
 EXIT_FAILURE = 1
-
-
-class UsageError(Exception):
-    """Bad input from the user: printed as one line, exit 2."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -90,6 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("--verbose", action="store_true", help="show the HiGHS log")
     solve.set_defaults(run="dmo.commands.solve:run")
 
+    _add_market_commands(sub)
+
     from microgrid_agent.studies import STUDIES  # noqa: PLC0415  (the list of studies lives with them)
 
     study = sub.add_parser("study", help="reproduce the paper's Table II and Figures 2-5")
@@ -98,6 +98,83 @@ def build_parser() -> argparse.ArgumentParser:
     study.add_argument("--out", default="out", help="directory for the CSV and PNG files (default: out)")
     study.set_defaults(run="dmo.commands.study:run")
     return parser
+
+
+def market_day(text: str) -> str:
+    import datetime as dt  # noqa: PLC0415
+
+    try:
+        return dt.date.fromisoformat(text).isoformat()
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, got {text!r}") from None
+
+
+def _add_day_flags(p: argparse.ArgumentParser) -> None:
+    """Settings of the day the DMO runs, shared by ``run`` and ``dmo``."""
+    p.add_argument("--case", default="paper", help="case giving the ISO price, penalty and Table I awards (default: paper)")
+    p.add_argument("--market", choices=("bids", "fixed"), default="bids",
+                   help="bids: clear the agents' bids; fixed: award the case's Table I to every agent")
+    p.add_argument("--island-hours", type=hours, default=1, help="hours the feeder is islanded during the day (default: 1)")
+    p.add_argument("--penalty", type=nonneg_float, default=None, help="$/MWh above the award (default: the case's)")
+    p.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the day (islanding, fleet) (default: 0)")
+    p.add_argument("--market-day", type=market_day, default=None, help="the market day, YYYY-MM-DD (default: today)")
+    for name, default, what in (("registration", 60.0, "registration"), ("bid", 600.0, "bids"),
+                                ("schedule", 1800.0, "schedules"), ("hour", 300.0, "each hour's meter reports")):
+        p.add_argument(f"--{name}-timeout", type=nonneg_float, default=default, metavar="S",
+                       help=f"deadline for {what}, seconds (default: {default:g})")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
+
+
+def _add_agent_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenarios", type=positive_int, default=5, help="scenarios of each agent's schedule (default: 5)")
+    p.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of each agent's schedule (default: 0.01)")
+    p.add_argument("--time-limit", type=nonneg_float, default=600.0, help="seconds per agent solve (default: 600)")
+
+
+def _add_market_commands(sub) -> None:
+    from messages.transport import add_bus_arguments  # noqa: PLC0415
+
+    run = sub.add_parser("run", help="a whole market day: the DMO and one process per agent over Zenoh")
+    run.add_argument("--agents", type=positive_int, default=3, help="number of agents mg1..mgN (default: 3)")
+    run.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (overrides --agents)")
+    _add_day_flags(run)
+    _add_agent_flags(run)
+    run.add_argument("--fault", action="append", default=[], metavar="SPEC", help="kill:AGENT:HOUR (repeatable)")
+    run.add_argument("--logs", help="directory for the roles' logs and result (default: a new temporary one)")
+    run.add_argument("--json", action="store_true", help="print one JSON object (SPEC section 4)")
+    run.set_defaults(run="dmo.commands.run:run")
+
+    dmo = sub.add_parser("dmo", help="the market operator role alone (the Zenoh router by default)")
+    dmo.add_argument("--agents", type=positive_int, required=True, help="agents to wait for at registration")
+    dmo.add_argument("--run-id", default="day", help="key prefix shared with the agents (default: day)")
+    _add_day_flags(dmo)
+    dmo.add_argument("--credit", type=nonneg_float, default=0.0, help="$/MWh credited below the award (default: 0)")
+    dmo.add_argument("--import-limit", type=nonneg_float, default=None, help="feeder import limit, MW (default: 8 x agents)")
+    dmo.add_argument("--export-limit", type=nonneg_float, default=None, help="feeder export limit, MW (default: 5 x agents)")
+    dmo.add_argument("--result", help="write the day's JSON result here (default: stdout)")
+    add_bus_arguments(dmo)
+    dmo.set_defaults(run="dmo.commands.roles:run_dmo")
+
+    agent = sub.add_parser("agent", help="one microgrid agent role")
+    agent.add_argument("--id", required=True, help="agent id, e.g. mg1")
+    agent.add_argument("--run-id", default="day", help="key prefix shared with the DMO (default: day)")
+    agent.add_argument("--case", default="paper", help="the microgrid's case (default: paper)")
+    agent.add_argument("--scale", type=nonneg_float, default=1.0, help="size multiplier of the case (default: 1)")
+    agent.add_argument("--shift-hours", type=int, default=0, help="shift of the load and renewable profiles (default: 0)")
+    agent.add_argument("--seed", type=int, default=0, help="seed of the agent's scenarios and realised day")
+    agent.add_argument("--island-hours", type=hours, default=1, help="islanding hours the schedule plans for (default: 1)")
+    agent.add_argument("--market-day", type=market_day, default=None, help="the market day (default: today)")
+    agent.add_argument("--idle-timeout", type=nonneg_float, default=3600.0, help="give up after this long without news")
+    agent.add_argument("--quiet", action="store_true")
+    _add_agent_flags(agent)
+    add_bus_arguments(agent)
+    agent.set_defaults(run="dmo.commands.roles:run_agent")
+
+    router = sub.add_parser("router", help="a standalone Zenoh router for the DMO and agents to connect to")
+    router.add_argument("--quiet", action="store_true")
+    add_bus_arguments(router)
+    router.set_defaults(run="dmo.commands.roles:run_router")
 
 
 def _load(target: str):
@@ -115,14 +192,12 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except RuntimeError as exc:
-        print(f"failed: {exc}", file=sys.stderr)
+    except Exception as exc:  # a runtime failure: one line, unless DMOSIM_DEBUG asks for the traceback
+        if os.environ.get("DMOSIM_DEBUG"):
+            raise
+        detail = str(exc) if isinstance(exc, RuntimeError) else f"{type(exc).__name__}: {exc}"
+        print(f"failed: {detail}", file=sys.stderr)
         return EXIT_FAILURE
-
-
-def print_json(obj) -> None:
-    json.dump(obj, sys.stdout, indent=2, allow_nan=True)
-    sys.stdout.write("\n")
 
 
 if __name__ == "__main__":

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import sys
 
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.instance import Instance, make_instance
@@ -11,7 +10,7 @@ from microgrid_agent.metrics import stochastic_metrics
 from microgrid_agent.schedule import Schedule
 from scenarios.case import load_case
 
-from ..cli import print_json
+from ..console import print_json, progress
 
 
 def instance_from_args(args, **overrides) -> Instance:
@@ -23,10 +22,6 @@ def instance_from_args(args, **overrides) -> Instance:
         penalty=getattr(args, "penalty", None),
     )
     return make_instance(load_case(args.case), **(settings | overrides))
-
-
-def progress(message: str) -> None:
-    print(f"dmosim: {message}", file=sys.stderr, flush=True)
 
 
 def solve_verified(inst: Instance, args, label: str = "") -> Schedule:
@@ -51,21 +46,10 @@ def run(args) -> int:
         progress(f"computing VSS and EVPI ({inst.scen.S + 2} more solves)")
         out["metrics"] = stochastic_metrics(inst, schedule, gap=args.gap, time_limit=args.time_limit).as_dict()
     if args.json:
-        print_json(jsonable(out))
+        print_json(out)
     else:
         print(render(schedule, out))
     return 0
-
-
-def jsonable(obj):
-    """JSON has no infinity: an infinite penalty or bound is written as the string "inf"."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None if math.isnan(obj) else ("inf" if obj > 0 else "-inf")
-    if isinstance(obj, dict):
-        return {k: jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v) for v in obj]
-    return obj
 
 
 def _money(x: float) -> str:

@@ -12,7 +12,7 @@ from microgrid_agent import studies
 from scenarios.case import load_case
 
 from .. import plots
-from ..cli import UsageError
+from ..console import UsageError
 from .solve import instance_from_args, progress, solve_verified
 
 

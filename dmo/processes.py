@@ -1,0 +1,100 @@
+"""Start, watch and always stop the OS processes of one run: every role in its own process group."""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import socket
+import subprocess
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nobody listens on now (the OS picks it; no fixed ports)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_listening(port: int, timeout_s: float, alive) -> None:
+    """Return once something accepts connections on the port; fail if ``alive()`` turns false or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not alive():
+            raise RuntimeError("the DMO exited before it listened")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)  # a connect refused returns at once; this only paces the retries
+    raise RuntimeError(f"nothing listened on port {port} within {timeout_s:g} s")
+
+
+@dataclass
+class Role:
+    name: str
+    process: subprocess.Popen
+    log: Path | None
+    killed_on_purpose: bool = False
+
+
+class Roles:
+    """The processes of one run. As a context manager it stops every process it started, whatever happens.
+
+    ``exits`` is a queue of (name, returncode) filled by one waiter thread per process, so the caller can block
+    on the next exit instead of polling.
+    """
+
+    def __init__(self):
+        self.roles: dict[str, Role] = {}
+        self.exits: queue.Queue = queue.Queue()
+
+    def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None) -> Role:
+        out = open(log, "w") if log else None  # noqa: SIM115  (closed when the process ends)
+        process = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
+                                   stderr=out or None, start_new_session=True, env=env)
+        role = self.roles[name] = Role(name, process, log)
+
+        def waiter():
+            code = process.wait()
+            if out:
+                out.close()
+            self.exits.put((name, code))
+
+        threading.Thread(target=waiter, name=f"wait-{name}", daemon=True).start()
+        return role
+
+    def kill(self, name: str) -> None:
+        """SIGKILL one role (fault injection)."""
+        role = self.roles[name]
+        role.killed_on_purpose = True
+        _signal_group(role.process, signal.SIGKILL)
+
+    def stop_all(self, grace_s: float = 5.0) -> None:
+        running = [r.process for r in self.roles.values() if r.process.poll() is None]
+        for p in running:
+            _signal_group(p, signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for p in running:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                _signal_group(p, signal.SIGKILL)
+                p.wait()
+
+    def __enter__(self) -> Roles:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_all()
+
+
+def _signal_group(process: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(process.pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass

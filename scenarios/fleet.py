@@ -1,0 +1,174 @@
+"""Fleets of heterogeneous microgrids: cases derived from a base case by size and time shift, seeded or from a file.
+
+A fleet file (TOML) lists its agents::
+
+    [[agents]]
+    id = "mg1"            # agent id: ^[A-Za-z][A-Za-z0-9_-]{0,31}$, not "dmo" or "recorder"
+    case = "paper"        # built-in case name, or a case file path relative to the fleet file
+    scale = 1.0           # > 0: every power and energy quantity is multiplied by it (default 1)
+    shift_hours = 0       # -23..23: load, renewable and award profiles rolled by this many hours (default 0)
+    seed = 1              # the agent's realised-day seed (default: its position in the file, 1-based)
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from messages.keys import check_agent_id
+from scenarios.case import Case, CaseError, builtin_cases, load_case, parse_case
+
+SCALE_RANGE = (0.6, 1.4)
+SHIFTS = (-2, -1, 0, 1, 2)
+_FIELDS = ("id", "case", "scale", "shift_hours", "seed")
+
+# Quantities in MW or MWh, by part of the case; costs, times, windows and prices are kept.
+_SCALED = {
+    "units": ("p_min", "p_max", "ramp_up", "ramp_down"),
+    "renewables": ("capacity", "forecast"),
+    "storage": ("c_max", "p_dch_min", "p_dch_max", "p_ch_min", "p_ch_max", "c_initial"),
+    "loads": ("d_min", "d_max", "energy"),
+    "fixed_load": ("forecast",),
+    "grid": ("p_m_max", "p_sch"),
+}
+_SHIFTED = {"renewables": ("forecast",), "fixed_load": ("forecast",), "grid": ("p_sch",)}
+
+
+class FleetError(ValueError):
+    """A fleet file that cannot be used; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class FleetMember:
+    """One agent of a fleet: its id, its base case (built-in name or path), size, time shift and realised-day seed."""
+
+    id: str
+    case: str
+    scale: float = 1.0
+    shift_hours: int = 0
+    seed: int = 0
+
+
+def _transform(data: dict, fields: dict[str, tuple[str, ...]], f) -> None:
+    """Apply f to the named fields of each part of a dumped case, in place (parts may be lists or absent)."""
+    for part, names in fields.items():
+        items = data.get(part)
+        for item in items if isinstance(items, list) else [items] if items else []:
+            for name in names:
+                item[name] = f(item[name])
+
+
+def derive_case(base: Case, scale: float, shift_hours: int, name: str) -> Case:
+    """``base`` with every power and energy quantity times ``scale`` and the fixed load, renewable forecasts and
+    award rolled ``shift_hours`` later (np.roll: the day stays 24 h). Costs, times, load windows, uncertainty
+    bounds and the ISO price are kept. Scale 1 and shift 0 under the base's name give the base itself."""
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        raise CaseError(f"derived case {name}: scale must be a finite number > 0, got {scale!r}")
+    if isinstance(shift_hours, bool) or not isinstance(shift_hours, (int, np.integer)):
+        raise CaseError(f"derived case {name}: shift_hours must be an integer, got {shift_hours!r}")
+    identity = scale == 1 and shift_hours == 0
+    data = base.model_dump()
+    if not identity:
+        _transform(data, _SCALED, lambda x: (np.asarray(x, float) * scale).tolist() if isinstance(x, list) else x * scale)
+        _transform(data, _SHIFTED, lambda x: np.roll(np.asarray(x, float), int(shift_hours)).tolist())
+        data["case"]["provenance"] = {**data["case"]["provenance"],
+                                      "derived": f"{base.name} scaled x{scale:g}, profiles shifted {int(shift_hours):+d} h"}
+    data["case"]["name"] = name
+    return parse_case(data, f"derived case {name}")
+
+
+def member_case(member: FleetMember) -> Case:
+    """The member's case: its base case derived by its scale and shift (the base itself when 1 and 0)."""
+    base = load_case(member.case)
+    if member.scale == 1 and member.shift_hours == 0:
+        return base
+    return derive_case(base, member.scale, member.shift_hours, f"{base.name}-{member.id}")
+
+
+def make_fleet(n: int, seed: int = 0, base: str = "paper") -> list[FleetMember]:
+    """n members mg1..mgN of ``base``: mg1 the base as is, the others scaled by U(0.6, 1.4) and shifted by
+    -2..2 hours. Member i draws from its own stream of ``seed``, so a larger fleet extends a smaller one."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"a fleet needs at least 1 member, got {n!r}")
+    members = []
+    for i in range(1, n + 1):
+        rng = np.random.default_rng([seed, i])
+        scale, shift, day_seed = rng.uniform(*SCALE_RANGE), int(rng.choice(SHIFTS)), int(rng.integers(2**31))
+        if i == 1:
+            scale, shift = 1.0, 0
+        members.append(FleetMember(f"mg{i}", base, round(float(scale), 4), shift, day_seed))
+    return members
+
+
+def _fail(path: Path, where: str, message: str):
+    raise FleetError(f"{path}: {where}: {message}")
+
+
+def _member(path: Path, index: int, entry, seen: set[str]) -> FleetMember:
+    where = f"agents[{index}]"
+    if not isinstance(entry, dict):
+        _fail(path, where, "must be a table ([[agents]])")
+    unknown = sorted(set(entry) - set(_FIELDS))
+    if unknown:
+        _fail(path, f"{where}.{unknown[0]}", f"unknown field (fields: {', '.join(_FIELDS)})")
+    if "id" not in entry:
+        _fail(path, f"{where}.id", "missing field")
+    agent = entry["id"]
+    try:
+        check_agent_id(agent)
+    except ValueError as exc:
+        _fail(path, f"{where}.id", str(exc))
+    if agent in seen:
+        _fail(path, f"{where}.id", f"duplicate agent id {agent!r}")
+    seen.add(agent)
+    where = f"agents[{agent}]"
+    scale = entry.get("scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
+        _fail(path, f"{where}.scale", f"must be a finite number > 0, got {scale!r}")
+    shift = entry.get("shift_hours", 0)
+    if isinstance(shift, bool) or not isinstance(shift, int) or not -23 <= shift <= 23:
+        _fail(path, f"{where}.shift_hours", f"must be an integer in -23..23, got {shift!r}")
+    seed = entry.get("seed", index + 1)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        _fail(path, f"{where}.seed", f"must be an integer >= 0, got {seed!r}")
+    case = entry.get("case", "paper")
+    if not isinstance(case, str) or not case:
+        _fail(path, f"{where}.case", f"must be a case name or path, got {case!r}")
+    if case not in builtin_cases():
+        resolved = path.parent / case
+        if not resolved.is_file():
+            _fail(path, f"{where}.case", f"unknown case {case!r}: not a built-in case "
+                                         f"({', '.join(builtin_cases())}) nor a file at {resolved}")
+        case = str(resolved)
+    member = FleetMember(agent, case, float(scale), shift, seed)
+    try:
+        member_case(member)
+    except CaseError as exc:
+        _fail(path, f"{where}.case", str(exc))
+    return member
+
+
+def load_fleet(path: str | Path) -> list[FleetMember]:
+    """Read and validate a fleet file; any problem raises FleetError with one line naming the file and the field.
+    Each member's case is loaded and derived once here, so a bad case or scale fails now, not mid-run."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise FleetError(f"fleet file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FleetError(f"cannot read fleet file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise FleetError(f"{path}: not valid TOML: {exc}") from None
+    extra = sorted(set(data) - {"agents"})
+    if extra:
+        _fail(path, extra[0], "unknown table or key (a fleet file holds [[agents]] only)")
+    agents = data.get("agents")
+    if not isinstance(agents, list) or not agents:
+        _fail(path, "agents", "missing: list at least one agent as [[agents]]")
+    seen: set[str] = set()
+    return [_member(path, i, entry, seen) for i, entry in enumerate(agents)]
