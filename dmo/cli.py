@@ -97,6 +97,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_instance_flags(study, scenarios=10)
     study.add_argument("--out", default="out", help="directory for the CSV and PNG files (default: out)")
     study.set_defaults(run="dmo.commands.study:run")
+
+    from .bench import BENCHES  # noqa: PLC0415
+
+    bench = sub.add_parser("bench", help="benchmarks: " + ", ".join(sorted(BENCHES)))
+    bench_sub = bench.add_subparsers(dest="bench", required=True, parser_class=_Parser)
+    for name, module in sorted(BENCHES.items()):
+        p = bench_sub.add_parser(name, help=_load(f"{module}:__doc__").splitlines()[0])
+        _load(f"{module}:add_arguments")(p)
+        p.add_argument("--json", action="store_true", help="print one JSON object")
+        p.set_defaults(run="dmo.commands.bench:run", bench_module=module)
     return parser
 
 
