@@ -211,7 +211,9 @@ def _check_units(f: _Findings, case: Case, a: dict, k: int, dt: float) -> tuple[
     first_sub = (np.arange(HOURS * k) % k == 0).astype(float)
     start_allow = p_min * (_subperiods(up, k) * first_sub)[:, None, :]
     stop_allow = p_min * (_subperiods(down, k) * first_sub)[:, None, :]
-    before = np.broadcast_to((case.unit_array("p_min") * initial)[:, None, None], (p.shape[0], p.shape[1], 1))
+    # a unit on at midnight may shut down from its initial output in the first step
+    stop_allow[:, :, 0] = case.unit_array("initial_output")[:, None] * down[:, :1]
+    before = np.broadcast_to(case.unit_array("initial_output")[:, None, None], (p.shape[0], p.shape[1], 1))
     prev = np.concatenate([before, p[:, :, :-1]], axis=2)
     ramp_up = case.unit_array("ramp_up")[:, None, None] * dt
     ramp_down = case.unit_array("ramp_down")[:, None, None] * dt

@@ -88,16 +88,21 @@ def _window(length: int) -> np.ndarray:
     return ((t[None, :] <= t[:, None]) & (t[None, :] > t[:, None] - length)).astype(float)
 
 
-def _transitions(state: cp.Variable, initial: np.ndarray) -> tuple[cp.Expression, list[cp.Constraint]]:
-    """Start-up indicators y_t = max(0, x_t - x_{t-1}) of an hourly 0/1 state, exact for binary x.
+def _transitions(y: cp.Expression, state: cp.Expression, initial: np.ndarray) -> list[cp.Constraint]:
+    """Start indicators y_t = max(0, x_t - x_{t-1}) of an hourly 0/1 state x, exact for binary x.
 
     y >= x_t - x_{t-1}, y <= x_t and y <= 1 - x_{t-1} pin y to the positive part, so no later constraint can
     loosen a ramp or a minimum time by inflating y.
     """
     m = state.shape[0]
     before = cp.hstack([np.asarray(initial, float).reshape(m, 1), state[:, :-1]])
+    return [y >= state - before, y <= state, y <= 1 - before]
+
+
+def _starts(state: cp.Expression, initial: np.ndarray) -> tuple[cp.Variable, list[cp.Constraint]]:
+    """A new start-indicator variable of an hourly state, with its defining constraints."""
     y = cp.Variable(state.shape, bounds=[0, 1])
-    return y, [y >= state - before, y <= state, y <= 1 - before]
+    return y, _transitions(y, state, initial)
 
 
 def _minimum_time(starts: cp.Expression, state: cp.Expression, lengths: np.ndarray) -> list[cp.Constraint]:
@@ -117,117 +122,158 @@ def _minimum_time(starts: cp.Expression, state: cp.Expression, lengths: np.ndarr
     return out
 
 
-def _units(case: Case, ix: _Index, v: dict) -> list[cp.Constraint]:
-    """Dispatchable units: limits (3), ramps (4)-(5), minimum up/down times (6)-(7).
+def _commitment(case: Case, v: dict) -> list[cp.Constraint]:
+    """First stage of the units: start-up/shut-down indicators and minimum up/down times (6)-(7).
 
-    Departures from the printed form (docs/model.md): ramps hold between every pair of consecutive sub-periods,
-    across hour boundaries too, as rates UR dt per sub-period, and allow a start-up (shut-down) to jump from
-    (to) zero through the minimum output in one step; (6)-(7) use start-up/shut-down indicators in the tight
-    linear form instead of counters T^on/T^off.
+    Counters T^on/T^off are replaced by the tight linear form over start-up (y) and shut-down (w) indicators.
     """
-    G = len(case.units)
-    I, P = v["I"], v["P"]
-    p_min, p_max = case.unit_array("p_min"), case.unit_array("p_max")
+    I, y, w = v["I"], v["y"], v["w"]
     initial = case.unit_array("initial_on")
-    y, cons_y = _transitions(I, initial)
-    w, cons_w = _transitions(1 - I, 1 - initial)
-    v["y"], v["w"] = y, w
-    I_n = ix.expand(I, G)
-    p_prev = _previous(np.repeat(p_min * initial, ix.S), P)
-    allowance = cp.multiply(ix.per_row(p_min), ix.at_hour_start(y, G))
-    allowance_down = cp.multiply(ix.per_row(p_min), ix.at_hour_start(w, G))
     return [
-        *cons_y, *cons_w,
-        P >= cp.multiply(ix.per_row(p_min), I_n),  # (3)
-        P <= cp.multiply(ix.per_row(p_max), I_n),  # (3)
-        P - p_prev <= ix.per_row(case.unit_array("ramp_up") * ix.dt) + allowance,  # (4)
-        p_prev - P <= ix.per_row(case.unit_array("ramp_down") * ix.dt) + allowance_down,  # (5)
+        *_transitions(y, I, initial), *_transitions(w, 1 - I, 1 - initial),
         *_minimum_time(y, I, case.unit_array("min_up")),  # (6)
         *_minimum_time(w, 1 - I, case.unit_array("min_down")),  # (7)
     ]
 
 
-def _storage(case: Case, ix: _Index, v: dict) -> list[cp.Constraint]:
-    """Energy storage: power by mode (8)-(9), one mode at a time (10), energy (11)-(12), mode times (13)-(14).
+def _units(case: Case, ix: _Index, v: dict) -> list[cp.Constraint]:
+    """Dispatch of the units: limits (3) and ramps (4)-(5).
 
-    Corrections: (13) binds the charging state v with the minimum charging time MC and (14) the discharging
-    state u with MD (the printed equations swap them); (11) runs continuously across hours from C_initial,
-    and the end-of-day energy is at least C_initial so the day does not borrow from tomorrow.
+    Departures from the printed form (docs/model.md): ramps hold between every pair of consecutive sub-periods,
+    across hour boundaries too, as rates UR dt per sub-period, and allow a start-up (shut-down) to jump from
+    (to) zero through the minimum output in one step.
     """
-    st = case.storage
-    u, vv, Pst, C = v["u"], v["v"], v["Pst"], v["C"]
-    u_n, v_n = ix.expand(cp.reshape(u, (1, HOURS), order="C"), 1), ix.expand(cp.reshape(vv, (1, HOURS), order="C"), 1)
-    us, cons_u = _transitions(cp.reshape(u, (1, HOURS), order="C"), np.zeros(1))
-    vs, cons_v = _transitions(cp.reshape(vv, (1, HOURS), order="C"), np.zeros(1))
-    c_prev = _previous(np.full(ix.S, st.c_initial), C)
+    G = len(case.units)
+    P = v["P"]
+    p_min, p_max = case.unit_array("p_min"), case.unit_array("p_max")
+    I_n = ix.expand(v["I"], G)
+    initial = np.repeat(case.unit_array("initial_output"), ix.S)
+    p_prev = _previous(initial, P)
+    allowance = cp.multiply(ix.per_row(p_min), ix.at_hour_start(v["y"], G))
+    # A shut-down steps from P_min to 0; at midnight, from the output the day starts with (the previous day
+    # could have ramped it down), so every first stage keeps a feasible dispatch.
+    step_down = ix.per_row(p_min)
+    step_down[:, 0] = initial
+    allowance_down = cp.multiply(step_down, ix.at_hour_start(v["w"], G))
     return [
-        *cons_u, *cons_v,
-        Pst <= st.p_dch_max * u_n - st.p_ch_min * v_n,  # (8)
-        Pst >= st.p_dch_min * u_n - st.p_ch_max * v_n,  # (9)
-        u + vv <= 1,  # (10)
-        C == c_prev - Pst * ix.dt,  # (11); (12) is in C's bounds
-        C[:, -1] >= st.c_initial,
-        *_minimum_time(vs, cp.reshape(vv, (1, HOURS), order="C"), np.array([st.min_charge])),  # (13)
-        *_minimum_time(us, cp.reshape(u, (1, HOURS), order="C"), np.array([st.min_discharge])),  # (14)
+        P >= cp.multiply(ix.per_row(p_min), I_n),  # (3)
+        P <= cp.multiply(ix.per_row(p_max), I_n),  # (3)
+        P - p_prev <= ix.per_row(case.unit_array("ramp_up") * ix.dt) + allowance,  # (4)
+        p_prev - P <= ix.per_row(case.unit_array("ramp_down") * ix.dt) + allowance_down,  # (5)
     ]
 
 
+def _row(x: cp.Expression) -> cp.Expression:
+    return cp.reshape(x, (1, HOURS), order="C")
+
+
+def _storage_modes(case: Case, v: dict) -> list[cp.Constraint]:
+    """First stage of the storage: one mode at a time (10) and minimum charging/discharging times (13)-(14).
+
+    Correction: (13) binds the charging state v with the minimum charging time MC and (14) the discharging state
+    u with MD (the printed equations swap them).
+    """
+    st = case.storage
+    u, vv = _row(v["u"]), _row(v["v"])
+    us, cons_u = _starts(u, np.zeros(1))
+    vs, cons_v = _starts(vv, np.zeros(1))
+    return [
+        *cons_u, *cons_v,
+        v["u"] + v["v"] <= 1,  # (10)
+        *_minimum_time(vs, vv, np.array([st.min_charge])),  # (13)
+        *_minimum_time(us, u, np.array([st.min_discharge])),  # (14)
+    ]
+
+
+def _storage(case: Case, ix: _Index, v: dict) -> list[cp.Constraint]:
+    """Dispatch of the storage: power by mode (8)-(9) and stored energy (11)-(12).
+
+    (11) runs continuously across hours from C_initial, and the end-of-day energy is at least C_initial so the
+    day does not borrow from tomorrow.
+    """
+    st = case.storage
+    Pst, C = v["Pst"], v["C"]
+    u_n, v_n = ix.expand(_row(v["u"]), 1), ix.expand(_row(v["v"]), 1)
+    c_prev = _previous(np.full(ix.S, st.c_initial), C)
+    return [
+        Pst <= st.p_dch_max * u_n - st.p_ch_min * v_n,  # (8)
+        Pst >= st.p_dch_min * u_n - st.p_ch_max * v_n,  # (9)
+        C == c_prev - Pst * ix.dt,  # (11); (12) is in C's bounds
+        C[:, -1] >= st.c_initial,
+    ]
+
+
+def _load_states(case: Case, v: dict) -> list[cp.Constraint]:
+    """First stage of the adjustable loads: off outside [alpha_d, beta_d], minimum operating time (17)."""
+    z = v["z"]
+    zs, cons = _starts(z, np.zeros(len(case.loads)))
+    return [*cons, cp.multiply(z, 1 - case.load_windows) == 0, *_minimum_time(zs, z, case.load_array("min_up"))]
+
+
 def _loads(case: Case, ix: _Index, v: dict) -> list[cp.Constraint]:
-    """Adjustable loads: power limits (15), energy within the window (16), minimum operating time (17).
+    """Dispatch of the adjustable loads: power limits (15) and energy within the window (16).
 
     Correction: (16) sums D dt over every sub-period of every hour in [alpha_d, beta_d] (the printed form sums
-    over hours for each sub-period). A load is off outside its window.
+    over hours for each sub-period).
     """
     Dn = len(case.loads)
-    z, Dl = v["z"], v["D"]
-    z_n = ix.expand(z, Dn)
-    zs, cons = _transitions(z, np.zeros(Dn))
+    Dl, z_n = v["D"], ix.expand(v["z"], Dn)
     return [
-        *cons,
-        cp.multiply(z, 1 - case.load_windows) == 0,
         Dl >= cp.multiply(ix.per_row(case.load_array("d_min")), z_n),  # (15)
         Dl <= cp.multiply(ix.per_row(case.load_array("d_max")), z_n),  # (15)
         cp.sum(Dl, axis=1) * ix.dt == np.repeat(case.load_array("energy"), ix.S),  # (16)
-        *_minimum_time(zs, z, case.load_array("min_up")),  # (17)
     ]
 
 
 def _balance(case: Case, scen: ScenarioSet, ix: _Index, v: dict) -> list[cp.Constraint]:
     """Power balance (2) per scenario and sub-period, with renewables as used (availability minus spill).
 
-    Load curtailment LS and renewable spill make every commitment feasible in every scenario.
+    Load curtailment LS and renewable spill make every commitment feasible in every scenario. Scenario data
+    (load, availability) enter only right-hand sides, so they may be cvxpy Parameters (decomposition.py).
     """
     supply = v["PM"] + v["LS"]
     demand = scen.load
+    cons = []
     if case.units:
         supply = supply + ix.total(len(case.units)) @ v["P"]
     if case.renewables:
-        supply = supply + ix.total(len(case.renewables)) @ v["Pr"]
+        R = len(case.renewables)
+        supply = supply + ix.total(R) @ v["Pr"]
+        cons.append(v["Pr"] <= _stacked(scen.renewable, R * ix.S, ix.N))
     if case.storage is not None:
         supply = supply + v["Pst"]
     if case.loads:
         demand = demand + ix.total(len(case.loads)) @ v["D"]
-    return [supply == demand]
+    return [supply == demand, *cons]
+
+
+def _stacked(data, rows: int, n: int):
+    """(M, S, N) scenario data as (M S, N) rows member-major; a Parameter already has that shape."""
+    return data.reshape(rows, n) if isinstance(data, np.ndarray) else data
 
 
 def _grid(case: Case, scen: ScenarioSet, params: Params, ix: _Index, v: dict) -> list[cp.Constraint]:
     """Main grid transfer (18) and its positive mismatch (19)-(21).
 
-    (18) is in P_M's bounds: islanded (U = 0) forces P_M = 0. The positive mismatch is modelled exactly as
+    (18): islanded (U = 0) forces P_M = 0. The positive mismatch is modelled exactly as
     dP+ >= P_M - P^sch, dP+ >= 0 (minimised through its penalty); an infinite penalty becomes P_M <= P^sch
     wherever connected. ``mismatch="big-m"`` keeps the paper's indicator form (20)-(21), corrected so that it
     is exact (docs/model.md), to test that both give the same optimum.
     """
     p_sch = np.tile(np.repeat(params.p_sch, ix.K), (ix.S, 1))
-    PM, dP = v["PM"], v["dP"]
+    PM, dP, U = v["PM"], v["dP"], scen.connected
+    pm_max = case.grid.p_m_max
+    limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
     if np.isinf(params.penalty):
-        return [PM <= np.where(scen.connected > 0, p_sch, case.grid.p_m_max), dP == 0]
+        # P_M <= P^sch where connected (U = 1) and no limit beyond (18) where islanded (U = 0).
+        return [*limits, PM <= pm_max - cp.multiply(pm_max - p_sch, U), dP == 0]
     if params.mismatch == "positive-part":
-        return [dP >= PM - p_sch]
+        return [*limits, dP >= PM - p_sch]
     delta = v["delta"] = cp.Variable(PM.shape, boolean=True)
     M = case.grid.p_m_max + np.abs(p_sch)
     mismatch = PM - p_sch  # (19)
     return [
+        *limits,
         dP <= cp.multiply(M, delta),  # (20), with dP+ >= 0 in its bounds
         mismatch - dP <= cp.multiply(M, 1 - delta),  # (21)
         mismatch - dP >= -cp.multiply(M, 1 - delta),  # (21)
@@ -242,10 +288,10 @@ def _objective(case: Case, scen: ScenarioSet, params: Params, ix: _Index, v: dic
     counted once per transition, as part of F.
     """
     ew = energy_weight(ix.K, params.cost_convention)
-    pr = scen.probability[:, None] * ew
+    pr = np.asarray(scen.probability, float)[:, None] * ew
     terms = {
         "generation": cp.sum(cp.multiply(np.tile(pr, (len(case.units), ix.N)) * ix.per_row(case.unit_array("cost")), v["P"])),
-        "startup": cp.sum(case.unit_array("startup_cost") @ v["y"] + case.unit_array("shutdown_cost") @ v["w"]),
+        "startup": startup_cost(case, v),
         "curtailment": cp.sum(cp.multiply(pr * case.grid.voll, v["LS"])),
         "penalty": cp.Constant(0.0),
     }
@@ -256,28 +302,56 @@ def _objective(case: Case, scen: ScenarioSet, params: Params, ix: _Index, v: dic
     return terms
 
 
-def _variables(case: Case, scen: ScenarioSet, ix: _Index) -> dict[str, cp.Variable]:
-    S, N = scen.S, ix.N
+def startup_cost(case: Case, v: dict) -> cp.Expression:
+    """The first-stage part of F in (1): start-up and shut-down costs, once per transition."""
+    return cp.sum(case.unit_array("startup_cost") @ v["y"] + case.unit_array("shutdown_cost") @ v["w"])
+
+
+def _variables(case: Case, S: int, N: int, first_stage: str = "binary") -> dict[str, cp.Variable]:
+    """The variables of S scenarios; first-stage ones are binary, or ``continuous`` in [0, 1] for a subproblem
+    whose first stage the decomposition fixes through column bounds."""
     G, R, Dn = len(case.units), len(case.renewables), len(case.loads)
-    pm_max = case.grid.p_m_max * scen.connected
+    kind = {"boolean": True} if first_stage == "binary" else {"bounds": [0, 1]}
     v = {
-        "I": cp.Variable((G, HOURS), boolean=True, name="I"),
+        "I": cp.Variable((G, HOURS), name="I", **kind),
+        "y": cp.Variable((G, HOURS), bounds=[0, 1], name="y"),
+        "w": cp.Variable((G, HOURS), bounds=[0, 1], name="w"),
         "P": cp.Variable((G * S, N), name="P"),
-        "PM": cp.Variable((S, N), bounds=[-pm_max, pm_max], name="P_M"),
+        "PM": cp.Variable((S, N), name="P_M"),
         "dP": cp.Variable((S, N), nonneg=True, name="dP_plus"),
         "LS": cp.Variable((S, N), nonneg=True, name="LS"),
     }
     if R:
-        v["Pr"] = cp.Variable((R * S, N), bounds=[0, scen.renewable.reshape(R * S, N)], name="P_r")
+        v["Pr"] = cp.Variable((R * S, N), nonneg=True, name="P_r")
     if case.storage is not None:
-        v["u"] = cp.Variable(HOURS, boolean=True, name="u")
-        v["v"] = cp.Variable(HOURS, boolean=True, name="v")
+        v["u"] = cp.Variable(HOURS, name="u", **kind)
+        v["v"] = cp.Variable(HOURS, name="v", **kind)
         v["Pst"] = cp.Variable((S, N), name="P_st")
         v["C"] = cp.Variable((S, N), bounds=[0, case.storage.c_max], name="C")
     if Dn:
-        v["z"] = cp.Variable((Dn, HOURS), boolean=True, name="z")
+        v["z"] = cp.Variable((Dn, HOURS), name="z", **kind)
         v["D"] = cp.Variable((Dn * S, N), name="D")
     return v
+
+
+def first_stage_constraints(case: Case, v: dict) -> list[cp.Constraint]:
+    """The hourly decisions' own constraints: (6)-(7), (10), (13)-(14), the load windows and (17)."""
+    cons = _commitment(case, v)
+    if case.storage is not None:
+        cons += _storage_modes(case, v)
+    if case.loads:
+        cons += _load_states(case, v)
+    return cons
+
+
+def second_stage_constraints(case: Case, scen, params: Params, ix: _Index, v: dict) -> list[cp.Constraint]:
+    """Per scenario and sub-period: (2)-(5), (8)-(9), (11)-(12), (15)-(16), (18)-(21)."""
+    cons = _units(case, ix, v) + _balance(case, scen, ix, v) + _grid(case, scen, params, ix, v)
+    if case.storage is not None:
+        cons += _storage(case, ix, v)
+    if case.loads:
+        cons += _loads(case, ix, v)
+    return cons
 
 
 def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.ndarray] | None = None,
@@ -289,12 +363,8 @@ def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.nda
     sub-periods before n0 to values of their full shape: the past of a day being operated (realtime.py).
     """
     ix = _Index(scen.S, scen.subperiods)
-    v = _variables(case, scen, ix)
-    cons = _units(case, ix, v) + _balance(case, scen, ix, v) + _grid(case, scen, params, ix, v)
-    if case.storage is not None:
-        cons += _storage(case, ix, v)
-    if case.loads:
-        cons += _loads(case, ix, v)
+    v = _variables(case, scen.S, ix.N)
+    cons = first_stage_constraints(case, v) + second_stage_constraints(case, scen, params, ix, v)
     for name, value in (fixed or {}).items():
         if name in v:
             cons.append(v[name] == np.asarray(value, float).reshape(v[name].shape))

@@ -43,13 +43,25 @@ class Unit(_Frozen):
     startup_cost: NonNeg = 0.0
     shutdown_cost: NonNeg = 0.0
     initial_on: bool = False
+    p_initial: NonNeg | None = None
     provenance: dict[str, str] = {}
 
     @model_validator(mode="after")
     def _limits(self):
         if self.p_min > self.p_max:
             raise ValueError(f"p_min ({self.p_min}) > p_max ({self.p_max})")
+        if self.p_initial is not None and self.initial_on and not self.p_min <= self.p_initial <= self.p_max:
+            raise ValueError(f"p_initial ({self.p_initial}) outside [p_min, p_max] = [{self.p_min}, {self.p_max}]")
+        if self.p_initial and not self.initial_on:
+            raise ValueError(f"p_initial ({self.p_initial}) of a unit that is initially off must be 0")
         return self
+
+    @property
+    def initial_output(self) -> float:
+        """Output before the day starts, from which the first ramp (4)-(5) counts: p_initial, else P_min if on."""
+        if not self.initial_on:
+            return 0.0
+        return self.p_min if self.p_initial is None else self.p_initial
 
 
 class Renewable(_Frozen):

@@ -28,7 +28,7 @@ _FIELDS = ("id", "case", "scale", "shift_hours", "seed")
 
 # Quantities in MW or MWh, by part of the case; costs, times, windows and prices are kept.
 _SCALED = {
-    "units": ("p_min", "p_max", "ramp_up", "ramp_down"),
+    "units": ("p_min", "p_max", "ramp_up", "ramp_down", "p_initial"),
     "renewables": ("capacity", "forecast"),
     "storage": ("c_max", "p_dch_min", "p_dch_max", "p_ch_min", "p_ch_max", "c_initial"),
     "loads": ("d_min", "d_max", "energy"),
@@ -59,7 +59,8 @@ def _transform(data: dict, fields: dict[str, tuple[str, ...]], f) -> None:
         items = data.get(part)
         for item in items if isinstance(items, list) else [items] if items else []:
             for name in names:
-                item[name] = f(item[name])
+                if item.get(name) is not None:  # optional quantities (p_initial) stay unset
+                    item[name] = f(item[name])
 
 
 def derive_case(base: Case, scale: float, shift_hours: int, name: str) -> Case:
