@@ -215,7 +215,8 @@ class Bus:
     def publish_raw(self, key: str, payload: bytes) -> None:
         """Put bytes as they are (replay, fault injection); no stamping, no checks beyond the run prefix."""
         self._own(key)
-        self.session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON)
+        self.session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON,
+                         congestion_control=zenoh.CongestionControl.BLOCK)
 
     def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
         """Wait until someone subscribes to ``key`` (a concrete key), so a first message is not sent into the void."""
@@ -234,7 +235,10 @@ class Bus:
         with self._send_lock:
             publisher = self._publishers.get(key)
             if publisher is None:
-                publisher = self.session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON)
+                publisher = self.session.declare_publisher(
+                    key, encoding=zenoh.Encoding.APPLICATION_JSON,
+                    # never drop under load: a lost meter report would be settled as missing
+                    congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
                 self._publishers[key] = publisher
             return publisher
 
