@@ -83,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("--island-hours", type=hours, default=1, help="islanding hours per scenario (default: 1)")
     solve.add_argument("--transfer-scale", type=nonneg_float, default=1.0, help="multiplier of the award P_sch (default: 1)")
     solve.add_argument("--penalty", type=penalty, default=None, help="$/MWh above the award, or inf (default: the case's)")
+    solve.add_argument("--method", choices=("extensive", "benders"), default="extensive",
+                       help="extensive: one MILP in HiGHS (reference); benders: multi-cut decomposition (docs/solver.md)")
+    solve.add_argument("--workers", type=positive_int, default=2, help="processes for the Benders subproblems (default: 2)")
     solve.add_argument("--metrics", action="store_true", help="also compute VSS and EVPI (solves S + 2 more problems)")
     solve.add_argument("--json", action="store_true", help="print one JSON object (SPEC section 4)")
     solve.add_argument("--verbose", action="store_true", help="show the HiGHS log")
@@ -152,6 +155,10 @@ def _add_market_commands(sub) -> None:
     _add_agent_flags(run)
     run.add_argument("--fault", action="append", default=[], metavar="SPEC", help="kill:AGENT:HOUR (repeatable)")
     run.add_argument("--logs", help="directory for the roles' logs and result (default: a new temporary one)")
+    record = run.add_mutually_exclusive_group()
+    record.add_argument("--record", metavar="PATH", help="the day's MCAP recording (default: LOGS/day.mcap)")
+    record.add_argument("--no-record", action="store_true", help="run without a recorder")
+    run.add_argument("--overwrite", action="store_true", help="replace an existing recording at --record PATH")
     run.add_argument("--json", action="store_true", help="print one JSON object (SPEC section 4)")
     run.set_defaults(run="dmo.commands.run:run")
 
@@ -163,6 +170,9 @@ def _add_market_commands(sub) -> None:
     dmo.add_argument("--import-limit", type=nonneg_float, default=None, help="feeder import limit, MW (default: 8 x agents)")
     dmo.add_argument("--export-limit", type=nonneg_float, default=None, help="feeder export limit, MW (default: 5 x agents)")
     dmo.add_argument("--result", help="write the day's JSON result here (default: stdout)")
+    dmo.add_argument("--await-recorder", type=nonneg_float, default=0.0, metavar="S",
+                     help="wait up to S seconds for a recorder of this run before the first message (default: 0, "
+                          "do not wait)")
     add_bus_arguments(dmo)
     dmo.set_defaults(run="dmo.commands.roles:run_dmo")
 
@@ -181,10 +191,83 @@ def _add_market_commands(sub) -> None:
     add_bus_arguments(agent)
     agent.set_defaults(run="dmo.commands.roles:run_agent")
 
+    _add_recording_commands(sub)
+
     router = sub.add_parser("router", help="a standalone Zenoh router for the DMO and agents to connect to")
     router.add_argument("--quiet", action="store_true")
     add_bus_arguments(router)
     router.set_defaults(run="dmo.commands.roles:run_router")
+
+
+def rate(text: str) -> float:
+    if text.lower() in ("max", "0"):
+        return 0.0
+    value = nonneg_float(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError(f"expected a positive rate or max, got {text!r}")
+    return value
+
+
+def _add_recording_commands(sub) -> None:
+    """record, info, replay and settle: the verbs of rosbag2 and the MCAP tools, on dmosim recordings."""
+    from messages.recording import CHUNK_MESSAGES, FLUSH_INTERVAL_S  # noqa: PLC0415
+    from messages.transport import add_bus_arguments  # noqa: PLC0415
+
+    record = sub.add_parser("record", help="the recorder role: every message of one run into an MCAP file")
+    record.add_argument("--out", required=True, metavar="PATH", help="the MCAP file to write")
+    record.add_argument("--run-id", default="day", help="the run whose prefix is recorded (default: day)")
+    record.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    record.add_argument("--meta", action="append", default=[], metavar="KEY=VALUE",
+                        help="add to the recording's metadata record (repeatable)")
+    record.add_argument("--attach", action="append", default=[], metavar="PATH",
+                        help="store a file (case, fleet) in the recording (repeatable)")
+    record.add_argument("--chunk-messages", type=positive_int, default=CHUNK_MESSAGES,
+                        help=f"close a chunk after this many messages (default: {CHUNK_MESSAGES})")
+    record.add_argument("--flush-interval", type=nonneg_float, default=FLUSH_INTERVAL_S, metavar="S",
+                        help=f"close a chunk at least this often, seconds (default: {FLUSH_INTERVAL_S:g})")
+    record.add_argument("--ready-file", metavar="PATH", help="write this file once the recorder listens")
+    record.add_argument("--quiet", action="store_true")
+    add_bus_arguments(record)
+    record.set_defaults(run="dmo.commands.record:run")
+
+    info = sub.add_parser("info", help="summary of a recording: run, market day, agents, channels, counts")
+    info.add_argument("path", help="an MCAP recording")
+    info.add_argument("--json", action="store_true", help="print one JSON object")
+    info.set_defaults(run="dmo.commands.info:run")
+
+    replay = sub.add_parser("replay", help="republish a recording over Zenoh under a new run prefix")
+    replay.add_argument("path", help="an MCAP recording")
+    replay.add_argument("--rate", type=rate, default=1.0, help="speed-up of the original spacing, or max (default: 1)")
+    replay.add_argument("--topics", action="append", default=[], metavar="PATTERN",
+                        help="only keys matching this pattern, relative to the run prefix, e.g. 'dmo/*' or "
+                             "'agent/*/meter' (* one level, ** any; repeatable)")
+    replay.add_argument("--start-offset", type=nonneg_float, default=0.0, metavar="S",
+                        help="start this many seconds into the recording (default: 0)")
+    replay.add_argument("--loop", action="store_true", help="play again from the start when done, until interrupted")
+    replay.add_argument("--run-id", default=None, help="run prefix to publish under (default: a new run id)")
+    replay.add_argument("--wait-for-subscriber", type=nonneg_float, default=5.0, metavar="S",
+                        help="wait up to S seconds for someone to listen before the first message (default: 5)")
+    replay.add_argument("--as-dmo", action="store_true",
+                        help="play only the DMO's side, paced by a live agent's answers, and settle that agent")
+    replay.add_argument("--agent", help="with --as-dmo: the recorded agent the live agent stands in for "
+                                        "(default: the first awarded one)")
+    replay.add_argument("--timeout", type=nonneg_float, default=600.0, metavar="S",
+                        help="with --as-dmo: how long to wait for each answer of the live agent (default: 600)")
+    replay.add_argument("--record", metavar="PATH", help="with --as-dmo: record the replayed day to this MCAP file")
+    replay.add_argument("--overwrite", action="store_true", help="replace an existing file at --record PATH")
+    replay.add_argument("--json", action="store_true", help="print one JSON object at the end")
+    replay.add_argument("--quiet", action="store_true")
+    add_bus_arguments(replay)
+    replay.set_defaults(run="dmo.commands.replay:run")
+
+    settle = sub.add_parser("settle", help="re-settle a recorded day and compare with its recorded statements")
+    settle.add_argument("path", help="an MCAP recording")
+    settle.add_argument("--penalty", type=nonneg_float, default=None, metavar="C",
+                        help="re-settle under this penalty rate ($/MWh) and print the change per agent")
+    settle.add_argument("--credit", type=nonneg_float, default=None, metavar="C",
+                        help="re-settle under this under-import credit rate ($/MWh)")
+    settle.add_argument("--json", action="store_true", help="print one JSON object")
+    settle.set_defaults(run="dmo.commands.settle:run")
 
 
 def _load(target: str):

@@ -20,7 +20,13 @@ class Instance:
     scen: ScenarioSet
     params: Params
 
-    def solve(self, **options) -> Schedule:
+    def solve(self, method: str = "extensive", workers: int = 2, **options) -> Schedule:
+        """The extensive form (reference) or the Benders decomposition; both certify their gap."""
+        if method == "benders":
+            from .decomposition import solve_decomposed  # noqa: PLC0415
+
+            return solve_decomposed(self.case, self.scen, self.params, workers=workers,
+                                    **{k: v for k, v in options.items() if k in ("gap", "time_limit")})
         return solve(self.case, self.scen, self.params, **options)
 
 

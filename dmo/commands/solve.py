@@ -29,7 +29,9 @@ def solve_verified(inst: Instance, args, label: str = "") -> Schedule:
     s = inst.scen
     progress(f"{label}solving {inst.case.name}: {s.S} scenarios x {s.N} sub-periods, "
              f"penalty {_money(inst.params.penalty)}/MWh, gap {args.gap:g}, time limit {args.time_limit:g} s")
-    schedule = inst.solve(gap=args.gap, time_limit=args.time_limit, verbose=getattr(args, "verbose", False))
+    method = getattr(args, "method", "extensive")
+    extra = {"workers": args.workers} if method == "benders" else {"verbose": getattr(args, "verbose", False)}
+    schedule = inst.solve(method=method, gap=args.gap, time_limit=args.time_limit, **extra)
     report = check_schedule(inst.case, inst.scen, schedule, p_sch=inst.params.p_sch)
     if not report.ok:
         raise RuntimeError(report.summary(5))
