@@ -196,8 +196,12 @@ class MarketDay:
 
     # --- phases --------------------------------------------------------------------------------------------
 
-    def run(self) -> DayResult:
+    def run(self, before_start: Callable[[], None] | None = None) -> DayResult:
+        """Run the day. ``before_start`` is called once the DMO listens and before its first message (to wait
+        for a recorder, so that the recording misses nothing)."""
         self._listen()
+        if before_start is not None:
+            before_start()
         timings = {}
         for phase, step in (("registration", self._registration), ("bidding", self._bidding),
                             ("clearing", self._clearing), ("scheduling", self._scheduling),

@@ -7,8 +7,10 @@ it hears nothing for ``idle_s``.
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +56,8 @@ class MicrogridAgent:
         self.award: Award | None = None
         self.statement: SettlementStatement | None = None
         self.summary: DaySummary | None = None
+        self.compute: list[dict] = []  # per message handled: kind, hour, wall_s, cpu_s (read by dmosim bench day)
+        self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
 
     @property
     def id(self) -> str:
@@ -74,8 +78,20 @@ class MicrogridAgent:
                 msg = self.events.get(timeout=self.config.idle_s)
             except queue.Empty:
                 raise AgentTimeout(f"{self.id}: nothing from the DMO for {self.config.idle_s:g} s") from None
+            started, self._answering = (time.perf_counter(), time.process_time()), None
             self._handle(msg)
+            ended = self._answering or (time.perf_counter(), time.process_time())
+            self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None),
+                                 "wall_s": ended[0] - started[0], "cpu_s": ended[1] - started[1]})
+        # One line, so a benchmark can split the day's wall time into the agents' computation and the rest.
+        log.info("%s compute %s", self.id, json.dumps(self.compute, separators=(",", ":")))
         return self.summary
+
+    def _answer(self, msg) -> None:
+        """Publish the answer to the message being handled. Its computation ends as it goes out: sending it is the
+        protocol's work, and what the handler does afterwards overlaps the DMO's next step."""
+        self._answering = time.perf_counter(), time.process_time()
+        self.bus.publish(msg)
 
     def _handle(self, msg) -> None:
         if msg.market_day != self.market_day:
@@ -96,7 +112,7 @@ class MicrogridAgent:
         curve = bid_curve(self.case, np.asarray(call.iso_price_per_mwh), seed=self.config.seed, gap=self.config.gap)
         hours = tuple(tuple(BidStep(price_per_mwh=float(s.price), quantity_mw=float(s.quantity)) for s in hour)
                       for hour in curve)
-        self.bus.publish(Bid(sender=self.id, market_day=self.market_day, hours=hours))
+        self._answer(Bid(sender=self.id, market_day=self.market_day, hours=hours))
         log.info("%s bid sent", self.id)
 
     def _schedule(self, award: Award) -> None:
@@ -110,7 +126,7 @@ class MicrogridAgent:
         self.operator = Operator(self.case, first_stage_of(schedule), p_sch, award.penalty_per_mwh, k, realised,
                                  forecast_scenario(self.case, k))
         p_m_hourly = (schedule.probability @ schedule.dispatch.p_m).reshape(24, k).mean(axis=1)
-        self.bus.publish(ScheduleMsg(
+        self._answer(ScheduleMsg(
             sender=self.id, market_day=self.market_day, status=schedule.status,
             commitment={n: tuple(int(x) for x in schedule.commitment[n]) for n in schedule.unit_names},
             expected_cost=float(schedule.objective), p_m_expected_mw=tuple(float(x) for x in p_m_hourly),
@@ -122,6 +138,6 @@ class MicrogridAgent:
             log.warning("%s: grid state for hour %d before any award; no report", self.id, grid.hour)
             return
         result = self.operator.operate_hour(grid.hour, grid.connected)
-        self.bus.publish(MeterReport(sender=self.id, market_day=self.market_day, hour=grid.hour,
-                                     subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
-                                     deviation_mw=tuple(float(x) for x in result.deviation)))
+        self._answer(MeterReport(sender=self.id, market_day=self.market_day, hour=grid.hour,
+                                 subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
+                                 deviation_mw=tuple(float(x) for x in result.deviation)))

@@ -136,6 +136,7 @@ def test_dmosim_run_prints_the_summary_and_json(tmp_path):
     assert result["agents"] == ["mg1", "mg2"] and len(result["clearing_prices"]) == 24
     assert set(result["settlement"]["mg1"]) >= {"energy_charge", "deviation_penalty", "total"}
     assert "phase realtime, hour 24/24" in out.stderr
+    assert Path(result["recording"]).samefile(tmp_path / "day.mcap")  # recording is on by default, beside the logs
 
 
 def test_bad_fault_and_fleet_exit_2(tmp_path):

@@ -5,4 +5,7 @@ or as one JSON object with ``--json``. Never timed assertions in tests: figures 
 """
 
 BENCHES = {
+    "day": "dmo.bench.day",
+    "messaging": "dmo.bench.messaging",
+    "recording": "dmo.bench.recording",
 }

@@ -10,7 +10,6 @@ import threading
 from pathlib import Path
 
 from messages.transport import Bus, BusConfig, bus_config_from_args
-from microgrid_agent.agent import AgentConfig, MicrogridAgent
 from scenarios.case import load_case
 from scenarios.fleet import derive_case
 
@@ -52,7 +51,8 @@ def run_dmo(args) -> int:
     config = day_config(args)
     progress = lambda phase, hour: log.info("phase %s%s", phase, f" hour {hour}/24" if hour else "")  # noqa: E731
     with Bus(args.run_id, "dmo", _bus_config(args, "router")) as bus:
-        result = MarketDay(bus, config, progress).run()
+        before_start = (lambda: await_recorder(bus, args.await_recorder)) if args.await_recorder else None
+        result = MarketDay(bus, config, progress).run(before_start)
         bus_stats = bus.stats()
     out = result_object(args.run_id, config, result, bus_stats)
     text = json.dumps(out, indent=2)
@@ -61,6 +61,15 @@ def run_dmo(args) -> int:
     else:
         print(text)
     return 0
+
+
+def await_recorder(bus: Bus, timeout_s: float) -> None:
+    """Block until the run's recorder is present (its token is declared after its subscription, so it listens)."""
+    present = threading.Event()
+    with bus.watch_presence(lambda name: name == "recorder" and present.set(), lambda name: None):
+        if not present.wait(timeout_s):
+            raise RuntimeError(f"no recorder joined run {bus.keys.run_id} within {timeout_s:g} s")
+    log.info("recorder present")
 
 
 def result_object(run_id: str, config: DayConfig, result, bus_stats: dict) -> dict:
@@ -87,6 +96,10 @@ def result_object(run_id: str, config: DayConfig, result, bus_stats: dict) -> di
 
 
 def run_agent(args) -> int:
+    # imported here: the agent's solver stack takes seconds to import, and the other roles (DMO, recorder,
+    # replay) share this module
+    from microgrid_agent.agent import AgentConfig, MicrogridAgent  # noqa: PLC0415
+
     setup_logging(args.id, args.quiet)
     case = derive_case(load_case(args.case), args.scale, args.shift_hours, args.case if args.scale == 1 else f"{args.case}x{args.scale:g}")
     config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,

@@ -1,23 +1,28 @@
-"""``dmosim run``: a whole market day as separate OS processes (the DMO and one per agent) over Zenoh on loopback."""
+"""``dmosim run``: a whole market day as separate OS processes (the DMO, one per agent, the recorder) over Zenoh."""
 
 from __future__ import annotations
 
 import json
 import queue
 import signal
+import subprocess
 import sys
 import tempfile
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
 from messages import Clock
 from messages.keys import new_run_id
+from messages.recording import RecordingError, read_recording
 from messages.transport import Bus, BusConfig
+from scenarios.case import case_path
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
 from ..console import UsageError, print_json, progress
 from ..processes import Roles, free_port, wait_listening
+from .record import check_output
 from .roles import today
 
 
@@ -56,11 +61,17 @@ def run(args) -> int:
     run_id = new_run_id()
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
+    if args.record:
+        recording = check_output(args.record, args.overwrite)  # before anything starts: a bad path is exit 2
     logs = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix=f"dmosim-{run_id}-"))
     logs.mkdir(parents=True, exist_ok=True)
+    if not args.record:
+        recording = None if args.no_record else check_output(str(logs / "day.mcap"), True)
     result_path = logs / "result.json"
-    day = ["--run-id", run_id, "--market-day", args.market_day or today()]
-    _say(args, f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}; logs in {logs}")
+    market_day = args.market_day or today()
+    day = ["--run-id", run_id, "--market-day", market_day]
+    _say(args, f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}; logs in {logs}"
+               + (f"; recording to {recording}" if recording else "; not recording"))
 
     signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
     with Roles() as roles:
@@ -68,26 +79,40 @@ def run(args) -> int:
                                    "--case", args.case, "--market", args.market, "--seed", str(args.seed),
                                    "--island-hours", str(args.island_hours), "--result", str(result_path),
                                    "--subperiods", str(args.subperiods),
+                                   *(["--await-recorder", "60"] if recording else []),
                                    *_opt("--penalty", args.penalty), *_deadlines(args)),
                     log=logs / "dmo.log")
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
-        for m in fleet:
-            roles.start(m.id, _python("agent", *day, "--id", m.id, "--connect", endpoint, "--case", m.case,
-                                      "--scale", repr(m.scale), "--shift-hours", str(m.shift_hours),
-                                      "--seed", str(m.seed), "--scenarios", str(args.scenarios),
-                                      "--island-hours", str(args.island_hours), "--gap", repr(args.gap),
-                                      "--time-limit", repr(args.time_limit), "--lease", "1"),
-                        log=logs / f"{m.id}.log")
         with Bus(run_id, "run", BusConfig(mode="client", connect=(endpoint,)), announce=False) as observer:
-            observer.subscribe(observer.keys.clock(), _watch_clock(args, roles, faults))
+            started = threading.Event()
+            observer.subscribe(observer.keys.clock(), _watch_clock(args, roles, faults, started))
+            if recording:
+                # The DMO waits for the recorder before its first message; the agents start once that message
+                # is out, so the recording has the day from its first message.
+                roles.start("recorder", _python("record", "--out", str(recording), "--run-id", run_id, "--overwrite",
+                                                "--connect", endpoint,
+                                                *_recording_metadata(args, fleet, market_day, logs)),
+                            log=logs / "recorder.log")
+                _wait_until(started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
+            for m in fleet:
+                roles.start(m.id, _python("agent", *day, "--id", m.id, "--connect", endpoint, "--case", m.case,
+                                          "--scale", repr(m.scale), "--shift-hours", str(m.shift_hours),
+                                          "--seed", str(m.seed), "--scenarios", str(args.scenarios),
+                                          "--island-hours", str(args.island_hours), "--gap", repr(args.gap),
+                                          "--time-limit", repr(args.time_limit), "--lease", "1"),
+                            log=logs / f"{m.id}.log")
             failed = _wait_for_day(roles)
+        if recording and not failed:
+            failed = _stop_recorder(roles)
         if failed:
             for name in failed:
                 _say(args, f"{name} failed; its log: {roles.roles[name].log}")
                 _tail(roles.roles[name].log)
             return 1
     result = json.loads(result_path.read_text())
-    result["recording"] = None
+    result["recording"] = str(recording.resolve()) if recording else None
+    if recording:
+        result["recorded"] = _recorded(recording)
     result["logs"] = str(logs)
     result["faults"] = [f"kill:{f.agent}:{f.hour}" for f in faults]
     if args.json:
@@ -95,6 +120,56 @@ def run(args) -> int:
     else:
         print(summary_table(result))
     return 0
+
+
+def _recording_metadata(args, fleet, market_day: str, logs: Path) -> list[str]:
+    """The recorder's --meta and --attach flags: the run's configuration, seed, market day, agents and versions
+    (the recorder adds its own), the case files and the fleet (a fleet file, or the generated fleet as one)."""
+    config = {k: v for k, v in sorted(vars(args).items()) if k not in ("run", "json", "quiet")}
+    meta = {"config": json.dumps(config, sort_keys=True, default=str), "seed": str(args.seed),
+            "market_day": market_day, "agents": ",".join(m.id for m in fleet), "command": "dmosim run"}
+    if args.fleet:
+        fleet_file = Path(args.fleet)
+    else:
+        fleet_file = logs / "fleet.toml"
+        fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
+                                      f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n\n"
+                                      for m in fleet))
+    cases = sorted({str(p) for p in map(case_path, [args.case, *(m.case for m in fleet)]) if p.is_file()})
+    flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
+    return flags + [flag for path in [*cases, str(fleet_file)] for flag in ("--attach", path)]
+
+
+def _wait_until(event: threading.Event, roles: Roles, watched: tuple[str, ...], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not event.wait(0.1):
+        for name in watched:
+            if roles.roles[name].process.poll() is not None:
+                raise RuntimeError(f"{name} exited before {what}; its log: {roles.roles[name].log}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"no sign of {what} within {timeout_s:g} s")
+
+
+def _stop_recorder(roles: Roles) -> list[str]:
+    """SIGTERM the recorder once the day is over: it writes its last chunk, the summary and the footer."""
+    process = roles.roles["recorder"].process
+    time.sleep(0.2)  # what the DMO sent last is still on its way to the recorder
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+    try:
+        code = process.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        return ["recorder"]
+    return [] if code == 0 else ["recorder"]
+
+
+def _recorded(path: Path) -> dict:
+    try:
+        rec = read_recording(path)
+    except RecordingError as exc:
+        return {"error": str(exc)}
+    return {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
+            "complete": rec.complete}
 
 
 def _interrupt(*_):
@@ -105,9 +180,10 @@ def _wait_for_day(roles: Roles) -> list[str]:
     """Block on process exits until the DMO is done and the agents have left; return the names that failed.
 
     An agent that exits non-zero on its own stops the run. One killed on purpose is the DMO's problem: the day
-    goes on and settles it by the missing-data rule.
+    goes on and settles it by the missing-data rule. The recorder runs until it is stopped: any exit of its own
+    is a failure.
     """
-    pending = set(roles.roles)
+    pending = set(roles.roles) - {"recorder"}
     failed = []
     while pending:
         timeout = 60.0 if "dmo" not in pending else None  # once the day is settled, agents get a minute to leave
@@ -116,15 +192,16 @@ def _wait_for_day(roles: Roles) -> list[str]:
         except queue.Empty:
             return failed + sorted(pending)
         pending.discard(name)
-        if code != 0 and not roles.roles[name].killed_on_purpose:
+        if name == "recorder" or (code != 0 and not roles.roles[name].killed_on_purpose):
             return failed + [name]
     return failed
 
 
-def _watch_clock(args, roles: Roles, faults: list[Fault]):
+def _watch_clock(args, roles: Roles, faults: list[Fault], started: threading.Event):
     lock = threading.Lock()
 
     def on_clock(key, msg: Clock, received_at):
+        started.set()
         with lock:
             _say(args, f"phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
             for f in faults:
@@ -163,6 +240,14 @@ def summary_table(result: dict) -> str:
         rows.append(f"{agent:<8}{s['award_mwh']:>11.2f}{s['import_mwh']:>12.2f}{s['deviation_mwh']:>10.3f}"
                     f"{s['energy_charge']:>12,.2f}{s['deviation_penalty']:>11,.2f}{s['total']:>12,.2f}")
     rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {result['islanded_hours'] or 'none'}")
+    recorded = result.get("recorded") or {}
+    if result.get("recording"):
+        rows.append(f"recording: {result['recording']}" + (
+            f" ({recorded['messages']} messages on {recorded['channels']} channels, {recorded['bytes']:,} bytes"
+            f"{'' if recorded['complete'] else ', INCOMPLETE'})" if "messages" in recorded else
+            f" ({recorded.get('error', 'unreadable')})"))
+    else:
+        rows.append("recording: none (--no-record)")
     for incident in result["incidents"]:
         where = incident["phase"] + (f" hour {incident['hour']}" if incident["hour"] else "")
         rows.append(f"incident [{where}] {incident['agent'] or '-'}: {incident['reason']}")

@@ -1,0 +1,169 @@
+"""The wall time of a whole market day as processes, split into the agents' computation and protocol overhead.
+
+For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
+(``phase_s``) and each agent logs, at the end of its day, the wall and CPU time of every message it handled
+(``compute`` line of ``microgrid_agent.agent``). The split is ``split_day``: per step (the call for bids, the award,
+each hour's grid state) the slowest agent's compute time is on the critical path; the day's wall time minus that
+critical path is the overhead (definition in docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+GOAL_PCT = 5.0
+# The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
+STEP_PHASE = {"call_for_bids": "bidding", "award": "scheduling", "grid_state": "realtime"}
+_COMPUTE_LINE = re.compile(r" compute (\[.*\])\s*$")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ..cli import gap, nonneg_float, positive_int  # noqa: PLC0415  (the CLI imports this module)
+
+    parser.add_argument("--agents", type=positive_int, nargs="+", default=[1, 5, 10], metavar="N",
+                        help="fleet sizes, one day each (default: 1 5 10)")
+    parser.add_argument("--scenarios", type=positive_int, default=2, help="scenarios per agent schedule (default: 2)")
+    parser.add_argument("--subperiods", type=positive_int, default=1, help="sub-periods per hour (default: 1)")
+    parser.add_argument("--gap", type=gap, default=0.01,
+                        help="relative MIP gap of the agents' schedules (default: 0.01)")
+    parser.add_argument("--time-limit", type=nonneg_float, default=120.0, help="seconds per agent solve (default: 120)")
+    parser.add_argument("--timeout", type=nonneg_float, default=1800.0,
+                        help="seconds one day may take before the bench stops it (default: 1800)")
+
+
+def run(args) -> dict:
+    cores = os.cpu_count() or 1
+    recording = recording_option()
+    rows, phases, notes = [], [], []
+    for n in args.agents:
+        day = run_day(n, args, recording)
+        split = split_day(day["result"]["phase_s"], day["compute"], cores)
+        incidents = day["result"].get("incidents", [])
+        rows.append({"agents": n, "process_s": day["process_s"], **split["totals"], "incidents": len(incidents)})
+        phases += [{"agents": n, **row} for row in split["phases"]]
+        if incidents:
+            notes.append(f"N={n}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
+                         "every agent answered every step")
+    largest = max(rows, key=lambda r: r["agents"])
+    return {
+        "setup": {"agents": "paper case, fleet of dmosim run (scaled and shifted copies)",
+                  "scenarios": args.scenarios, "subperiods": args.subperiods, "gap": args.gap,
+                  "recording": {None: "none (dmosim run has no recorder yet)", "--no-record": "off (--no-record)",
+                                "--record": "on, to a scratch file"}[recording],
+                  "machine": f"{cores} cores shared with other work: one run per N, noisy; with N > {cores} "
+                             f"the agents share {cores} cores, so their compute times include waiting for a core"},
+        "days": rows,
+        "phases": phases,
+        "goal": {"agents": largest["agents"], "overhead_pct": largest["overhead_pct"], "target_pct": GOAL_PCT,
+                 "met": largest["overhead_pct"] <= GOAL_PCT},
+        **({"notes": "; ".join(notes)} if notes else {}),
+    }
+
+
+def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: int) -> dict:
+    """Split the DMO's phase times into the agents' critical-path computation and overhead.
+
+    ``compute`` is agent -> the entries of its ``compute`` log line ({kind, hour, wall_s, cpu_s}). Per step, the
+    critical path is the largest wall time of any agent; the CPU bound the least wall time the step's CPU work could
+    take on ``cores`` cores: max(largest CPU time, total CPU time / cores), so ``cpu_wait_s`` (critical path minus
+    CPU bound) is time the slowest agents spent waiting for a core, taken by each other or by other work on the
+    machine. Registration (the agents' processes starting and connecting) is reported as ``startup_s``, outside
+    the day.
+    """
+    steps: dict[tuple[str, int | None], list[tuple[float, float]]] = {}
+    for entries in compute.values():
+        for e in entries:
+            if e["kind"] in STEP_PHASE:
+                steps.setdefault((e["kind"], e["hour"]), []).append((e["wall_s"], e["cpu_s"]))
+    per_phase = {phase: [0.0, 0.0] for phase in phase_s}
+    for (kind, _), times in steps.items():
+        wall = max(w for w, _ in times)
+        cpu_bound = max(max(c for _, c in times), sum(c for _, c in times) / cores)
+        per_phase[STEP_PHASE[kind]][0] += wall
+        per_phase[STEP_PHASE[kind]][1] += cpu_bound
+    rows = [{"phase": phase, "wall_s": wall, "compute_s": per_phase[phase][0], "overhead_s": wall - per_phase[phase][0],
+             "cpu_bound_s": per_phase[phase][1]} for phase, wall in phase_s.items() if phase != "registration"]
+    day_s = sum(r["wall_s"] for r in rows)
+    compute_s = sum(r["compute_s"] for r in rows)
+    cpu_bound_s = sum(r["cpu_bound_s"] for r in rows)
+    realtime = next((r for r in rows if r["phase"] == "realtime"), None)
+    totals = {
+        "startup_s": phase_s.get("registration", 0.0),
+        "day_s": day_s,
+        "compute_s": compute_s,
+        "overhead_s": day_s - compute_s,
+        "overhead_pct": 100.0 * (day_s - compute_s) / day_s if day_s else float("nan"),
+        "per_hour_ms": 1000.0 * realtime["overhead_s"] / 24 if realtime else float("nan"),
+        "agent_cpu_s": sum(e["cpu_s"] for entries in compute.values() for e in entries if e["kind"] in STEP_PHASE),
+        "cpu_bound_s": cpu_bound_s,
+        "cpu_wait_s": compute_s - cpu_bound_s,
+    }
+    return {"phases": rows, "totals": totals}
+
+
+def read_compute(log: Path) -> list[dict]:
+    """The entries of the agent's ``compute`` line (the last one, should a log hold several)."""
+    found = None
+    for line in log.read_text(errors="replace").splitlines():
+        match = _COMPUTE_LINE.search(line)
+        if match:
+            found = json.loads(match.group(1))
+    if found is None:
+        raise RuntimeError(f"no compute line in {log}: did the agent finish its day?")
+    return found
+
+
+def recording_option() -> str | None:
+    """``--no-record`` if ``dmosim run`` offers it, else ``--record`` (then sent to a scratch file) if it has that."""
+    text = subprocess.run(_dmosim("run", "--help"), capture_output=True, text=True, env=_env(), check=True).stdout
+    return next((flag for flag in ("--no-record", "--record") if re.search(rf"{flag}\b", text)), None)
+
+
+def run_day(n: int, args, recording: str | None) -> dict:
+    """One ``dmosim run`` of N agents; its result, each agent's compute entries and the command's wall time.
+    Its logs (and recording) go to a scratch directory, removed unless the day fails."""
+    logs = Path(tempfile.mkdtemp(prefix=f"dmosim-bench-day-{n}-"))
+    record = {None: [], "--no-record": ["--no-record"], "--record": ["--record", str(logs / "day.mcap")]}[recording]
+    argv = _dmosim("run", "--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
+                   "--gap", repr(args.gap), "--time-limit", repr(args.time_limit),
+                   "--registration-timeout", "300", "--bid-timeout", "600", "--schedule-timeout", "600",
+                   "--hour-timeout", "120", "--logs", str(logs), "--json", "--quiet", *record)
+    start = time.perf_counter()
+    # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started.
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True, env=_env())
+    try:
+        out, err = process.communicate(timeout=args.timeout)
+    except BaseException:
+        process.terminate()
+        try:
+            process.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.communicate()
+        raise
+    process_s = time.perf_counter() - start
+    if process.returncode != 0:
+        raise RuntimeError(f"dmosim run --agents {n} exited {process.returncode}: {err.strip()[-500:]} (logs: {logs})")
+    result = json.loads(out)
+    compute = {agent: read_compute(logs / f"{agent}.log") for agent in result["agents"]}
+    shutil.rmtree(logs, ignore_errors=True)
+    return {"result": result, "compute": compute, "process_s": process_s}
+
+
+def _dmosim(*args: str) -> list[str]:
+    return [sys.executable, "-m", "dmo.cli", *args]
+
+
+def _env() -> dict:
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
