@@ -3,6 +3,7 @@ returns the expected figures. No timing assertions: the figures themselves belon
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 
@@ -86,3 +87,14 @@ def test_compute_is_read_from_the_agents_log_line(tmp_path):
     (tmp_path / "mg2.log").write_text("01:02:03 mg2 INFO mg2 registered\n")
     with pytest.raises(RuntimeError, match="no compute line"):
         read_compute(tmp_path / "mg2.log")
+
+
+def test_solver_bench_runs_both_routes_and_verifies():
+    from dmo.bench import solver
+
+    args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=0, skip_extensive=False)
+    result = solver.run(args)
+    routes = {r["route"]: r for r in result["rows"]}
+    assert set(routes) == {"benders", "extensive"} and all(r["verified"] for r in routes.values())
+    assert routes["benders"]["bound"] <= routes["extensive"]["objective"] * (1 + 1e-6)
+    assert result["ratios"][0]["scenarios"] == 2

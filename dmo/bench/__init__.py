@@ -8,4 +8,5 @@ BENCHES = {
     "day": "dmo.bench.day",
     "messaging": "dmo.bench.messaging",
     "recording": "dmo.bench.recording",
+    "solver": "dmo.bench.solver",
 }
