@@ -145,6 +145,21 @@ def _add_agent_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--time-limit", type=nonneg_float, default=600.0, help="seconds per agent solve (default: 600)")
 
 
+FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR (SIGKILL the agent when the clock "
+              "reaches HOUR), restart:AGENT:HOUR (SIGKILL it, then start it again: it rejoins; AGENT may be dmo: it "
+              "resumes the day from its journal), and on the messages "
+              "whose key, relative to the run prefix, matches PATTERN (* one level, ** any, e.g. agent/*/meter): "
+              "drop:PATTERN:P, duplicate:PATTERN:P, corrupt:PATTERN:P (each with probability P) and "
+              "delay:PATTERN:SECONDS[:P]; seeded by --seed")
+
+
+def _add_fault_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                   help="message fault on what this process publishes: drop|duplicate|corrupt:PATTERN:P or "
+                        "delay:PATTERN:SECONDS[:P] (repeatable; docs/faults.md)")
+    p.add_argument("--fault-seed", type=int, default=0, help="seed of the fault draws (default: 0)")
+
+
 def _add_market_commands(sub) -> None:
     from messages.transport import add_bus_arguments  # noqa: PLC0415
 
@@ -153,13 +168,18 @@ def _add_market_commands(sub) -> None:
     run.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (overrides --agents)")
     _add_day_flags(run)
     _add_agent_flags(run)
-    run.add_argument("--fault", action="append", default=[], metavar="SPEC", help="kill:AGENT:HOUR (repeatable)")
+    run.add_argument("--fault", action="append", default=[], metavar="SPEC", help=FAULT_HELP)
+    run.add_argument("--check", action="store_true",
+                     help="check the inputs (case, fleet, faults, recording path) and exit without running")
     run.add_argument("--logs", help="directory for the roles' logs and result (default: a new temporary one)")
     record = run.add_mutually_exclusive_group()
     record.add_argument("--record", metavar="PATH", help="the day's MCAP recording (default: LOGS/day.mcap)")
     record.add_argument("--no-record", action="store_true", help="run without a recorder")
     run.add_argument("--overwrite", action="store_true", help="replace an existing recording at --record PATH")
     run.add_argument("--json", action="store_true", help="print one JSON object (SPEC section 4)")
+    run.add_argument("--tls", action="store_true",
+                     help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
+                          "passwords and access control are always on; docs/security.md)")
     run.set_defaults(run="dmo.commands.run:run")
 
     dmo = sub.add_parser("dmo", help="the market operator role alone (the Zenoh router by default)")
@@ -170,9 +190,13 @@ def _add_market_commands(sub) -> None:
     dmo.add_argument("--import-limit", type=nonneg_float, default=None, help="feeder import limit, MW (default: 8 x agents)")
     dmo.add_argument("--export-limit", type=nonneg_float, default=None, help="feeder export limit, MW (default: 5 x agents)")
     dmo.add_argument("--result", help="write the day's JSON result here (default: stdout)")
+    dmo.add_argument("--journal", metavar="PATH",
+                     help="journal the day here; a DMO restarted with the same journal, run id and market day "
+                          "resumes the day from it (docs/faults.md)")
     dmo.add_argument("--await-recorder", type=nonneg_float, default=0.0, metavar="S",
                      help="wait up to S seconds for a recorder of this run before the first message (default: 0, "
                           "do not wait)")
+    _add_fault_flags(dmo)
     add_bus_arguments(dmo)
     dmo.set_defaults(run="dmo.commands.roles:run_dmo")
 
@@ -188,6 +212,7 @@ def _add_market_commands(sub) -> None:
     agent.add_argument("--idle-timeout", type=nonneg_float, default=3600.0, help="give up after this long without news")
     agent.add_argument("--quiet", action="store_true")
     _add_agent_flags(agent)
+    _add_fault_flags(agent)
     add_bus_arguments(agent)
     agent.set_defaults(run="dmo.commands.roles:run_agent")
 
@@ -197,6 +222,26 @@ def _add_market_commands(sub) -> None:
     router.add_argument("--quiet", action="store_true")
     add_bus_arguments(router)
     router.set_defaults(run="dmo.commands.roles:run_router")
+
+    creds = sub.add_parser("credentials", help="passwords, access-control rules and TLS certificates of one run, "
+                                               "for roles on several hosts (docs/security.md)")
+    creds.add_argument("--out", required=True, metavar="DIR", help="directory to create: the router's files, and "
+                                                                   "one bundle DIR/<name>/ per other process")
+    creds.add_argument("--run-id", default="day", help="the run the rules are for (default: day)")
+    creds.add_argument("--agents", type=positive_int, default=3, help="agents mg1..mgN (default: 3)")
+    creds.add_argument("--fleet", help="fleet TOML file naming the agents (overrides --agents)")
+    creds.add_argument("--reader", action="append", default=[], metavar="NAME",
+                       help="a process that may hear everything of the run and publish nothing (repeatable; "
+                            "default: recorder)")
+    creds.add_argument("--tls", action="store_true",
+                       help="also make a CA and certificates: every process must then connect over tls/ endpoints "
+                            "with its own certificate")
+    creds.add_argument("--host", action="append", default=[], metavar="NAME",
+                       help="host name or IP address the router's certificate is valid for (repeatable; default: "
+                            "localhost and 127.0.0.1)")
+    creds.add_argument("--days", type=positive_int, default=30, help="validity of the certificates (default: 30)")
+    creds.add_argument("--overwrite", action="store_true", help="replace what DIR holds")
+    creds.set_defaults(run="dmo.commands.credentials:run")
 
 
 def rate(text: str) -> float:

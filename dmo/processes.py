@@ -40,6 +40,9 @@ class Role:
     process: subprocess.Popen
     log: Path | None
     killed_on_purpose: bool = False
+    argv: tuple[str, ...] = ()
+    env: dict | None = None
+    restarts: int = 0
 
 
 class Roles:
@@ -52,21 +55,36 @@ class Roles:
     def __init__(self):
         self.roles: dict[str, Role] = {}
         self.exits: queue.Queue = queue.Queue()
+        self._replaced: set[int] = set()  # pids of processes restarted on purpose: their exits are not reported
 
     def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None) -> Role:
-        out = open(log, "w") if log else None  # noqa: SIM115  (closed when the process ends)
-        process = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
+        role = self.roles[name] = Role(name, self._spawn(name, argv, log, env, "w"), log, argv=tuple(argv), env=env)
+        return role
+
+    def _spawn(self, name: str, argv, log: Path | None, env: dict | None, mode: str) -> subprocess.Popen:
+        out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
+        process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
                                    stderr=out or None, start_new_session=True, env=env)
-        role = self.roles[name] = Role(name, process, log)
 
         def waiter():
             code = process.wait()
             if out:
                 out.close()
-            self.exits.put((name, code))
+            if process.pid not in self._replaced:
+                self.exits.put((name, code))
 
         threading.Thread(target=waiter, name=f"wait-{name}", daemon=True).start()
-        return role
+        return process
+
+    def restart(self, name: str) -> None:
+        """SIGKILL one role and start it again with the same command line, its log continued (fault injection)."""
+        role = self.roles[name]
+        old = role.process
+        self._replaced.add(old.pid)
+        _signal_group(old, signal.SIGKILL)
+        old.wait()
+        role.restarts += 1
+        role.process = self._spawn(name, role.argv, role.log, role.env, "a")
 
     def kill(self, name: str) -> None:
         """SIGKILL one role (fault injection)."""

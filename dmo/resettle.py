@@ -15,7 +15,7 @@ import hashlib
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 
-from messages import Award, SettlementStatement, encode
+from messages import Award, SettlementStatement, encode, sender_matches_key
 from messages.recording import Recording
 
 from .day import RULES_VERSION, statement_message
@@ -47,9 +47,25 @@ class RecordedDay:
         return next(iter(self.awards.values()))
 
 
+def market_day_of(rec: Recording) -> str | None:
+    """The day the recording is of: as its metadata says (``dmosim run`` writes it), else as the DMO's first clock
+    message says. Messages of other days (anyone on the network may publish them) take no part in its settlement."""
+    if rec.metadata.get("market_day"):
+        return rec.metadata["market_day"]
+    clocks = rec.decoded("clock")
+    return clocks[0][1].market_day if clocks else None
+
+
 def recorded_day(rec: Recording) -> RecordedDay:
+    day = market_day_of(rec)
+
+    def decoded(kind: str) -> list:
+        # as the receivers read them: of this day, and from the key's owner to the key's addressee
+        return [(m, msg) for m, msg in rec.decoded(kind)
+                if (day is None or msg.market_day == day) and sender_matches_key(m.key, msg)]
+
     awards: dict[str, Award] = {}
-    for _, msg in rec.decoded("award"):
+    for _, msg in decoded("award"):
         awards.setdefault(msg.agent, msg)  # the DMO awards each agent once
     if not awards:
         raise ResettleError(f"{rec.path}: no awards recorded" + (f" ({rec.cut_note})" if rec.cut_note else
@@ -65,12 +81,12 @@ def recorded_day(rec: Recording) -> RecordedDay:
 
     refused = _refused(rec)
     caps: dict[str, float] = {}
-    for m, msg in rec.decoded("registration"):
+    for m, msg in decoded("registration"):
         if not _take(refused, m.relative_key, m.payload, msg):
             caps.setdefault(msg.sender, msg.max_import_mw)
     meter: dict[str, dict[int, tuple[float, ...]]] = {a: {} for a in awards}
     left_out = 0
-    for m, msg in rec.decoded("meter_report"):
+    for m, msg in decoded("meter_report"):
         if _take(refused, m.relative_key, m.payload, msg):
             left_out += 1
         elif msg.sender in meter and msg.subperiods == first.subperiods and msg.market_day == first.market_day:
@@ -80,9 +96,9 @@ def recorded_day(rec: Recording) -> RecordedDay:
         raise ResettleError(f"{rec.path}: no registration recorded for {', '.join(missing)}, so no max import to "
                             "settle missing meter data by")
     statements = {}
-    for _, msg in rec.decoded("settlement_statement"):
+    for _, msg in decoded("settlement_statement"):
         statements.setdefault(msg.agent, msg)
-    summaries = rec.decoded("day_summary")
+    summaries = decoded("day_summary")
     totals = {a: t.model_dump() for a, t in summaries[-1][1].totals.items()} if summaries else None
     return RecordedDay(first.market_day, awards, caps, meter, statements, totals, left_out)
 

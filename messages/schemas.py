@@ -62,17 +62,6 @@ class _Frozen(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False,
                               json_schema_serialization_defaults_required=True)
 
-    @model_validator(mode="before")
-    @classmethod
-    def _every_field_on_the_wire(cls, data: Any, info: ValidationInfo) -> Any:
-        # Defaults exist for building messages in Python; a received message states every field, so
-        # a reader never has to guess what the sender's defaults were.
-        if info.mode == "json" and isinstance(data, dict):
-            missing = [name for name in cls.model_fields if name not in data]
-            if missing:
-                raise ValueError(f"missing field {missing[0]!r}")
-        return data
-
 
 def _check_length(values: tuple, subperiods: int, field: str) -> None:
     if len(values) != subperiods:
@@ -88,6 +77,18 @@ class Envelope(_Frozen):
     market_day: MarketDay
     seq: Count = 0
     sent_at: Timestamp = 0
+
+    @model_validator(mode="before")
+    @classmethod
+    def _every_field_on_the_wire(cls, data: Any, info: ValidationInfo) -> Any:
+        # Defaults exist for building messages in Python; a received message states every field, so
+        # a reader never has to guess what the sender's defaults were. Only messages have defaults: the
+        # nested models (steps, lines, totals, incidents) have none, so pydantic already requires theirs.
+        if info.mode == "json" and isinstance(data, dict):
+            missing = [name for name in cls.model_fields if name not in data]
+            if missing:
+                raise ValueError(f"missing field {missing[0]!r}")
+        return data
 
     @model_validator(mode="after")
     def _real_day(self):

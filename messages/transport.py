@@ -26,6 +26,7 @@ import zenoh
 from .codec import MessageError, decode, encode
 from .keys import Keys, check_route, parse_key
 from .schemas import NAME_PATTERN, Envelope, Message
+from .security import add_auth_arguments
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,7 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
     group.add_argument("--lease", type=float, metavar="SECONDS",
                        help="liveliness lease: how soon a frozen process is declared gone (zenoh default 10)")
+    add_auth_arguments(parser)
 
 
 def bus_config_from_args(args: argparse.Namespace) -> BusConfig:
@@ -151,6 +153,8 @@ class Bus:
         self._received = 0
         self._handler_errors = 0
         self._rejected: collections.Counter[str] = collections.Counter()
+        # messages/faults.py: a FaultInjector that drops, delays, duplicates or corrupts what this bus publishes
+        self.faults = None
 
     # --- lifetime ----------------------------------------------------------------------------------------
 
@@ -173,6 +177,8 @@ class Bus:
         if session is None:
             return
         _OPEN.discard(self)
+        if self.faults is not None:
+            self.faults.cancel()
         for subscription in list(self._subscriptions):
             subscription.close()
         with self._send_lock:
@@ -207,7 +213,11 @@ class Bus:
             stamped = msg.model_copy(update={"seq": self._seq, "sent_at": time.time_ns()})
             key = key or self.keys.for_message(stamped)
             check_route(key, stamped, self.keys.run_id)
-            self._publisher(key).put(encode(stamped))
+            payload = encode(stamped)
+            if self.faults is None:
+                self._publisher(key).put(payload)
+            else:
+                self.faults.send(key, payload, lambda k, p: self._publisher(k).put(p))
             self._seq += 1
             self._published += 1
         return stamped

@@ -11,7 +11,7 @@ and load curtailment absorb any surprise), so a day that started feasible stays 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -141,18 +141,39 @@ class Operator:
         if hour != self.next_hour or not 1 <= hour <= HOURS:
             expected = "none: the day is over" if self.next_hour > HOURS else f"hour {self.next_hour}"
             raise ValueError(f"hours must be operated in order 1..{HOURS}: got hour {hour}, expected {expected}")
-        conn = np.asarray(connected)
-        if conn.shape != (self.K,) or not np.all((conn == 0) | (conn == 1)):
-            raise ValueError(f"connected must be {self.K} booleans (one per sub-period), got {connected!r}")
-        n0, n1 = (hour - 1) * self.K, hour * self.K
-        self._connected[n0:n1] = conn.astype(float)
+        return self._operate(hour, hour, [connected])[0]
+
+    def catch_up(self, hour: int, connected: Mapping[int, Sequence[bool]] | None = None) -> tuple[HourResult, ...]:
+        """Operate, in one LP, every hour before ``hour`` not operated yet, so that ``hour`` can be operated next.
+
+        For an agent that missed hours (it restarted, or lost the DMO for a while): the microgrid went on
+        meanwhile, following its plan as well as it could; these hours are not reported, and the DMO settles
+        them by the missing-data rule. ``connected`` gives the connection of any of them that is known (from a
+        grid state received but not operated); the others are taken as grid-connected, as the forecast is.
+        Hours already operated stay as they were; an ``hour`` at or before ``next_hour`` does nothing."""
+        if not 1 <= hour <= HOURS + 1:
+            raise ValueError(f"hour must be 1..{HOURS + 1}, got {hour}")
+        first, last = self.next_hour, hour - 1
+        if last < first:
+            return ()
+        known = connected or {}
+        return self._operate(first, last, [known.get(h, [True] * self.K) for h in range(first, last + 1)])
+
+    def _operate(self, first: int, last: int, connected: list[Sequence[bool]]) -> list[HourResult]:
+        """Hours first..last (each with its K connection values) in one rolling LP; past sub-periods pinned."""
+        n0, n1 = (first - 1) * self.K, last * self.K
+        conns = [np.asarray(c) for c in connected]
+        for conn, c in zip(conns, connected):
+            if conn.shape != (self.K,) or not np.all((conn == 0) | (conn == 1)):
+                raise ValueError(f"connected must be {self.K} booleans (one per sub-period), got {c!r}")
+        self._connected[n0:n1] = np.concatenate(conns).astype(float)
         scen = self._scenario(n1)
         plan = solve(self.case, scen, Params(self.p_sch, self.penalty), gap=1e-9, time_limit=self.time_limit,
                      fixed=self._fixed, pinned=(n0, self._done))
         self._commit(plan.dispatch, n0, n1)
-        result = self._hour_result(hour, n0, n1, plan, scen)
-        self._hours.append(result)
-        return result
+        results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen) for h in range(first, last + 1)]
+        self._hours.extend(results)
+        return results
 
     def _commit(self, d: Dispatch, n0: int, n1: int) -> None:
         """Copy the current hour out of the plan, clipped to the bounds the next LP pins it within."""

@@ -66,7 +66,7 @@ def run(args) -> int:
         raise UsageError(str(exc)) from None
     out = check_output(args.out, args.overwrite)
     meta, attachments = parse_meta(args.meta), read_attachments(args.attach)
-    config = _bus_config(args, "client")
+    config = _bus_config(args, "client", "recorder")
 
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):

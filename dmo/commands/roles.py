@@ -9,6 +9,7 @@ import sys
 import threading
 from pathlib import Path
 
+from messages.security import auth_settings
 from messages.transport import Bus, BusConfig, bus_config_from_args
 from scenarios.case import load_case
 from scenarios.fleet import derive_case
@@ -24,12 +25,20 @@ def setup_logging(role: str, quiet: bool = False) -> None:
                         format=f"%(asctime)s {role} %(levelname)s %(message)s", datefmt="%H:%M:%S")
 
 
-def _bus_config(args, default_mode: str) -> BusConfig:
+def _bus_config(args, default_mode: str, name: str | None = None, run_id: str | None = None) -> BusConfig:
+    """The bus settings of the flags; ``name`` is who a client logs in as by default, and a router with ``run_id``
+    checks that its --auth-dir was made for that run (messages/security.py)."""
     try:
         config = bus_config_from_args(args)
-        return BusConfig(mode=config.mode or default_mode, connect=config.connect, listen=config.listen,
-                         lease_s=config.lease_s, config_file=config.config_file)
-    except ValueError as exc:
+        mode = config.mode or default_mode
+        auth = auth_settings(args, name, router=mode == "router", run_id=run_id,
+                             endpoints=config.listen if mode == "router" else config.connect)
+        if mode == "router" and not auth:
+            log.warning("no --auth-dir: anyone who reaches %s may join and publish anything (trusted networks "
+                        "only; docs/security.md)", ", ".join(config.listen) or "this router")
+        return BusConfig(mode=mode, connect=config.connect, listen=config.listen, lease_s=config.lease_s,
+                         config_file=config.config_file, overrides=config.overrides + auth)
+    except ValueError as exc:  # AuthError is one
         raise UsageError(str(exc)) from None
 
 
@@ -43,17 +52,18 @@ def day_config(args) -> DayConfig:
         subperiods=args.subperiods, islanded_hours=draw_islanding(args.island_hours, args.seed),
         fixed_awards=tuple(case.grid.p_sch) if args.market == "fixed" else None,
         registration_s=args.registration_timeout, bids_s=args.bid_timeout, schedule_s=args.schedule_timeout,
-        hour_s=args.hour_timeout)
+        hour_s=args.hour_timeout, journal=getattr(args, "journal", None))
 
 
 def run_dmo(args) -> int:
     setup_logging("dmo", args.quiet)
     config = day_config(args)
     progress = lambda phase, hour: log.info("phase %s%s", phase, f" hour {hour}/24" if hour else "")  # noqa: E731
-    with Bus(args.run_id, "dmo", _bus_config(args, "router")) as bus:
+    with Bus(args.run_id, "dmo", _bus_config(args, "router", "dmo", args.run_id)) as bus:
+        bus.faults = message_faults(args, bus)
         before_start = (lambda: await_recorder(bus, args.await_recorder)) if args.await_recorder else None
         result = MarketDay(bus, config, progress).run(before_start)
-        bus_stats = bus.stats()
+        bus_stats = bus.stats() | ({"faults_injected": bus.faults.summary()} if bus.faults else {})
     out = result_object(args.run_id, config, result, bus_stats)
     text = json.dumps(out, indent=2)
     if args.result:
@@ -89,7 +99,8 @@ def result_object(run_id: str, config: DayConfig, result, bus_stats: dict) -> di
                        for a, st in result.statements.items()},
         "day_summary": result.summary.as_dict(),
         "expected_cost": {a: m.expected_cost for a, m in s.schedules.items()},
-        "rejected_messages": s.rejected, "transport": bus_stats,
+        "rejected_messages": s.rejected, "rejected_by_code": dict(s.rejected_by_code),
+        "accepted_messages": dict(s.accepted), "transport": bus_stats,
         "incidents": [i.model_dump() for i in s.incidents],
         "phase_s": result.phase_s,
     }
@@ -104,9 +115,23 @@ def run_agent(args) -> int:
     case = derive_case(load_case(args.case), args.scale, args.shift_hours, args.case if args.scale == 1 else f"{args.case}x{args.scale:g}")
     config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,
                          time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout)
-    with Bus(args.run_id, args.id, _bus_config(args, "client")) as bus:
+    with Bus(args.run_id, args.id, _bus_config(args, "client", args.id)) as bus:
+        bus.faults = message_faults(args, bus)
         MicrogridAgent(bus, case, config, args.market_day or today()).run()
     return 0
+
+
+def message_faults(args, bus: Bus):
+    """The FaultInjector of the ``--fault`` message faults (messages/faults.py) for this process's bus, or None."""
+    from messages.faults import FaultSpecError, injector  # noqa: PLC0415
+
+    try:
+        faults = injector(getattr(args, "fault", []), bus.keys.prefix, getattr(args, "fault_seed", 0), bus.name)
+    except FaultSpecError as exc:
+        raise UsageError(f"--fault: {exc}") from None
+    if faults is not None:
+        log.warning("injecting message faults: %s", ", ".join(map(str, faults.faults)))
+    return faults
 
 
 def run_router(args) -> int:

@@ -14,10 +14,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from messages import Clock
+from messages.faults import MESSAGE_FAULTS, FaultSpecError, MessageFault, parse_message_fault
 from messages.keys import new_run_id
 from messages.recording import RecordingError, read_recording
+from messages.security import AuthError, bundle_settings, create_auth_dir
 from messages.transport import Bus, BusConfig
-from scenarios.case import case_path
+from scenarios.case import case_path, load_case
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
 from ..console import UsageError, print_json, progress
@@ -28,20 +30,35 @@ from .roles import today
 
 @dataclass(frozen=True)
 class Fault:
-    """``kill:AGENT:HOUR``: SIGKILL the agent's process when the DMO's clock reaches that hour."""
+    """``kill:AGENT:HOUR``: SIGKILL the agent's process when the DMO's clock reaches that hour; ``restart:AGENT:HOUR``
+    also starts it again at once, with the same command line (it registers again and rejoins the day)."""
 
     agent: str
     hour: int
+    kind: str = "kill"
+
+    def __str__(self) -> str:
+        return f"{self.kind}:{self.agent}:{self.hour}"
 
 
-def parse_fault(text: str) -> Fault:
+PROCESS_FAULTS = ("kill", "restart")
+
+
+def parse_fault(text: str) -> Fault | MessageFault:
+    """A process fault (kill, restart) or a message fault (drop, delay, duplicate, corrupt; messages/faults.py)."""
     kind, _, rest = text.partition(":")
-    if kind != "kill":
-        raise UsageError(f"--fault {text!r}: unknown fault {kind!r} (supported: kill:AGENT:HOUR)")
+    if kind in MESSAGE_FAULTS:
+        try:
+            return parse_message_fault(text)
+        except FaultSpecError as exc:
+            raise UsageError(f"--fault: {exc}") from None
+    if kind not in PROCESS_FAULTS:
+        raise UsageError(f"--fault {text!r}: unknown fault {kind!r} (supported: kill:AGENT:HOUR, restart:AGENT:HOUR, "
+                         "drop|duplicate|corrupt:PATTERN:P, delay:PATTERN:SECONDS[:P])")
     agent, _, hour = rest.partition(":")
     if not agent or not hour.isdigit() or not 1 <= int(hour) <= 24:
-        raise UsageError(f"--fault {text!r}: expected kill:AGENT:HOUR with HOUR in 1..24")
-    return Fault(agent, int(hour))
+        raise UsageError(f"--fault {text!r}: expected {kind}:AGENT:HOUR with HOUR in 1..24")
+    return Fault(agent, int(hour), kind)
 
 
 def _python(*args: str) -> list[str]:
@@ -53,14 +70,28 @@ def run(args) -> int:
         fleet = load_fleet(args.fleet) if args.fleet else make_fleet(args.agents, seed=args.seed)
     except FleetError as exc:
         raise UsageError(str(exc)) from None
-    faults = [parse_fault(f) for f in args.fault]
-    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet})
+    parsed = [parse_fault(f) for f in args.fault]
+    faults = [f for f in parsed if isinstance(f, Fault)]
+    # every role gets the message faults and applies those that match what it publishes
+    message_faults = [flag for f in parsed if isinstance(f, MessageFault) for flag in ("--fault", str(f))]
+    message_faults += ["--fault-seed", str(args.seed)] if message_faults else []
+    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo"})
+    if any(f.agent == "dmo" and f.kind != "restart" for f in faults):
+        raise UsageError("--fault: the DMO can only be restarted (restart:dmo:HOUR), not killed")
     if unknown:
         raise UsageError(f"--fault names unknown agent {unknown[0]} (agents: {', '.join(m.id for m in fleet)})")
+    if args.check:
+        for name in sorted({args.case, *(m.case for m in fleet)}):
+            load_case(name)  # a bad case is a CaseError: one line, exit 2
+        if args.record:
+            check_output(args.record, args.overwrite)
+        print(f"dmosim run: inputs are valid: {len(fleet)} agents ({', '.join(m.id for m in fleet)}), case "
+              f"{args.case}, {len(parsed)} fault(s)")
+        return 0
 
     run_id = new_run_id()
     port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"{'tls' if args.tls else 'tcp'}/127.0.0.1:{port}"
     if args.record:
         recording = check_output(args.record, args.overwrite)  # before anything starts: a bad path is exit 2
     logs = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix=f"dmosim-{run_id}-"))
@@ -68,6 +99,7 @@ def run(args) -> int:
     if not args.record:
         recording = None if args.no_record else check_output(str(logs / "day.mcap"), True)
     result_path = logs / "result.json"
+    auth = _credentials(logs / "auth", run_id, fleet, args.tls)
     market_day = args.market_day or today()
     day = ["--run-id", run_id, "--market-day", market_day]
     _say(args, f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}; logs in {logs}"
@@ -78,19 +110,22 @@ def run(args) -> int:
         roles.start("dmo", _python("dmo", *day, "--listen", endpoint, "--agents", str(len(fleet)),
                                    "--case", args.case, "--market", args.market, "--seed", str(args.seed),
                                    "--island-hours", str(args.island_hours), "--result", str(result_path),
+                                   "--journal", str(logs / "dmo.journal"),
                                    "--subperiods", str(args.subperiods),
                                    *(["--await-recorder", "60"] if recording else []),
-                                   *_opt("--penalty", args.penalty), *_deadlines(args)),
+                                   *_opt("--penalty", args.penalty), *_deadlines(args), "--auth-dir", str(auth),
+                                   *message_faults),
                     log=logs / "dmo.log")
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
-        with Bus(run_id, "run", BusConfig(mode="client", connect=(endpoint,)), announce=False) as observer:
+        observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
+        with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
             started = threading.Event()
             observer.subscribe(observer.keys.clock(), _watch_clock(args, roles, faults, started))
             if recording:
                 # The DMO waits for the recorder before its first message; the agents start once that message
                 # is out, so the recording has the day from its first message.
                 roles.start("recorder", _python("record", "--out", str(recording), "--run-id", run_id, "--overwrite",
-                                                "--connect", endpoint,
+                                                "--connect", endpoint, "--auth-dir", str(auth),
                                                 *_recording_metadata(args, fleet, market_day, logs)),
                             log=logs / "recorder.log")
                 _wait_until(started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
@@ -99,7 +134,8 @@ def run(args) -> int:
                                           "--scale", repr(m.scale), "--shift-hours", str(m.shift_hours),
                                           "--seed", str(m.seed), "--scenarios", str(args.scenarios),
                                           "--island-hours", str(args.island_hours), "--gap", repr(args.gap),
-                                          "--time-limit", repr(args.time_limit), "--lease", "1"),
+                                          "--time-limit", repr(args.time_limit), "--lease", "1",
+                                          "--auth-dir", str(auth), *message_faults),
                             log=logs / f"{m.id}.log")
             failed = _wait_for_day(roles)
         if recording and not failed:
@@ -114,12 +150,26 @@ def run(args) -> int:
     if recording:
         result["recorded"] = _recorded(recording)
     result["logs"] = str(logs)
-    result["faults"] = [f"kill:{f.agent}:{f.hour}" for f in faults]
+    result["faults"] = [str(f) for f in parsed]
+    result["restarts"] = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
     if args.json:
         print_json(result)
     else:
         print(summary_table(result))
     return 0
+
+
+OBSERVER = "run"  # the name this process watches the day's clock under
+
+
+def _credentials(out: Path, run_id: str, fleet, tls: bool) -> Path:
+    """Fresh credentials for every role of this run (messages/security.py), so the default day authenticates each
+    process and the DMO's router enforces its access control with no configuration at all."""
+    try:
+        return create_auth_dir(out, run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
+                               valid_days=2, dmo_client=False, overwrite=True)  # the DMO is the router
+    except AuthError as exc:
+        raise UsageError(f"cannot make the run's credentials: {exc}") from None
 
 
 def _recording_metadata(args, fleet, market_day: str, logs: Path) -> list[str]:
@@ -199,17 +249,32 @@ def _wait_for_day(roles: Roles) -> list[str]:
 
 def _watch_clock(args, roles: Roles, faults: list[Fault], started: threading.Event):
     lock = threading.Lock()
+    fired: set[Fault] = set()
 
     def on_clock(key, msg: Clock, received_at):
         started.set()
         with lock:
             _say(args, f"phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
             for f in faults:
-                if msg.phase == "realtime" and msg.hour == f.hour and not roles.roles[f.agent].killed_on_purpose:
+                if msg.phase != "realtime" or msg.hour != f.hour or f in fired:
+                    continue
+                fired.add(f)
+                if f.kind == "restart" and f.agent == "dmo":
+                    # mid-hour: the agents' answers are on their way when it dies, and must not be lost
+                    _say(args, f"fault: restarting the DMO (SIGKILL, then start again) {DMO_KILL_AFTER_S:g} s into "
+                               f"hour {f.hour}")
+                    threading.Timer(DMO_KILL_AFTER_S, roles.restart, ("dmo",)).start()
+                elif f.kind == "restart":
+                    _say(args, f"fault: restarting {f.agent} (SIGKILL, then start again) at hour {f.hour}")
+                    roles.restart(f.agent)
+                else:
                     _say(args, f"fault: killing {f.agent} (SIGKILL) at hour {f.hour}")
                     roles.kill(f.agent)
 
     return on_clock
+
+
+DMO_KILL_AFTER_S = 0.5
 
 
 def _opt(flag: str, value) -> list[str]:
