@@ -464,15 +464,8 @@ class MarketDay:
         self._bids_due = time.monotonic() + c.bids_s
         self._publish(self._call_for_bids())
 
-        def accept(key, msg):
-            if isinstance(msg, Bid) and msg.sender in s.bids:
-                self._refuse(key, msg, "duplicate", f"second bid from {msg.sender}; the first one stands")
-            elif isinstance(msg, Bid):
-                s.bids[msg.sender] = msg
-            else:
-                self._out_of_phase(key, msg)
-
-        self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid", accept)
+        self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid",
+                   self._first_of_each(Bid, s.bids, "bid"))
 
     def _call_for_bids(self, again: bool = False) -> CallForBids:
         """The day's terms; sent ``again`` (to an agent that comes back), with the time left until bids are due."""
@@ -506,20 +499,25 @@ class MarketDay:
                                          for hour in s.bids[a].hours)) for a in sorted(s.bids)]
             self.clearing = clear(bids, c.iso_price, c.import_limit, c.export_limit, agents=agents)
 
+    def _first_of_each(self, kind, store: dict, what: str):
+        """Accept the first ``kind`` message of each agent into ``store``; refuse repeats and other kinds."""
+
+        def accept(key, msg):
+            if not isinstance(msg, kind):
+                self._out_of_phase(key, msg)
+            elif msg.sender in store:
+                self._refuse(key, msg, "duplicate", f"second {what} from {msg.sender}; the first one stands")
+            else:
+                store[msg.sender] = msg
+
+        return accept
+
     def _scheduling(self):
         s, c = self.state, self.config
         self._clock("scheduling", c.schedule_s)
 
-        def accept(key, msg):
-            if isinstance(msg, Schedule) and msg.sender in s.schedules:
-                self._refuse(key, msg, "duplicate", f"second schedule from {msg.sender}")
-            elif isinstance(msg, Schedule):
-                s.schedules[msg.sender] = msg
-            else:
-                self._out_of_phase(key, msg)
-
         self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in s.live() if a not in s.schedules],
-                   "schedule", accept)
+                   "schedule", self._first_of_each(Schedule, s.schedules, "schedule"))
 
     def _realtime(self):
         s, c = self.state, self.config
