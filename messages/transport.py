@@ -46,6 +46,9 @@ class BusConfig:
     ``lease_s`` is the lease this process announces: the others declare it gone once it has been silent
     (frozen) that long. A killed or closed process is seen gone within milliseconds whatever the lease.
 
+    ``connect_timeout_s`` is how long opening waits for a ``connect`` endpoint to answer, retrying, so an agent
+    may be started before its DMO or router; past it, opening fails (a client's Zenoh default is to fail at once).
+
     With explicit endpoints, multicast scouting is off and the scouting delay 0: the process connects where
     it is told at once and never meets a stranger's run.
     """
@@ -54,6 +57,7 @@ class BusConfig:
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
     lease_s: float | None = None
+    connect_timeout_s: float | None = None
     config_file: str | None = None
     overrides: tuple[tuple[str, str], ...] = field(default_factory=tuple)
 
@@ -67,6 +71,8 @@ class BusConfig:
             raise ValueError(f"mode must be one of {', '.join(MODES)}, not {self.mode!r}")
         if self.lease_s is not None and not 0.05 <= self.lease_s <= 3600:
             raise ValueError(f"lease_s must be between 0.05 and 3600 seconds, not {self.lease_s}")
+        if self.connect_timeout_s is not None and not 0 <= self.connect_timeout_s <= 86400:
+            raise ValueError(f"connect_timeout_s must be between 0 and 86400 seconds, not {self.connect_timeout_s}")
 
     def to_zenoh(self) -> zenoh.Config:
         config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
@@ -82,6 +88,8 @@ class BusConfig:
         if self.lease_s is not None:
             # A killed peer is noticed when its link closes; a frozen one only when its lease expires.
             settings.append(("transport/link/tx/lease", str(round(self.lease_s * 1000))))
+        if self.connect and self.connect_timeout_s is not None:
+            settings.append(("connect/timeout_ms", str(round(self.connect_timeout_s * 1000))))
         for key, value in settings + list(self.overrides):
             try:
                 config.insert_json5(key, value)
@@ -101,12 +109,15 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
     group.add_argument("--lease", type=float, metavar="SECONDS",
                        help="liveliness lease: how soon a frozen process is declared gone (zenoh default 10)")
+    group.add_argument("--connect-timeout", type=float, default=60.0, metavar="SECONDS",
+                       help="how long to keep trying the --connect endpoints before giving up (default 60), "
+                            "so a process may start before the one it connects to")
     add_auth_arguments(parser)
 
 
 def bus_config_from_args(args: argparse.Namespace) -> BusConfig:
     return BusConfig(mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-                     lease_s=args.lease, config_file=args.zenoh_config)
+                     lease_s=args.lease, connect_timeout_s=args.connect_timeout, config_file=args.zenoh_config)
 
 
 class Subscription:
@@ -161,7 +172,17 @@ class Bus:
     def open(self) -> Bus:
         if self._session is not None:
             return self
-        self._session = zenoh.open(self.config.to_zenoh())
+        if self.config.connect:
+            log.info("connecting to %s%s", ", ".join(self.config.connect), "" if self.config.connect_timeout_s is None
+                     else f" (waiting up to {self.config.connect_timeout_s:g} s for an answer)")
+        try:
+            self._session = zenoh.open(self.config.to_zenoh())
+        except zenoh.ZError as err:
+            if self.config.connect and "Unable to connect" in str(err):
+                waited = "" if self.config.connect_timeout_s is None else f" within {self.config.connect_timeout_s:g} s"
+                raise ConnectionError(f"nobody answered at {', '.join(self.config.connect)}{waited}: is the DMO "
+                                      "(or router) running and listening there?") from None
+            raise
         _OPEN.add(self)
         try:
             if self._announce:

@@ -11,17 +11,15 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import re
 import secrets
 import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
-from dmo.processes import Roles
+from dmo.processes import Roles, wait_for_line
 from messages.keys import new_run_id
 from test_market_day import DAY, DEADLINES, ENV, TINY
 
@@ -69,18 +67,6 @@ def hosts(agents: tuple[str, ...]):
 
 def in_ns(ns: str, *args: str) -> list[str]:
     return ["ip", "netns", "exec", ns, sys.executable, "-m", "dmo.cli", *args]
-
-
-def wait_for_line(path: Path, pattern: str, timeout_s: float, alive) -> re.Match:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        text = path.read_text() if path.exists() else ""
-        found = re.search(pattern, text)
-        if found:
-            return found
-        assert alive(), f"the process logging to {path.name} exited:\n{text[-3000:]}"
-        time.sleep(0.05)
-    raise AssertionError(f"no {pattern!r} in {path} within {timeout_s:g} s:\n{text[-3000:]}")
 
 
 def test_an_agent_cut_off_mid_day_comes_back_and_the_day_completes_across_hosts(tmp_path):

@@ -27,7 +27,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 
 from dmo.bench.recording import synthetic_day
-from dmo.processes import Roles, free_port
+from dmo.processes import Roles, free_port, wait_for_line
 from messages import SCHEMA_VERSION, Bus, BusConfig, decode
 from messages.keys import new_run_id
 from messages.recording import (INVALID_KEY, RecordingWriter, content_signature, read_recording)
@@ -451,15 +451,17 @@ def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path)
     run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
     out_path, recording = tmp_path / "as_dmo.json", tmp_path / "as_dmo.mcap"
     with Roles() as roles, open(out_path, "w") as out:
+        # the agent starts first, as a user may: it keeps trying to connect until the DMO's side listens
+        log = tmp_path / "mg2.log"
+        roles.start("mg2", argv("agent", "--id", "mg2", "--run-id", run_id, "--market-day", DAY, "--connect", endpoint,
+                                "--seed", seed, "--scale", scale, "--shift-hours", shift, "--scenarios", "1", "--gap",
+                                "0.05", "--time-limit", "60"), log=log, env=ENV)
+        wait_for_line(log, "connecting to", 60, lambda: roles.roles["mg2"].process.poll() is None)
         player = subprocess.Popen(argv("replay", str(day[0]), "--as-dmo", "--agent", "mg2", "--run-id", run_id,
                                        "--listen", endpoint, "--record", str(recording), "--timeout", "120", "--json"),
                                   stdout=out, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
                                   start_new_session=True)
         try:
-            roles.start("mg2", argv("agent", "--id", "mg2", "--run-id", run_id, "--market-day", DAY, "--connect",
-                                    endpoint, "--seed", seed, "--scale", scale, "--shift-hours", shift,
-                                    "--scenarios", "1", "--gap", "0.05", "--time-limit", "60"),
-                        log=tmp_path / "mg2.log", env=ENV)
             _, err = player.communicate(timeout=600)
         finally:
             if player.poll() is None:

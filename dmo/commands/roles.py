@@ -37,6 +37,7 @@ def _bus_config(args, default_mode: str, name: str | None = None, run_id: str | 
             log.warning("no --auth-dir: anyone who reaches %s may join and publish anything (trusted networks "
                         "only; docs/security.md)", ", ".join(config.listen) or "this router")
         return BusConfig(mode=mode, connect=config.connect, listen=config.listen, lease_s=config.lease_s,
+                         connect_timeout_s=config.connect_timeout_s,
                          config_file=config.config_file, overrides=config.overrides + auth)
     except ValueError as exc:  # AuthError is one
         raise UsageError(str(exc)) from None
