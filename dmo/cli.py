@@ -9,6 +9,7 @@ import sys
 
 from scenarios.case import CaseError
 
+from .bench import BENCHES
 from .console import UsageError
 
 EXIT_USAGE = 2
@@ -74,7 +75,8 @@ def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
                    help="real: energy costs x dt; paper: objective (1) as printed, no dt (see docs/model.md)")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole parser, or with ``command`` one whose other heavy sub-commands have no flags (a faster start)."""
     parser = _Parser(prog="dmosim", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
@@ -92,25 +94,32 @@ def build_parser() -> argparse.ArgumentParser:
     solve.set_defaults(run="dmo.commands.solve:run")
 
     _add_market_commands(sub)
+    # study and bench import the solver stack (seconds): their flags are built only when they are the command
+    study = sub.add_parser("study", help="reproduce the paper's Table II and Figures 2-5")
+    if command in (None, "study"):
+        _add_study_flags(study)
+    bench = sub.add_parser("bench", help="benchmarks: " + ", ".join(sorted(BENCHES)))
+    if command in (None, "bench"):
+        _add_bench_commands(bench)
+    return parser
 
+
+def _add_study_flags(study: argparse.ArgumentParser) -> None:
     from microgrid_agent.studies import STUDIES  # noqa: PLC0415  (the list of studies lives with them)
 
-    study = sub.add_parser("study", help="reproduce the paper's Table II and Figures 2-5")
     study.add_argument("name", choices=sorted(STUDIES), help="which result")
     add_instance_flags(study, scenarios=10)
     study.add_argument("--out", default="out", help="directory for the CSV and PNG files (default: out)")
     study.set_defaults(run="dmo.commands.study:run")
 
-    from .bench import BENCHES  # noqa: PLC0415
 
-    bench = sub.add_parser("bench", help="benchmarks: " + ", ".join(sorted(BENCHES)))
+def _add_bench_commands(bench: argparse.ArgumentParser) -> None:
     bench_sub = bench.add_subparsers(dest="bench", required=True, parser_class=_Parser)
     for name, module in sorted(BENCHES.items()):
         p = bench_sub.add_parser(name, help=_load(f"{module}:__doc__").splitlines()[0])
         _load(f"{module}:add_arguments")(p)
         p.add_argument("--json", action="store_true", help="print one JSON object")
         p.set_defaults(run="dmo.commands.bench:run", bench_module=module)
-    return parser
 
 
 def market_day(text: str) -> str:
@@ -322,7 +331,8 @@ def _load(target: str):
 
 def main(argv: list[str] | None = None) -> int:
     try:
-        args = build_parser().parse_args(argv)
+        argv = sys.argv[1:] if argv is None else argv
+        args = build_parser(argv[0] if argv and not argv[0].startswith("-") else None).parse_args(argv)
         return _load(args.run)(args) or 0
     except (UsageError, CaseError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -180,8 +180,8 @@ class Bus:
         except zenoh.ZError as err:
             if self.config.connect and "Unable to connect" in str(err):
                 waited = "" if self.config.connect_timeout_s is None else f" within {self.config.connect_timeout_s:g} s"
-                raise ConnectionError(f"nobody answered at {', '.join(self.config.connect)}{waited}: is the DMO "
-                                      "(or router) running and listening there?") from None
+                raise ConnectionError(f"could not connect to {', '.join(self.config.connect)}{waited}: nobody "
+                                      "listens there, or it refused us (credentials, TLS certificate)") from None
             raise
         _OPEN.add(self)
         try:

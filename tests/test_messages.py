@@ -285,4 +285,7 @@ def test_bus_config():
     parser = argparse.ArgumentParser()
     add_bus_arguments(parser)
     args = parser.parse_args(["--mode", "router", "--listen", "tcp/127.0.0.1:0", "--lease", "2"])
-    assert bus_config_from_args(args) == BusConfig(mode="router", listen=("tcp/127.0.0.1:0",), lease_s=2.0)
+    assert bus_config_from_args(args) == BusConfig(mode="router", listen=("tcp/127.0.0.1:0",), lease_s=2.0,
+                                                   connect_timeout_s=60.0)
+    args = parser.parse_args(["--connect", "tcp/127.0.0.1:7447", "--connect-timeout", "2.5"])
+    assert json.loads(bus_config_from_args(args).to_zenoh().get_json("connect/timeout_ms")) == 2500
