@@ -39,7 +39,9 @@ ACL_FILE = "access_control.json"
 PASSWORD_FILE = "password"
 CA_FILE, CERT_FILE, KEY_FILE = "ca.pem", "cert.pem", "key.pem"
 READERS = ("recorder",)              # processes that may hear everything of the run and say nothing
-PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "summary")  # what the DMO says to every agent
+# What the DMO says to every agent. A rejection carries the key, code and reason of a refused message (never its
+# payload); it is public so an agent learns why its own message was refused, e.g. a refused rejoin.
+PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "summary", "rejected")
 AGENT_TOPICS = ("register", "bid", "schedule", "meter")        # what an agent says, each on agent/<id>/<topic>
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")
 
