@@ -7,6 +7,7 @@ import math
 import os
 import sys
 
+from microgrid_agent.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.case import CaseError
 
 from .bench import BENCHES
@@ -73,6 +74,16 @@ def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
     p.add_argument("--time-limit", type=nonneg_float, default=900.0, help="seconds per solve (default: 900)")
     p.add_argument("--cost-convention", choices=("real", "paper"), default="real",
                    help="real: energy costs x dt; paper: objective (1) as printed, no dt (see docs/model.md)")
+    add_method_flags(p, workers=2)
+
+
+def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
+    """How a stochastic schedule is solved, shared by ``solve``, ``study``, ``run`` and ``agent``."""
+    p.add_argument("--method", choices=METHODS, default="auto",
+                   help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
+                        f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
+    p.add_argument("--workers", type=positive_int, default=workers,
+                   help=f"processes for the Benders subproblems (default: {workers})")
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -85,9 +96,6 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     solve.add_argument("--island-hours", type=hours, default=1, help="islanding hours per scenario (default: 1)")
     solve.add_argument("--transfer-scale", type=nonneg_float, default=1.0, help="multiplier of the award P_sch (default: 1)")
     solve.add_argument("--penalty", type=penalty, default=None, help="$/MWh above the award, or inf (default: the case's)")
-    solve.add_argument("--method", choices=("extensive", "benders"), default="extensive",
-                       help="extensive: one MILP in HiGHS (reference); benders: multi-cut decomposition (docs/solver.md)")
-    solve.add_argument("--workers", type=positive_int, default=2, help="processes for the Benders subproblems (default: 2)")
     solve.add_argument("--metrics", action="store_true", help="also compute VSS and EVPI (solves S + 2 more problems)")
     solve.add_argument("--json", action="store_true", help="print one JSON object (SPEC section 4)")
     solve.add_argument("--verbose", action="store_true", help="show the HiGHS log")
@@ -152,6 +160,7 @@ def _add_agent_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenarios", type=positive_int, default=5, help="scenarios of each agent's schedule (default: 5)")
     p.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of each agent's schedule (default: 0.01)")
     p.add_argument("--time-limit", type=nonneg_float, default=600.0, help="seconds per agent solve (default: 600)")
+    add_method_flags(p, workers=1)  # the agents of one machine share its cores
 
 
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR (SIGKILL the agent when the clock "

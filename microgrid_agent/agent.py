@@ -23,26 +23,26 @@ from dataclasses import dataclass
 import numpy as np
 
 from messages import (DMO, Award, Bid, BidStep, CallForBids, Clock, DaySummary, GridState, MeterReport, Registration,
-                      Rejection, encode)
+                      Rejection, SettlementStatement, encode)
 from messages import Schedule as ScheduleMsg
-from messages import SettlementStatement
 from messages.transport import Bus
 from scenarios.case import Case
 from scenarios.generation import make_scenarios, sample
 
 from .bidding import bid_curve, forecast_scenario
+from .instance import Instance
 from .metrics import first_stage_of
 from .model import Params
 from .realtime import Operator
-from .solve import solve
 
 log = logging.getLogger("dmosim.agent")
 
 
 @dataclass(frozen=True)
 class AgentConfig:
-    """How the agent schedules: scenarios of its stochastic model, islanding hours it plans for, solver gap and
-    time limit, and the seed of its own scenarios (``seed``) and of the day it will actually live (``seed + 1000``)."""
+    """How the agent schedules: scenarios of its stochastic model, islanding hours it plans for, solver gap, time
+    limit, route (microgrid_agent/routes.py) and Benders workers, and the seed of its own scenarios (``seed``) and of
+    the day it will actually live (``seed + 1000``)."""
 
     scenarios: int = 5
     island_hours: int = 1
@@ -50,6 +50,8 @@ class AgentConfig:
     time_limit: float = 600.0
     seed: int = 0
     idle_s: float = 3600.0
+    method: str = "auto"
+    workers: int = 1
 
 
 class AgentTimeout(RuntimeError):
@@ -170,7 +172,8 @@ class MicrogridAgent:
         c, k = self.config, award.subperiods
         scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=c.seed)
         p_sch = np.asarray(award.p_sch_mw, float)
-        schedule = solve(self.case, scen, Params(p_sch, award.penalty_per_mwh), gap=c.gap, time_limit=c.time_limit)
+        schedule = Instance(self.case, scen, Params(p_sch, award.penalty_per_mwh)).solve(
+            method=c.method, workers=c.workers, gap=c.gap, time_limit=c.time_limit)
         realised = sample(self.case, 1, k, island_hours=0, seed=c.seed + 1000)
         self.operator = Operator(self.case, first_stage_of(schedule), p_sch, award.penalty_per_mwh, k, realised,
                                  forecast_scenario(self.case, k))

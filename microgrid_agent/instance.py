@@ -10,6 +10,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet, make_scenarios
 
 from .model import Params
+from .routes import resolve_method
 from .schedule import Schedule
 from .solve import solve
 
@@ -21,8 +22,9 @@ class Instance:
     params: Params
 
     def solve(self, method: str = "extensive", workers: int = 2, **options) -> Schedule:
-        """The extensive form (reference) or the Benders decomposition; both certify their gap."""
-        if method == "benders":
+        """The extensive form (reference) or the Benders decomposition (or "auto": by scenario count); both
+        certify their gap."""
+        if resolve_method(method, self.scen.S) == "benders":
             from .decomposition import solve_decomposed  # noqa: PLC0415
 
             return solve_decomposed(self.case, self.scen, self.params, workers=workers,

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from microgrid_agent.routes import AUTO_BENDERS_SCENARIOS, resolve_method
 from scenarios.case import DATA_DIR
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -119,12 +120,20 @@ def test_unreadable_case_file_exits_2(tmp_path, content):
 @pytest.mark.parametrize("flags", [
     ["--scenarios", "0"], ["--scenarios", "many"], ["--subperiods", "-2"], ["--island-hours", "25"],
     ["--penalty", "-5"], ["--penalty", "nan"], ["--gap", "2"], ["--transfer-scale", "x"], ["--case", "nope"],
-    ["--no-such-flag"], ["--cost-convention", "weird"],
+    ["--no-such-flag"], ["--cost-convention", "weird"], ["--method", "simplex"], ["--workers", "0"],
 ])
 def test_bad_flags_exit_2_with_one_line(flags):
     out = dmosim("solve", *flags)
     assert out.returncode == 2, out.stderr
     assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr and out.stdout == ""
+
+
+def test_auto_decomposes_from_the_documented_scenario_count():
+    assert resolve_method("auto", AUTO_BENDERS_SCENARIOS - 1) == "extensive"
+    assert resolve_method("auto", AUTO_BENDERS_SCENARIOS) == "benders"
+    assert resolve_method("extensive", 100) == "extensive" and resolve_method("benders", 1) == "benders"
+    with pytest.raises(ValueError, match="method must be one of"):
+        resolve_method("simplex", 10)
 
 
 def test_unknown_command_exits_2():

@@ -22,7 +22,7 @@ from scenarios.case import load_case
 
 REPO = Path(__file__).resolve().parents[1]
 GAP = 0.01
-ARGS = SimpleNamespace(gap=GAP, time_limit=120.0)
+ARGS = SimpleNamespace(gap=GAP, time_limit=120.0, method="auto", workers=1)
 CASE = load_case("paper")
 HOURS = list(range(1, 25))
 

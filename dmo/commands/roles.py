@@ -115,7 +115,8 @@ def run_agent(args) -> int:
     setup_logging(args.id, args.quiet)
     case = derive_case(load_case(args.case), args.scale, args.shift_hours, args.case if args.scale == 1 else f"{args.case}x{args.scale:g}")
     config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,
-                         time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout)
+                         time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout, method=args.method,
+                         workers=args.workers)
     with Bus(args.run_id, args.id, _bus_config(args, "client", args.id)) as bus:
         bus.faults = message_faults(args, bus)
         MicrogridAgent(bus, case, config, args.market_day or today()).run()

@@ -134,7 +134,8 @@ def run(args) -> int:
                                           "--scale", repr(m.scale), "--shift-hours", str(m.shift_hours),
                                           "--seed", str(m.seed), "--scenarios", str(args.scenarios),
                                           "--island-hours", str(args.island_hours), "--gap", repr(args.gap),
-                                          "--time-limit", repr(args.time_limit), "--lease", "1",
+                                          "--time-limit", repr(args.time_limit), "--method", args.method,
+                                          "--workers", str(args.workers), "--lease", "1",
                                           "--auth-dir", str(auth), *message_faults),
                             log=logs / f"{m.id}.log")
             failed = _wait_for_day(roles)

@@ -7,6 +7,7 @@ import math
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.instance import Instance, make_instance
 from microgrid_agent.metrics import stochastic_metrics
+from microgrid_agent.routes import resolve_method
 from microgrid_agent.schedule import Schedule
 from scenarios.case import load_case
 
@@ -27,11 +28,10 @@ def instance_from_args(args, **overrides) -> Instance:
 def solve_verified(inst: Instance, args, label: str = "") -> Schedule:
     """Solve, then verify with the independent checker; a schedule that fails the check is a runtime failure."""
     s = inst.scen
-    progress(f"{label}solving {inst.case.name}: {s.S} scenarios x {s.N} sub-periods, "
+    progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S)}): {s.S} scenarios x {s.N} sub-periods, "
              f"penalty {_money(inst.params.penalty)}/MWh, gap {args.gap:g}, time limit {args.time_limit:g} s")
-    method = getattr(args, "method", "extensive")
-    extra = {"workers": args.workers} if method == "benders" else {"verbose": getattr(args, "verbose", False)}
-    schedule = inst.solve(method=method, gap=args.gap, time_limit=args.time_limit, **extra)
+    schedule = inst.solve(method=args.method, workers=args.workers, gap=args.gap, time_limit=args.time_limit,
+                          verbose=getattr(args, "verbose", False))
     report = check_schedule(inst.case, inst.scen, schedule, p_sch=inst.params.p_sch)
     if not report.ok:
         raise RuntimeError(report.summary(5))
