@@ -3,11 +3,12 @@
 First stage x = (I, y, w, u, v, z): hourly binaries of units, start-ups/shut-downs, storage modes and loads.
 Given x, each scenario is an LP (objective (1) without start-up costs, constraints (2)-(5), (8)-(9), (11)-(12),
 (15)-(16), (18)-(21)); curtailment and spill make it feasible for every x the master allows, because the master
-carries the scenario-independent storage and load constraints itself. The scenario LPs are compiled once from
-the same cvxpy model as the extensive form (scenario data as Parameters), kept alive in HiGHS, and re-solved
-warm as x changes: their optimal value Q_s(x) is convex in x and the reduced costs of the fixed x columns are a
-subgradient, so theta_s >= Q_s(x^) + g_s (x - x^) is a valid cut. The master (first stage, one storage and load
-copy, and theta per scenario) is first solved as an LP until its cuts describe the LP relaxation, then as a MILP.
+carries the scenario-independent storage and load constraints itself (inside its relaxation). The scenario LPs
+are compiled once from the same cvxpy model as the extensive form (scenario data as Parameters), kept alive in
+HiGHS, and re-solved warm as x changes: their optimal value Q_s(x) is convex in x and the reduced costs of the
+fixed x columns are a subgradient, so theta_s >= Q_s(x^) + g_s (x - x^) is a valid cut. The master (first stage, an hourly Jensen
+relaxation of the second stage (relaxation.py), and theta per scenario) is first solved as an LP until its cuts
+describe the LP relaxation, then, with the cuts slack there set aside, as a MILP.
 The master's MIP dual bound is a valid lower bound; every integer x^ evaluated on all scenarios is an upper
 bound. docs/solver.md gives the design and the measurements.
 """
@@ -26,8 +27,9 @@ from scenarios.case import HOURS, Case
 from scenarios.generation import ScenarioSet
 
 from .lp import INF, compile_problem, fix_columns, highs_model
-from .model import Params, _Index, _loads, _objective, _storage, _variables, first_stage_constraints
-from .model import second_stage_constraints, startup_cost
+from .model import (Params, _Index, _objective, _variables, first_stage_constraints, second_stage_constraints,
+                    startup_cost)
+from .relaxation import group_relaxation
 from .schedule import CostBreakdown, Dispatch, FirstStage, Schedule, Timings
 from .solve import SolveError
 
@@ -178,20 +180,45 @@ class ScenarioPool:
                 proc.kill()
 
 
-class Master:
-    """First stage, one copy of the scenario-independent storage and load constraints, and theta_s >= cuts."""
+_SLACK = 1e-6  # relative slack above which a cut counts as not binding
+_EARLY_GAP = 0.02  # relative gap of the first MILP masters
 
-    def __init__(self, case: Case, scen: ScenarioSet, params: Params):
-        # The storage and load copy only has to certify that some dispatch exists; its bounds are the same in
-        # every sub-period of an hour, so hourly resolution is exact for that and keeps the master small.
-        ix = _Index(1, 1)
-        v = _variables(case, 1, HOURS)
+
+class CutPool:
+    """Every cut found so far, theta_s - g x >= rhs, whether or not the master currently carries it."""
+
+    def __init__(self, nx: int):
+        self.scenario = np.zeros(0, dtype=np.int64)
+        self.rhs = np.zeros(0)
+        self.grads = np.zeros((0, nx))
+
+    @property
+    def size(self) -> int:
+        return len(self.rhs)
+
+    def add(self, scenario: np.ndarray, rhs: np.ndarray, grads: np.ndarray) -> None:
+        self.scenario = np.concatenate([self.scenario, scenario])
+        self.rhs = np.concatenate([self.rhs, rhs])
+        self.grads = np.vstack([self.grads, grads])
+
+    def slack(self, ids: np.ndarray, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """theta_s - g x - rhs of cuts ``ids`` at (x, theta): negative where a cut is violated."""
+        return theta[self.scenario[ids]] - self.grads[ids] @ x - self.rhs[ids]
+
+
+class Master:
+    """First stage, the groups' hourly relaxation (relaxation.py) linked to theta_s, and theta_s >= cuts."""
+
+    def __init__(self, case: Case, scen: ScenarioSet, params: Params, label: np.ndarray | None = None):
+        # The groups' hourly relaxation (relaxation.py) also carries the scenario-independent storage and load
+        # constraints, so every x the master allows has a feasible dispatch in every scenario. One group (all
+        # scenarios) by default: finer groups (by islanding pattern) made each MILP master several times slower
+        # for no better final bound (docs/solver.md).
+        label = np.zeros(scen.S, dtype=int) if label is None else label
+        v = _variables(case, int(label.max()) + 1, HOURS)
         theta = cp.Variable(scen.S, nonneg=True)  # Q_s >= 0: every cost term is non-negative
-        cons = first_stage_constraints(case, v)
-        if case.storage is not None:
-            cons += _storage(case, ix, v)
-        if case.loads:
-            cons += _loads(case, ix, v)
+        relaxation = group_relaxation(case, scen, params, v, label)
+        cons = first_stage_constraints(case, v) + relaxation.constraints + [relaxation.linking(theta)]
         problem = cp.Problem(cp.Minimize(startup_cost(case, v) + scen.probability @ theta), cons)
         data, columns = compile_problem(problem)
         self.h = highs_model(data, integer=True)
@@ -200,7 +227,9 @@ class Master:
         self.theta_cols = columns.of(theta)
         self.cost = np.asarray(data["c"], float)[self.x_cols]  # start-up and shut-down costs of x
         self.binary = np.asarray(data["bool_vars_idx"], dtype=np.int32)
-        self.cuts = 0
+        self.base_rows = self.h.getNumRow()
+        self.pool = CutPool(len(self.x_cols))
+        self.active = np.zeros(0, dtype=np.int64)  # pool ids of the cut rows, in master row order
         self.incumbent = None
         self.last = None
 
@@ -208,18 +237,35 @@ class Master:
         return float(self.cost @ x)
 
     def add_cuts(self, x: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
-        """theta_s - g_s x >= Q_s(x^) - g_s x^ for every scenario s."""
-        S, nx = grads.shape
-        rhs = values - grads @ x
-        starts = np.arange(S, dtype=np.int32) * (nx + 1)
-        index = np.column_stack([self.theta_cols[:, None], np.broadcast_to(self.x_cols, (S, nx))]).ravel()
-        coef = np.column_stack([np.ones(S), -grads]).ravel()
+        """theta_s - g_s x >= Q_s(x^) - g_s x^ for every scenario s: into the pool, and active in the master."""
+        self.pool.add(np.arange(len(values)), values - grads @ x, grads)
+        self._activate(np.arange(self.pool.size - len(values), self.pool.size))
+
+    def _activate(self, ids: np.ndarray) -> None:
+        """Append pool cuts ``ids`` as master rows (zero coefficients dropped)."""
+        if len(ids) == 0:
+            return
+        scenario, rhs, grads = self.pool.scenario[ids], self.pool.rhs[ids], self.pool.grads[ids]
+        n, nx = grads.shape
+        index = np.column_stack([self.theta_cols[scenario][:, None], np.broadcast_to(self.x_cols, (n, nx))])
+        coef = np.column_stack([np.ones(n), -grads])
         keep = coef != 0
-        # rebuild starts after dropping zero coefficients row by row
-        counts = keep.reshape(S, nx + 1).sum(axis=1)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
-        self.h.addRows(S, rhs, np.full(S, INF), int(keep.sum()), starts, index[keep].astype(np.int32), coef[keep])
-        self.cuts += S
+        starts = np.concatenate([[0], np.cumsum(keep.sum(axis=1))[:-1]]).astype(np.int32)
+        self.h.addRows(n, rhs, np.full(n, INF), int(keep.sum()), starts, index[keep].astype(np.int32), coef[keep])
+        self.active = np.concatenate([self.active, ids])
+
+    def prune(self) -> None:
+        """Drop the active cuts that are slack at the last master solution; they stay in the pool.
+
+        Dense cuts make each MILP master's root slow (presolve, separation): keeping only the binding ones
+        made a 10-scenario master about 8 times faster. A master with fewer cuts is a relaxation, so its bound
+        stays valid. Called once, when the LP phase ends: its cuts at fractional points are mostly slack for
+        the integer phase, while every cut at an integer x^ stays, so a repeated x^ cannot cycle.
+        """
+        slack = self.pool.slack(self.active, self.last[self.x_cols], self.last[self.theta_cols])
+        drop = np.flatnonzero(slack > _SLACK * (1 + np.abs(self.pool.rhs[self.active])))
+        self.h.deleteRows(len(drop), (self.base_rows + drop).astype(np.int32))
+        self.active = np.delete(self.active, drop)
 
     def solve(self, relaxed: bool, gap: float, time_limit: float | None) -> tuple[np.ndarray, float, float]:
         """x^, the master's objective and its lower bound (for an LP, the two are equal)."""
@@ -294,13 +340,17 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             trace.add(phase, bound, value, master_s, time.perf_counter() - t1)
             if progress:
                 progress(f"{phase} iteration {len(trace.rows)}: bound {bound:,.2f}, value {value:,.2f}, "
-                         f"{master.cuts} cuts")
+                         f"{len(master.active)} of {master.pool.size} cuts active")
             return value, values
 
         def master_solve(relaxed: bool):
+            # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
+            # half the target gap once close, where their bound is the one certified.
             t0 = time.perf_counter()
             remaining = None if deadline is None else max(1.0, deadline - t0)
-            x, _, bound = master.solve(relaxed=relaxed, gap=gap / 2, time_limit=remaining)
+            current = (upper - lower) / abs(upper) if np.isfinite(upper) else np.inf
+            master_gap = max(gap / 2, min(_EARLY_GAP, current / 4))
+            x, _, bound = master.solve(relaxed=relaxed, gap=master_gap, time_limit=remaining)
             return x, bound, time.perf_counter() - t0
 
         # The LP relaxation first: cheap masters, most of the cuts. In-out stabilisation (Ben-Ameur and Neto
@@ -315,6 +365,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                 core, core_value = x, value
             if core_value - bound <= lp_tolerance * abs(core_value) or _late(deadline):
                 break
+        master.prune()
         status = "optimal"
         while True:
             x, bound, master_s = master_solve(relaxed=False)
@@ -335,18 +386,23 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                      time.perf_counter() - start)
 
 
+def first_stage_values(var: dict[str, cp.Variable], x: np.ndarray) -> dict[str, np.ndarray]:
+    """The flat first stage x (names in FIRST order, each flattened column-major) by variable name."""
+    pieces, offset = {}, 0
+    for name in FIRST:
+        if name in var:
+            pieces[name] = x[offset:offset + var[name].size].reshape(var[name].shape, order="F")
+            offset += var[name].size
+    return pieces
+
+
 def _late(deadline: float | None) -> bool:
     return deadline is not None and time.perf_counter() >= deadline
 
 
 def _schedule(case, scen, params, master, x, arrays, costs, upper, lower, status, trace, total) -> Schedule:
     G, R, Dn, S, N = len(case.units), len(case.renewables), len(case.loads), scen.S, scen.N
-    pieces, offset = {}, 0
-    for name in FIRST:
-        if name in master.var:
-            size = master.var[name].size
-            pieces[name] = x[offset:offset + size].reshape(master.var[name].shape, order="F")
-            offset += size
+    pieces = first_stage_values(master.var, x)
     pr = scen.probability
 
     def stacked(name, rows):  # (S, rows, N) per scenario -> (rows, S, N)

@@ -1,14 +1,23 @@
-"""The Benders decomposition against the extensive form, and the validity of its cuts."""
+"""The Benders decomposition against the extensive form, and the validity of its cuts and of its relaxation."""
 
 from __future__ import annotations
 
+import cvxpy as cp
 import numpy as np
 import pytest
 
 from microgrid_agent.checker import check_schedule
-from microgrid_agent.decomposition import Master, Subproblems, solve_decomposed
+from microgrid_agent.decomposition import (
+    Master,
+    Subproblems,
+    first_stage_values,
+    solve_decomposed,
+)
 from microgrid_agent.instance import make_instance
-from scenarios.case import load_case
+from microgrid_agent.model import _variables
+from microgrid_agent.relaxation import group_means, group_relaxation, islanding_groups
+from microgrid_agent.solve import SolveError
+from scenarios.case import HOURS, load_case
 
 GAP = 0.005
 
@@ -43,8 +52,70 @@ def test_cuts_under_estimate_the_scenario_cost(small):
         x = 0.5 * (x + x0)
         try:
             q, _ = sub.evaluate(x)
-        except Exception:
+        except SolveError:
             continue  # outside the region where every scenario is feasible: no cut claim to check
         assert np.all(q >= q0 + g0 @ (x - x0) - 1e-6 * np.abs(q))
         checked += 1
     assert checked >= 2
+
+
+def _neighbours(master, count: int, seed: int = 0):
+    """First stages near the master's LP optimum: the averaged neighbours stay in its convex LP region."""
+    x0, _, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    rng = np.random.default_rng(seed)
+    return [x0] + [0.5 * (np.clip(x0 + rng.uniform(-0.3, 0.3, x0.shape), 0, 1) + x0) for _ in range(count)]
+
+
+def _relaxation_value(inst, label, x) -> float:
+    """sum_g p_g Q_hourly(x, mean data of g): the group relaxation with the first stage fixed at x."""
+    v = _variables(inst.case, int(label.max()) + 1, HOURS, first_stage="continuous")
+    relaxation = group_relaxation(inst.case, inst.scen, inst.params, v, label)
+    fixed = [v[name] == value for name, value in first_stage_values(v, x).items()]
+    problem = cp.Problem(cp.Minimize(relaxation.probability @ relaxation.cost), relaxation.constraints + fixed)
+    problem.solve(solver=cp.HIGHS)
+    assert problem.status == cp.OPTIMAL
+    return problem.value
+
+
+@pytest.mark.parametrize("grouping", ["one group", "islanding"])
+def test_group_relaxation_under_estimates_the_expected_recourse(small, grouping):
+    """Jensen and hour-averaging: sum_g p_g Q_hourly(x, mean of g) <= sum_s p_s Q_s(x) at several first stages."""
+    scen = small.scen
+    label = np.zeros(scen.S, dtype=int) if grouping == "one group" else islanding_groups(scen)
+    sub = Subproblems(small.case, scen, small.params, range(scen.S))
+    checked = 0
+    for x in _neighbours(Master(small.case, scen, small.params), 5):
+        try:
+            q, _ = sub.evaluate(x)
+        except SolveError:
+            continue  # outside the region where every scenario is feasible: no claim to check
+        expected = float(scen.probability @ q)
+        assert _relaxation_value(small, label, x) <= expected * (1 + 1e-7) + 1e-6
+        checked += 1
+    assert checked >= 2
+
+
+def test_group_means_keep_the_expectation(small):
+    """Each group's hourly mean data, weighted by p_g, is the expected hourly data; islanding groups keep U 0/1."""
+    scen = small.scen
+    label = islanding_groups(scen)
+    means = group_means(scen, label)
+    hourly = scen.load.reshape(scen.S, HOURS, scen.subperiods).mean(axis=2)
+    assert np.isclose(means.probability.sum(), 1.0)
+    assert np.allclose(means.probability @ means.load, scen.probability @ hourly)
+    assert set(np.unique(means.connected)) <= {0.0, 1.0}
+
+
+def test_pruning_keeps_the_pool_and_the_master_optimum(small):
+    """Pruning removes only slack rows: the pool keeps every cut and the master LP keeps its optimum."""
+    sub = Subproblems(small.case, small.scen, small.params, range(small.scen.S))
+    master = Master(small.case, small.scen, small.params)
+    points = _neighbours(master, 3)
+    for x in points:
+        master.add_cuts(x, *sub.evaluate(x))
+    _, before, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    master.prune()
+    _, after, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    assert master.pool.size == len(points) * small.scen.S
+    assert master.h.getNumRow() == master.base_rows + len(master.active)
+    assert after == pytest.approx(before, rel=1e-7)
