@@ -247,16 +247,18 @@ def wire_rate(mix, n: int, chunk_messages: int, scratch: Path) -> dict:
             for key, payload in _messages(mix, n):
                 publishers[key].put(payload)
             sent_s = time.perf_counter() - start
-            time.sleep(0.5)  # what Zenoh still holds reaches the recorder before this session closes
+            # This session stays open until the recorder has worked through its backlog (its file stops growing
+            # while it closes a chunk at least every flush interval): closing it earlier drops what Zenoh still
+            # holds in flight, which would be counted as lost.
+            deadline, last = time.monotonic() + 120, -1
+            while time.monotonic() < deadline:
+                size = path.stat().st_size
+                if size == last:
+                    break
+                last = size
+                time.sleep(1.5)
             for p in publishers.values():
                 p.undeclare()
-        deadline, last = time.monotonic() + 120, -1
-        while time.monotonic() < deadline:  # until the recorder has worked through its backlog
-            size = path.stat().st_size
-            if size == last:
-                break
-            last = size
-            time.sleep(1.5)
         cpu_s = _cpu_s(recorder.process.pid) - cpu_before
         recorder.process.send_signal(signal.SIGTERM)
         recorder.process.wait(timeout=60)
