@@ -83,13 +83,19 @@ def test_a_corrupted_payload_is_never_a_valid_message(msg, seed):
 
 def test_the_injector_is_seeded_never_blocks_and_counts_what_it_did():
     sent: list[tuple[str, bytes, float]] = []
-    put = lambda key, payload: sent.append((key, payload, time.monotonic()))  # noqa: E731
+    delayed = threading.Event()
+
+    def put(key, payload):
+        sent.append((key, payload, time.monotonic()))
+        if key.endswith("schedule"):
+            delayed.set()
     prefix = "dmosim/r1"
     faults = [parse_message_fault(s) for s in ("drop:agent/*/meter:0.3", "duplicate:agent/*/bid:1",
                                                "delay:agent/*/schedule:0.3", "corrupt:agent/mg1/register:1")]
 
     def run(seed):
         sent.clear()
+        delayed.clear()
         inj = FaultInjector(faults, prefix, seed, "mg1")
         drops = []
         for hour in range(1, 25):
@@ -103,7 +109,7 @@ def test_the_injector_is_seeded_never_blocks_and_counts_what_it_did():
         inj.send(f"{prefix}/agent/mg1/schedule", b"schedule", put)
         assert time.monotonic() - start < 0.1  # the caller goes on; a timer thread sends it later
         assert not any(k.endswith("schedule") for k, _, _ in sent)
-        time.sleep(0.6)
+        assert delayed.wait(10), "the delayed schedule never went out"
         return drops, inj.summary(), list(sent)
 
     drops, counts, out = run(seed=7)

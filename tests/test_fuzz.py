@@ -451,7 +451,7 @@ def test_ten_thousand_hostile_messages_crash_nothing_change_no_settlement_and_ar
                 replayed_to_agents += agent_items
             watch.wait(lambda w: w.summary is not None)
             result = finish(roles, tmp_path)
-            time.sleep(0.5)  # the last rejections on their way to this tap
+            watch.wait(lambda w: len(w.rejections) >= len(to_dmo) + len(replayed_to_dmo), 60)  # the last ones
 
     # the day itself is untouched: same awards, same settlement, nothing accepted twice, nothing lost
     assert bill(result) == bill(undisturbed)

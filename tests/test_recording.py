@@ -280,7 +280,10 @@ def test_a_recorder_killed_with_sigkill_loses_at_most_its_open_chunk(tmp_path):
         with Bus(run_id, "feeder", BusConfig(mode="client", connect=(endpoint,)), announce=False) as bus:
             assert bus.wait_for_subscribers(mix[0][0], 10)
             publish(bus, mix)
-            time.sleep(1.5)  # the recorder closes its chunk within its flush interval
+            deadline = time.monotonic() + 30  # the recorder closes its chunks within its flush interval
+            while len(read_recording(path).messages) < len(mix):
+                assert time.monotonic() < deadline, "the recorder never closed the chunks of what it received"
+                time.sleep(0.05)
             publish(bus, mix[:50])
             roles.kill("recorder")
         assert recorder.process.wait(timeout=10) == -signal.SIGKILL
@@ -358,7 +361,7 @@ class Tap:
     def __init__(self, run_id: str, endpoint: str):
         self.bus = Bus(run_id, "tap", BusConfig(mode="router", listen=(endpoint,)), announce=False)
         self.payloads: dict[str, list[bytes]] = collections.defaultdict(list)
-        self.lock = threading.Lock()
+        self.lock = threading.Condition()
 
     def __enter__(self) -> Tap:
         self.bus.open()
@@ -370,6 +373,13 @@ class Tap:
     def on_sample(self, key, payload, at):
         with self.lock:
             self.payloads[key[len(self.prefix):]].append(payload)
+            self.lock.notify_all()
+
+    def wait_for(self, total: int, timeout: float = 60.0) -> None:
+        """Until ``total`` payloads have arrived (replays end before their last samples reach the tap)."""
+        with self.lock:
+            assert self.lock.wait_for(lambda: sum(map(len, self.payloads.values())) >= total, timeout), \
+                f"{sum(map(len, self.payloads.values()))} of {total} payloads arrived"
 
     def counts(self) -> collections.Counter:
         with self.lock:
@@ -391,7 +401,7 @@ def test_replay_republishes_every_message_under_a_new_prefix_at_full_rate(day):
     assert run_id != rec.run_id
     with Tap(run_id, endpoint) as tap:
         result = _replay(day[0], run_id, endpoint, "--rate", "max")
-        time.sleep(0.3)
+        tap.wait_for(len(rec.messages))
         assert result["published"] == 113 and result["key_prefix"] == f"dmosim/{run_id}"
         assert tap.counts() == collections.Counter(m.relative_key for m in rec.messages)
         assert tap.payloads["agent/mg1/meter"] == [m.payload for m in rec.in_log_order()
@@ -408,7 +418,7 @@ def test_replay_selects_topics_and_start_offset_and_keeps_the_spacing_scaled_by_
     with Tap(run_id, endpoint) as tap:
         result = _replay(day[0], run_id, endpoint, "--topics", "agent/*/meter", "--topics", "dmo/grid",
                          "--start-offset", repr(offset), "--rate", "40")
-        time.sleep(0.3)
+        tap.wait_for(len(chosen))
         assert tap.counts() == collections.Counter(m.relative_key for m in chosen)
     span_s = (chosen[-1].log_time - chosen[0].log_time) / 1e9
     assert result["seconds"] >= span_s / 40 - 1e-3  # it waits for the recorded gaps, 40 times shorter (seconds are printed to 3 decimals)
@@ -428,9 +438,7 @@ def test_replay_loops_until_interrupted(tmp_path):
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
                                   start_new_session=True)
         try:
-            deadline = time.monotonic() + 60
-            while sum(tap.counts().values()) < 2 * len(mix) and time.monotonic() < deadline:
-                time.sleep(0.05)
+            tap.wait_for(2 * len(mix))
             player.send_signal(signal.SIGINT)
             out, err = player.communicate(timeout=30)
         finally:
