@@ -357,5 +357,22 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_FAILURE
 
 
+def _native_stdout_to_stderr() -> None:
+    """Keep stdout for what dmosim prints (``--json`` output is parsed by other programs): native libraries that
+    write to file descriptor 1 behind Python's back, such as HiGHS 1.16, which prints its banner whenever a
+    solver object is created and before any option can silence it, go to stderr instead. Forked workers and
+    child processes inherit the same arrangement."""
+    sys.stdout.flush()
+    stdout = os.dup(1)
+    os.dup2(2, 1)
+    sys.stdout = open(stdout, "w", buffering=1, encoding=sys.stdout.encoding, errors=sys.stdout.errors)
+
+
+def console() -> int:
+    """The ``dmosim`` executable: ``main`` with stdout reserved for dmosim's own output."""
+    _native_stdout_to_stderr()
+    return main()
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console())

@@ -39,6 +39,17 @@ def test_solve_json_has_the_spec_keys():
     assert breakdown == pytest.approx(result["objective"], rel=1e-9)
 
 
+def test_stdout_carries_only_what_dmosim_prints_native_writes_go_to_stderr():
+    # HiGHS 1.16 prints a banner on file descriptor 1 whenever a solver is created; --json output must survive it
+    code = ("import os; from dmo.cli import _native_stdout_to_stderr; _native_stdout_to_stderr(); "
+            "os.write(1, b'native banner\\n'); print('{\"ours\": 1}')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == {"ours": 1}
+    assert "native banner" in out.stderr
+
+
 def test_infinite_penalty_is_written_as_a_string():
     out = dmosim("solve", "--subperiods", "1", "--scenarios", "1", "--penalty", "inf", "--json")
     assert out.returncode == 0, out.stderr
