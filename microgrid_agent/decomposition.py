@@ -218,7 +218,8 @@ class Master:
         v = _variables(case, int(label.max()) + 1, HOURS)
         theta = cp.Variable(scen.S, nonneg=True)  # Q_s >= 0: every cost term is non-negative
         relaxation = group_relaxation(case, scen, params, v, label)
-        cons = first_stage_constraints(case, v) + relaxation.constraints + [relaxation.linking(theta)]
+        cons = (first_stage_constraints(case, v, 1.0 / scen.subperiods) + relaxation.constraints
+                + [relaxation.linking(theta)])
         problem = cp.Problem(cp.Minimize(startup_cost(case, v) + scen.probability @ theta), cons)
         data, columns = compile_problem(problem)
         self.h = highs_model(data, integer=True)

@@ -334,9 +334,29 @@ def _variables(case: Case, S: int, N: int, first_stage: str = "binary") -> dict[
     return v
 
 
-def first_stage_constraints(case: Case, v: dict) -> list[cp.Constraint]:
-    """The hourly decisions' own constraints: (6)-(7), (10), (13)-(14), the load windows and (17)."""
-    cons = _commitment(case, v)
+def _shutdown_after_ramping_down(case: Case, v: dict, dt: float) -> list[cp.Constraint]:
+    """A unit on since midnight reaches its shut-down step (5) only once ramps have brought it from its initial
+    output P0 to at most P_min + RD dt: a first shut-down in hour t >= 2 needs (t - 1) RD + RD dt >= P0 - P_min.
+
+    In hour 1 it may shut down from P0 itself (docs/model.md). Where the inequality fails, w_t = 1 is allowed only
+    after an earlier shut-down (w_t <= sum of w before t), which broke the ramp from P0. The sub-period model
+    implies this; it is stated here so that the master of the decomposition, whose hourly relaxation ramps a whole
+    hour in one step, proposes no first stage without a feasible dispatch (docs/solver.md).
+    """
+    p0, p_min, rd = (case.unit_array(k)[:, None] for k in ("initial_output", "p_min", "ramp_down"))
+    t = np.arange(1, HOURS + 1)[None, :]
+    blocked = ((t >= 2) & ((t - 1) * rd + rd * dt < p0 - p_min - 1e-9)).astype(float)
+    if not blocked.any():
+        return []
+    w = v["w"]
+    earlier = w @ np.triu(np.ones((HOURS, HOURS)), 1)  # sum of w over the hours before t
+    return [cp.multiply(blocked, w) <= cp.multiply(blocked, earlier)]
+
+
+def first_stage_constraints(case: Case, v: dict, dt: float) -> list[cp.Constraint]:
+    """The hourly decisions' own constraints: (6)-(7), (10), (13)-(14), the load windows and (17), and the
+    shut-downs that ramps (5) at sub-period length ``dt`` (hours) allow."""
+    cons = _commitment(case, v) + _shutdown_after_ramping_down(case, v, dt)
     if case.storage is not None:
         cons += _storage_modes(case, v)
     if case.loads:
@@ -364,7 +384,7 @@ def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.nda
     """
     ix = _Index(scen.S, scen.subperiods)
     v = _variables(case, scen.S, ix.N)
-    cons = first_stage_constraints(case, v) + second_stage_constraints(case, scen, params, ix, v)
+    cons = first_stage_constraints(case, v, ix.dt) + second_stage_constraints(case, scen, params, ix, v)
     for name, value in (fixed or {}).items():
         if name in v:
             cons.append(v[name] == np.asarray(value, float).reshape(v[name].shape))

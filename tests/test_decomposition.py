@@ -16,7 +16,7 @@ from microgrid_agent.decomposition import (
 from microgrid_agent.instance import make_instance
 from microgrid_agent.model import _variables
 from microgrid_agent.relaxation import group_means, group_relaxation, islanding_groups
-from microgrid_agent.solve import SolveError
+from microgrid_agent.solve import SolveError, solve
 from scenarios.case import HOURS, load_case
 
 GAP = 0.005
@@ -119,3 +119,37 @@ def test_pruning_keeps_the_pool_and_the_master_optimum(small):
     assert master.pool.size == len(points) * small.scen.S
     assert master.h.getNumRow() == master.base_rows + len(master.active)
     assert after == pytest.approx(before, rel=1e-7)
+
+
+def test_the_master_allows_no_shut_down_that_ramps_cannot_reach():
+    """G2 starts the day at 4 MW with P_min 1 MW and ramp-down 2.5 MW/h: at 10-minute steps it cannot reach
+    its shut-down step (P_min + RD dt) by the end of hour 1, so no dispatch exists for a shut-down in hour 2,
+    though the master's hourly relaxation (a whole hour's ramp in one step) would allow it. A shut-down in
+    hour 3 is reachable and stays allowed."""
+    inst = make_instance(load_case("paper"), scenarios=1, sample_size=1, subperiods=6, seed=0)
+    units = [u.name for u in inst.case.units]
+    g = units.index("G2")
+    p0, p_min, rd = (inst.case.unit_array(k)[g] for k in ("initial_output", "p_min", "ramp_down"))
+    assert rd + rd / 6 < p0 - p_min <= 2 * rd + rd / 6  # the case's numbers make hour 2 unreachable, hour 3 not
+
+    def with_g2_off_from(hour: int) -> np.ndarray:
+        commitment = np.ones((len(units), HOURS))
+        commitment[g, hour - 1:] = 0
+        return commitment
+
+    def master_allows(commitment: np.ndarray) -> bool:
+        master = Master(inst.case, inst.scen, inst.params)
+        cols = master.x_cols[:commitment.size]  # I comes first in x, flattened column-major
+        values = commitment.flatten(order="F")
+        master.h.changeColsBounds(len(cols), cols.astype(np.int32), values, values)
+        try:
+            master.solve(relaxed=True, gap=1e-6, time_limit=None)
+        except SolveError:
+            return False
+        return True
+
+    assert not master_allows(with_g2_off_from(2))
+    assert master_allows(with_g2_off_from(3))
+    with pytest.raises(SolveError):  # the 10-minute model itself has no dispatch for it
+        solve(inst.case, inst.scen, inst.params, fixed={"I": with_g2_off_from(2)})
+    assert solve(inst.case, inst.scen, inst.params, fixed={"I": with_g2_off_from(3)}, gap=0.05).objective > 0
