@@ -357,11 +357,13 @@ def start_day(roles: Roles, tmp: Path, run_id: str, record: Path | None = None):
                               "--result", str(tmp / "result.json"), *DEADLINES,
                               *(["--await-recorder", "60"] if record else [])), log=tmp / "dmo.log", env=ENV)
     wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
-    if record:
-        roles.start("recorder", dmosim("record", "--out", str(record), "--run-id", run_id, "--connect", endpoint,
-                                       "--meta", f"market_day={DAY}"),
-                    log=tmp / "recorder.log", env=ENV)
     return endpoint
+
+
+def start_recorder(roles: Roles, tmp: Path, run_id: str, endpoint: str, record: Path):
+    """The DMO started with a recording waits for the recorder before its first message (its registration clock)."""
+    roles.start("recorder", dmosim("record", "--out", str(record), "--run-id", run_id, "--connect", endpoint,
+                                   "--meta", f"market_day={DAY}"), log=tmp / "recorder.log", env=ENV)
 
 
 def start_agents(roles: Roles, tmp: Path, run_id: str, endpoint: str):
@@ -429,12 +431,15 @@ def test_ten_thousand_hostile_messages_crash_nothing_change_no_settlement_and_ar
         endpoint = start_day(roles, tmp_path, run_id, record)
         with Bus(run_id, "hostile", BusConfig(mode="client", connect=(endpoint,)), announce=False) as bus:
             watch = Watch(bus)
+            start_recorder(roles, tmp_path, run_id, endpoint, record)
 
             def put(items):
                 for key, payload, _ in items:
                     bus.publish_raw(f"{bus.keys.prefix}/{key}", payload)
 
-            # 1. before any agent: the DMO is in registration
+            # 1. before any agent: the DMO is in registration. Its port listens before it subscribes to the agents'
+            # keys; its registration clock comes after (and after the recorder joined, which the watch precedes)
+            watch.wait(lambda w: w.phase == "registration", 120)
             put(to_dmo[:5000])
             watch.wait(lambda w: len(w.rejections) >= 5000, 120)
             start_agents(roles, tmp_path, run_id, endpoint)
