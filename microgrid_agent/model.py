@@ -345,12 +345,12 @@ def _shutdown_after_ramping_down(case: Case, v: dict, dt: float) -> list[cp.Cons
     """
     p0, p_min, rd = (case.unit_array(k)[:, None] for k in ("initial_output", "p_min", "ramp_down"))
     t = np.arange(1, HOURS + 1)[None, :]
-    blocked = ((t >= 2) & ((t - 1) * rd + rd * dt < p0 - p_min - 1e-9)).astype(float)
-    if not blocked.any():
+    unit, hour = np.nonzero((t >= 2) & ((t - 1) * rd + rd * dt < p0 - p_min - 1e-9))
+    if not len(unit):
         return []
     w = v["w"]
-    earlier = w @ np.triu(np.ones((HOURS, HOURS)), 1)  # sum of w over the hours before t
-    return [cp.multiply(blocked, w) <= cp.multiply(blocked, earlier)]
+    earlier = cp.cumsum(w, axis=1) - w  # sum of w over the hours before t
+    return [w[unit, hour] <= earlier[unit, hour]]
 
 
 def first_stage_constraints(case: Case, v: dict, dt: float) -> list[cp.Constraint]:

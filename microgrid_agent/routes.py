@@ -6,8 +6,8 @@ Kept apart from the solvers so the command line can name the routes without impo
 from __future__ import annotations
 
 METHODS = ("auto", "extensive", "benders")
-# From this many scenarios "auto" decomposes. Measured on the paper's case (docs/solver.md): at 10 scenarios the
-# extensive form took 63 s and Benders 135 s; at 15, 180 s and 128 s; at 20, about 700 s and 117 s.
+# From this many scenarios "auto" decomposes: at 10 the extensive form is faster, from 15 on Benders (measured on
+# the paper's case, docs/solver.md "Measurements").
 AUTO_BENDERS_SCENARIOS = 15
 
 
