@@ -339,10 +339,13 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             master.add_cuts(x, values, grads)
             value = master.first_stage_cost(x) + float(pr @ values)
             trace.add(phase, bound, value, master_s, time.perf_counter() - t1)
-            if progress:
-                progress(f"{phase} iteration {len(trace.rows)}: bound {bound:,.2f}, value {value:,.2f}, "
-                         f"{len(master.active)} of {master.pool.size} cuts active")
             return value, values
+
+        def report(what: str, lb: float, ub: float, master_s: float) -> None:
+            if progress:
+                progress(f"benders {what} {len(trace.rows)}: bound {lb:,.2f}, best {ub:,.2f} "
+                         f"({(ub - lb) / abs(ub):.2%} apart), master {master_s:.1f} s, "
+                         f"{time.perf_counter() - start:.0f} s in all")
 
         def master_solve(relaxed: bool):
             # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
@@ -364,6 +367,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             value, _ = evaluate("lp", x, bound, master_s)
             if value < core_value:
                 core, core_value = x, value
+            report("LP relaxation, iteration", bound, core_value, master_s)
             if core_value - bound <= lp_tolerance * abs(core_value) or _late(deadline):
                 break
         master.prune()
@@ -375,6 +379,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             if value < upper:
                 upper, best = value, x
                 master.remember(x, values)
+            report("integer master, iteration", lower, upper, master_s)
             if upper - lower <= gap * abs(upper):
                 break
             if _late(deadline):

@@ -21,13 +21,14 @@ class Instance:
     scen: ScenarioSet
     params: Params
 
-    def solve(self, method: str = "extensive", workers: int = 2, **options) -> Schedule:
+    def solve(self, method: str = "extensive", workers: int = 2, progress=None, **options) -> Schedule:
         """The extensive form (reference) or the Benders decomposition (or "auto": by scenario count); both
-        certify their gap."""
+        certify their gap. ``progress(message)`` hears of each Benders iteration (the extensive form reports
+        through HiGHS's own log, ``verbose``)."""
         if resolve_method(method, self.scen.S) == "benders":
             from .decomposition import solve_decomposed  # noqa: PLC0415
 
-            return solve_decomposed(self.case, self.scen, self.params, workers=workers,
+            return solve_decomposed(self.case, self.scen, self.params, workers=workers, progress=progress,
                                     **{k: v for k, v in options.items() if k in ("gap", "time_limit")})
         return solve(self.case, self.scen, self.params, **options)
 

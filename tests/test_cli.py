@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tomllib
@@ -37,6 +38,20 @@ def test_solve_json_has_the_spec_keys():
     assert result["verified"] is True
     breakdown = sum(result["cost_breakdown"].values())
     assert breakdown == pytest.approx(result["objective"], rel=1e-9)
+
+
+def test_a_decomposed_solve_reports_each_iteration_on_stderr_ending_at_its_result():
+    out = dmosim("solve", "--method", "benders", "--subperiods", "1", "--scenarios", "3", "--gap", "0.01", "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    lines = [ln for ln in out.stderr.splitlines() if ln.startswith("dmosim: benders ")]
+    assert any("LP relaxation, iteration" in ln for ln in lines)
+    last = lines[-1]
+    assert "integer master, iteration" in last
+    bound, best = (float(x.replace(",", "")) for x in re.findall(r"(?:bound|best) ([\d,]+\.\d\d)", last))
+    assert best == pytest.approx(result["objective"], abs=0.01)
+    assert bound == pytest.approx(result["bound"], abs=0.01)
+    assert (best - bound) / best <= 0.01 + 1e-9
 
 
 def test_stdout_carries_only_what_dmosim_prints_native_writes_go_to_stderr():

@@ -31,7 +31,7 @@ def solve_verified(inst: Instance, args, label: str = "") -> Schedule:
     progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S)}): {s.S} scenarios x {s.N} sub-periods, "
              f"penalty {_money(inst.params.penalty)}/MWh, gap {args.gap:g}, time limit {args.time_limit:g} s")
     schedule = inst.solve(method=args.method, workers=args.workers, gap=args.gap, time_limit=args.time_limit,
-                          verbose=getattr(args, "verbose", False))
+                          verbose=getattr(args, "verbose", False), progress=lambda m: progress(label + m))
     report = check_schedule(inst.case, inst.scen, schedule, p_sch=inst.params.p_sch)
     if not report.ok:
         raise RuntimeError(report.summary(5))
