@@ -344,7 +344,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
         def report(what: str, lb: float, ub: float, master_s: float) -> None:
             if progress:
                 progress(f"benders {what} {len(trace.rows)}: bound {lb:,.2f}, best {ub:,.2f} "
-                         f"({(ub - lb) / abs(ub):.2%} apart), master {master_s:.1f} s, "
+                         f"({_apart(lb, ub):.2%} apart), master {master_s:.1f} s, "
                          f"{time.perf_counter() - start:.0f} s in all")
 
         def master_solve(relaxed: bool):
@@ -352,8 +352,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             # half the target gap once close, where their bound is the one certified.
             t0 = time.perf_counter()
             remaining = None if deadline is None else max(1.0, deadline - t0)
-            current = (upper - lower) / abs(upper) if np.isfinite(upper) else np.inf
-            master_gap = max(gap / 2, min(_EARLY_GAP, current / 4))
+            master_gap = max(gap / 2, min(_EARLY_GAP, _apart(lower, upper) / 4))
             x, _, bound = master.solve(relaxed=relaxed, gap=master_gap, time_limit=remaining)
             return x, bound, time.perf_counter() - t0
 
@@ -380,7 +379,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                 upper, best = value, x
                 master.remember(x, values)
             report("integer master, iteration", lower, upper, master_s)
-            if upper - lower <= gap * abs(upper):
+            if _apart(lower, upper) <= gap:
                 break
             if _late(deadline):
                 status = "time_limit"
@@ -400,6 +399,11 @@ def first_stage_values(var: dict[str, cp.Variable], x: np.ndarray) -> dict[str, 
             pieces[name] = x[offset:offset + var[name].size].reshape(var[name].shape, order="F")
             offset += var[name].size
     return pieces
+
+
+def _apart(lower: float, upper: float) -> float:
+    """The relative gap (upper - lower) / |upper|; infinite until there is an upper bound."""
+    return (upper - lower) / abs(upper) if np.isfinite(upper) else np.inf
 
 
 def _late(deadline: float | None) -> bool:

@@ -349,13 +349,13 @@ class Watch:
             assert self.changed.wait_for(lambda: what(self), timeout), f"timed out at {self.phase} {self.hour}"
 
 
-def start_day(roles: Roles, tmp: Path, run_id: str, record: Path | None = None):
+def start_day(roles: Roles, tmp: Path, run_id: str, recorded: bool = False):
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     common = ["--run-id", run_id, "--market-day", DAY]
     roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", str(len(AGENTS)), "--subperiods", "1",
                               "--result", str(tmp / "result.json"), *DEADLINES,
-                              *(["--await-recorder", "60"] if record else [])), log=tmp / "dmo.log", env=ENV)
+                              *(["--await-recorder", "60"] if recorded else [])), log=tmp / "dmo.log", env=ENV)
     wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
     return endpoint
 
@@ -428,7 +428,7 @@ def test_ten_thousand_hostile_messages_crash_nothing_change_no_settlement_and_ar
     record = tmp_path / "day.mcap"
     replayed_to_dmo, replayed_to_agents = [], []
     with Roles() as roles:
-        endpoint = start_day(roles, tmp_path, run_id, record)
+        endpoint = start_day(roles, tmp_path, run_id, recorded=True)
         with Bus(run_id, "hostile", BusConfig(mode="client", connect=(endpoint,)), announce=False) as bus:
             watch = Watch(bus)
             start_recorder(roles, tmp_path, run_id, endpoint, record)
