@@ -89,7 +89,7 @@ def test_compute_is_read_from_the_agents_log_line(tmp_path):
         read_compute(tmp_path / "mg2.log")
 
 
-def test_solver_bench_runs_both_routes_and_verifies():
+def test_solver_bench_runs_both_routes_and_verifies_showing_progress(capsys):
     from dmo.bench import solver
 
     args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=0, skip_extensive=False)
@@ -98,3 +98,8 @@ def test_solver_bench_runs_both_routes_and_verifies():
     assert set(routes) == {"benders", "extensive"} and all(r["verified"] for r in routes.values())
     assert routes["benders"]["bound"] <= routes["extensive"]["objective"] * (1 + 1e-6)
     assert result["ratios"][0]["scenarios"] == 2
+    # A paper-size run takes most of an hour: each solve announces itself and Benders reports every iteration.
+    lines = capsys.readouterr().err.splitlines()
+    iterations = [ln for ln in lines if ln.startswith("dmosim: bench solver, 2 scenarios: benders ") and "iteration" in ln]
+    assert len(iterations) == routes["benders"]["iterations"]
+    assert lines.index("dmosim: bench solver, 2 scenarios: extensive form (cap 60 s)") > lines.index(iterations[-1])

@@ -18,6 +18,8 @@ from microgrid_agent.instance import make_instance
 from microgrid_agent.solve import SolveError
 from scenarios.case import load_case
 
+from ..console import progress
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..cli import gap, nonneg_float, positive_int  # noqa: PLC0415
@@ -54,15 +56,18 @@ def run(args) -> dict:
     rows = []
     for n in args.scenarios:
         inst = make_instance(case, scenarios=n, subperiods=args.subperiods, seed=args.seed)
+        label = f"bench solver, {n} scenarios: "
+        progress(f"{label}benders")
         start = time.perf_counter()
         try:
             benders = solve_decomposed(case, inst.scen, inst.params, gap=args.gap, time_limit=args.cap,
-                                       workers=args.workers)
+                                       workers=args.workers, progress=lambda m: progress(label + m))
             rows.append({"scenarios": n, **_row("benders", benders, time.perf_counter() - start, case, inst.scen)})
         except SolveError as exc:
             rows.append({"scenarios": n, "route": "benders", "status": f"failed: {exc}"})
         if args.skip_extensive:
             continue
+        progress(f"{label}extensive form (cap {args.cap:g} s)")
         start = time.perf_counter()
         try:
             extensive = inst.solve(gap=args.gap, time_limit=args.cap)
