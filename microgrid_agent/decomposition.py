@@ -367,7 +367,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             if value < core_value:
                 core, core_value = x, value
             report("LP relaxation, iteration", bound, core_value, master_s)
-            if core_value - bound <= lp_tolerance * abs(core_value) or _late(deadline):
+            if _apart(bound, core_value) <= lp_tolerance or _late(deadline):
                 break
         master.prune()
         status = "optimal"
@@ -402,8 +402,13 @@ def first_stage_values(var: dict[str, cp.Variable], x: np.ndarray) -> dict[str, 
 
 
 def _apart(lower: float, upper: float) -> float:
-    """The relative gap (upper - lower) / |upper|; infinite until there is an upper bound."""
-    return (upper - lower) / abs(upper) if np.isfinite(upper) else np.inf
+    """The relative gap (upper - lower) / |upper|; infinite until there is an upper bound. A schedule that costs
+    nothing (a microgrid importing free energy) is closed once the bound reaches it."""
+    if not np.isfinite(upper):
+        return np.inf
+    if upper == 0:
+        return 0.0 if lower >= upper else np.inf
+    return (upper - lower) / abs(upper)
 
 
 def _late(deadline: float | None) -> bool:

@@ -10,6 +10,7 @@ from microgrid_agent.checker import check_schedule
 from microgrid_agent.decomposition import (
     Master,
     Subproblems,
+    _apart,
     first_stage_values,
     solve_decomposed,
 )
@@ -153,3 +154,10 @@ def test_the_master_allows_no_shut_down_that_ramps_cannot_reach():
     with pytest.raises(SolveError):  # the 10-minute model itself has no dispatch for it
         solve(inst.case, inst.scen, inst.params, fixed={"I": with_g2_off_from(2)})
     assert solve(inst.case, inst.scen, inst.params, fixed={"I": with_g2_off_from(3)}, gap=0.05).objective > 0
+
+
+def test_the_relative_gap_is_closed_only_when_the_bound_reaches_a_zero_cost():
+    assert _apart(5_940.0, 6_000.0) == pytest.approx(0.01)
+    assert _apart(-1.0, np.inf) == np.inf
+    assert _apart(0.0, 0.0) == 0.0  # a microgrid that imports free energy: no division by zero
+    assert _apart(-1e-3, 0.0) == np.inf
