@@ -18,13 +18,14 @@ import secrets
 import time
 from dataclasses import dataclass
 
+from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES, check_agent_id, is_agent_id, is_name
+
 from .codec import MessageError
-from .schemas import DMO, NAME_PATTERN, RESERVED_NAMES, Envelope
+from .schemas import Envelope
 
 ROOT = "dmosim"
 RUN_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 _RUN_ID = re.compile(RUN_ID_PATTERN)
-_NAME = re.compile(NAME_PATTERN)
 
 # kind -> (role, topic, whether the key names an agent)
 ROUTES: dict[str, tuple[str, str, bool]] = {
@@ -52,14 +53,6 @@ def check_run_id(run_id: str) -> str:
     if not isinstance(run_id, str) or not _RUN_ID.match(run_id):
         raise ValueError(f"run id {run_id!r} must match {RUN_ID_PATTERN}")
     return run_id
-
-
-def check_agent_id(agent: str) -> str:
-    if not isinstance(agent, str) or not _NAME.match(agent):
-        raise ValueError(f"agent id {agent!r} must match {NAME_PATTERN}")
-    if agent.lower() in RESERVED_NAMES:
-        raise ValueError(f"agent id {agent!r} is reserved")
-    return agent
 
 
 @dataclass(frozen=True)
@@ -124,7 +117,7 @@ class Keys:
         return f"{self.prefix}/agent/{_agent_or_star(agent)}/**"
 
     def alive(self, name: str) -> str:
-        if name != "*" and not _NAME.match(name):
+        if name != "*" and not is_name(name):
             raise ValueError(f"process name {name!r} must match {NAME_PATTERN}")
         return f"{self.prefix}/alive/{name}"
 
@@ -166,19 +159,15 @@ def parse_key(key: str) -> ParsedKey:
         if len(rest) == 1 and (role, rest[0]) in TOPIC_KINDS and not ROUTES[TOPIC_KINDS[role, rest[0]]][2]:
             return ParsedKey(run_id, role, None, rest[0])
         if len(rest) == 2 and (role, rest[0]) in TOPIC_KINDS and ROUTES[TOPIC_KINDS[role, rest[0]]][2] \
-                and _is_agent(rest[1]):
+                and is_agent_id(rest[1]):
             return ParsedKey(run_id, role, rest[1], rest[0])
     elif role == "agent":
-        if len(rest) == 2 and _is_agent(rest[0]) and (role, rest[1]) in TOPIC_KINDS:
+        if len(rest) == 2 and is_agent_id(rest[0]) and (role, rest[1]) in TOPIC_KINDS:
             return ParsedKey(run_id, role, rest[0], rest[1])
     elif role == "alive":
-        if len(rest) == 1 and _NAME.match(rest[0]):
+        if len(rest) == 1 and is_name(rest[0]):
             return ParsedKey(run_id, role, None if rest[0].lower() in RESERVED_NAMES else rest[0], rest[0])
     raise MessageError(f"key {key!r} is not a dmosim key", "wrong_key")
-
-
-def _is_agent(name: str) -> bool:
-    return bool(_NAME.match(name)) and name.lower() not in RESERVED_NAMES
 
 
 def sender_matches_key(key: str, msg: Envelope) -> bool:
@@ -204,3 +193,33 @@ def check_route(key: str, msg: Envelope, run_id: str | None = None) -> ParsedKey
     if parsed.role == "dmo" and parsed.agent is not None and msg.agent != parsed.agent:
         raise MessageError(f"{msg.kind} for {msg.agent!r} published on {key!r}", "wrong_key")
     return parsed
+
+
+def relative_key(key: str, prefix: str) -> str:
+    """``key`` without the run prefix ``prefix`` (``dmosim/<run>``), e.g. ``agent/mg1/meter``; another key as is."""
+    return key[len(prefix) + 1:] if prefix and key.startswith(prefix + "/") else key
+
+
+def key_pattern(pattern: str) -> re.Pattern:
+    """A key pattern relative to the run prefix: ``*`` matches within one level, ``**`` across levels, ``?`` one
+    character; e.g. ``dmo/*``, ``agent/*/meter``, ``dmo/award/mg*``, ``**/mg1/**``. Zenoh's key expressions
+    (whole-level ``*`` and ``**``) mean the same here."""
+    text = pattern.strip().strip("/")
+    out, i = [], 0
+    while i < len(text):
+        if text.startswith("**/", i):
+            out.append("(?:.*/)?")
+            i += 3
+        elif text.startswith("**", i):
+            out.append(".*")
+            i += 2
+        elif text[i] == "*":
+            out.append("[^/]*")
+            i += 1
+        elif text[i] == "?":
+            out.append("[^/]")
+            i += 1
+        else:
+            out.append(re.escape(text[i]))
+            i += 1
+    return re.compile("^" + "".join(out) + "$")

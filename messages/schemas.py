@@ -17,15 +17,14 @@ from typing import Annotated, Any, Literal, Union, get_args
 from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, TypeAdapter, ValidationInfo,
                       model_validator)
 
+from scenarios.horizon import HOURS
+from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
+
 SCHEMA_VERSION = 1
-HOURS = 24
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
 MAX_UNITS = 64
 MAX_AGENTS = 1024
-DMO = "dmo"
-NAME_PATTERN = r"^[A-Za-z][A-Za-z0-9_-]{0,31}$"
-RESERVED_NAMES = (DMO, "recorder")  # process names that no agent may take
 CENT = 0.01
 
 # Strict scalars: the wire never coerces between types.
@@ -58,7 +57,7 @@ Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 
 
-class _Frozen(BaseModel):
+class _WireModel(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False,
                               json_schema_serialization_defaults_required=True)
 
@@ -68,7 +67,7 @@ def _check_length(values: tuple, subperiods: int, field: str) -> None:
         raise ValueError(f"{field} has {len(values)} values, expected subperiods={subperiods}")
 
 
-class Envelope(_Frozen):
+class Envelope(_WireModel):
     """Fields every message carries. ``seq`` and ``sent_at`` are stamped by the transport when published."""
 
     kind: str  # each message type narrows it to its literal tag; declared here so it comes first on the wire
@@ -155,7 +154,7 @@ class CallForBids(_FromDmo):
         return self
 
 
-class BidStep(_Frozen):
+class BidStep(_WireModel):
     """One price-quantity step: buy up to ``quantity_mw`` at up to ``price_per_mwh``; negative = sell at least at it."""
 
     price_per_mwh: Float
@@ -251,7 +250,7 @@ class MeterReport(_FromAgent):
 
 # --- settlement ---------------------------------------------------------------------------------------------
 
-class StatementLine(_Frozen):
+class StatementLine(_WireModel):
     """One hour of a statement. ``import_mwh`` is the settled import (metered sub-periods as reported, missing ones
     by the missing-report rule); ``deviation_mwh`` the sum of max(P_M - P_sch, 0) dt, ``under_import_mwh`` the sum
     of max(P_sch - P_M, 0) dt; total = energy_charge + deviation_penalty - deviation_credit."""
@@ -308,14 +307,14 @@ def _check_sum(stated: float, computed: float, name: str) -> None:
         raise ValueError(f"{name} {stated} does not add up (lines give {computed:.2f})")
 
 
-class AgentTotals(_Frozen):
+class AgentTotals(_WireModel):
     energy_charge: Float
     deviation_penalty: NonNeg
     deviation_credit: NonNeg
     total: Float
 
 
-class Incident(_Frozen):
+class Incident(_WireModel):
     """Something that went wrong during the day: a late, missing or vanished agent, a rejected message."""
 
     agent: AgentId | None

@@ -1,11 +1,11 @@
 """Independent checker of a stochastic schedule: verifies (2)-(21) in every scenario and recomputes cost (1).
 
 A separate code path from the model on purpose: plain numpy over the arrays of the result contract
-(``microgrid_agent.schedule``), written from the paper and SPEC section 5, never importing the model. A bug would
+(``microgrid_agent.schedule``), written from the paper and docs/model.md, never importing the model. A bug would
 have to be made twice, the same way, to pass unseen. Each family of constraints is one vectorised comparison over
 (element, scenario, sub-period); only the few reported violations are formatted one by one.
 
-Conventions checked (the contract the model implements, SPEC section 5 corrections included):
+Conventions checked (the contract the model implements, the corrections of docs/model.md included):
 sub-period n = (t-1)K + tau - 1, hour t = n // K + 1; ramps (4)-(5) between consecutive sub-periods across hours,
 with a start-up/shut-down allowance of P_min at the first sub-period of an hour; minimum times (6)-(7), (13)-(14)
 and (17) in the Rajan-Takriti form over start indicators, with (13) binding charging v and (14) discharging u;
@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from microgrid_agent.schedule import CostBreakdown, Schedule, energy_weight
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
+from scenarios.horizon import HOURS
 
-HOURS = 24
+from .schedule import CostBreakdown, StochasticSchedule, energy_weight, start_indicators
 MAX_MESSAGES = 50
 PER_CHECK = 8  # so one badly broken family cannot hide the others from the first lines of the report
 OBJECTIVE_RTOL = 1e-6
@@ -115,12 +115,6 @@ def _subperiods(hourly: np.ndarray, k: int) -> np.ndarray:
     return np.repeat(hourly, k, axis=-1)
 
 
-def _starts(state: np.ndarray, initial: np.ndarray) -> np.ndarray:
-    """max(0, x_t - x_{t-1}) per row of a (M, 24) 0/1 array, with x_0 = ``initial`` (M,)."""
-    prev = np.concatenate([initial[:, None], state[:, :-1]], axis=1)
-    return np.maximum(0.0, state - prev)
-
-
 def _recent(starts: np.ndarray, length: np.ndarray) -> np.ndarray:
     """Sum of ``starts`` over hours max(1, t-L+1)..t, per row with its own L: the Rajan-Takriti left-hand side."""
     cum = np.concatenate([np.zeros((starts.shape[0], 1)), np.cumsum(starts, axis=1)], axis=1)
@@ -148,7 +142,7 @@ def _expected_shapes(case: Case, scen: ScenarioSet) -> dict[str, tuple[int, ...]
     }
 
 
-def _arrays(scen: ScenarioSet, schedule: Schedule, p_sch) -> dict[str, np.ndarray]:
+def _arrays(scen: ScenarioSet, schedule: StochasticSchedule, p_sch) -> dict[str, np.ndarray]:
     out = {f"scenarios.{k}": getattr(scen, k) for k in ("probability", "load", "renewable", "connected")}
     out["schedule.probability"] = schedule.probability
     for part, obj in (("first", schedule.first), ("dispatch", schedule.dispatch)):
@@ -157,7 +151,7 @@ def _arrays(scen: ScenarioSet, schedule: Schedule, p_sch) -> dict[str, np.ndarra
     return {k: np.asarray(v, dtype=float) for k, v in out.items()}
 
 
-def _check_inputs(f: _Findings, case: Case, scen: ScenarioSet, schedule: Schedule, a: dict) -> bool:
+def _check_inputs(f: _Findings, case: Case, scen: ScenarioSet, schedule: StochasticSchedule, a: dict) -> bool:
     """Shapes, finiteness, names, probabilities. False when the arrays cannot be checked further."""
     if schedule.subperiods != scen.subperiods:
         f.note(f"shape: schedule has {schedule.subperiods} sub-periods per hour, scenarios {scen.subperiods}")
@@ -197,8 +191,8 @@ def _check_units(f: _Findings, case: Case, a: dict, k: int, dt: float) -> tuple[
     _binary(f, "6", "start-up y", a["first.startup"], ug)
     _binary(f, "7", "shut-down w", a["first.shutdown"], ug)
     initial = case.unit_array("initial_on")
-    up = _starts(commit, initial)
-    down = _starts(1.0 - commit, 1.0 - initial)
+    up = start_indicators(commit, initial)
+    down = start_indicators(1.0 - commit, 1.0 - initial)
     f.flag("6", "start-up y != max(0, I_t - I_t-1)", np.abs(a["first.startup"] - up), ug)
     f.flag("7", "shut-down w != max(0, I_t-1 - I_t)", np.abs(a["first.shutdown"] - down), ug)
 
@@ -226,7 +220,7 @@ def _check_units(f: _Findings, case: Case, a: dict, k: int, dt: float) -> tuple[
 
 
 def _check_storage(f: _Findings, case: Case, a: dict, k: int, dt: float) -> None:
-    """Storage (8)-(14), with (13) binding charging v and (14) discharging u (SPEC section 5)."""
+    """Storage (8)-(14), with (13) binding charging v and (14) discharging u (docs/model.md)."""
     p, soc = a["dispatch.p_storage"], a["dispatch.soc"]
     ch = _binary(f, "10", "charging v", a["first.charging"], ("hour",))
     dch = _binary(f, "10", "discharging u", a["first.discharging"], ("hour",))
@@ -249,9 +243,9 @@ def _check_storage(f: _Findings, case: Case, a: dict, k: int, dt: float) -> None
     f.flag("12", f"{tag} end-of-day state of charge below C_initial", es.c_initial - soc[:, -1], ("scenario",))
     none = np.zeros(1)
     f.flag("13", f"{tag} minimum charging time",
-           _recent(_starts(ch[None, :], none), np.array([es.min_charge]))[0] - ch, ("hour",))
+           _recent(start_indicators(ch[None, :], none), np.array([es.min_charge]))[0] - ch, ("hour",))
     f.flag("14", f"{tag} minimum discharging time",
-           _recent(_starts(dch[None, :], none), np.array([es.min_discharge]))[0] - dch, ("hour",))
+           _recent(start_indicators(dch[None, :], none), np.array([es.min_discharge]))[0] - dch, ("hour",))
 
 
 def _check_loads(f: _Findings, case: Case, a: dict, k: int, dt: float) -> None:
@@ -268,7 +262,7 @@ def _check_loads(f: _Findings, case: Case, a: dict, k: int, dt: float) -> None:
     required = case.load_array("energy")[:, None]
     f.flag("16", "energy in window != E_d", np.abs(energy - required), ("load", "scenario"), scale=required)
     f.flag("17", "minimum operating time",
-           _recent(_starts(z, np.zeros(len(z))), case.load_array("min_up")) - z, dh)
+           _recent(start_indicators(z, np.zeros(len(z))), case.load_array("min_up")) - z, dh)
 
 
 def _check_balance_and_grid(f: _Findings, case: Case, a: dict, k: int, p_sch: np.ndarray,
@@ -326,8 +320,8 @@ def _close(x: float, y: float) -> bool:
     return abs(x - y) <= OBJECTIVE_RTOL * max(abs(x), abs(y)) + OBJECTIVE_ATOL
 
 
-def check_schedule(case: Case, scenarios: ScenarioSet, schedule: Schedule, p_sch=None, penalty: float | None = None,
-                   tol: float = 1e-5, import_price=None) -> CheckReport:
+def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSchedule, p_sch=None,
+                   penalty: float | None = None, tol: float = 1e-5, import_price=None) -> CheckReport:
     """Verify every constraint of ``schedule`` in every scenario and recompute its expected cost.
 
     ``p_sch`` (24,) defaults to the case's award, ``penalty`` to the schedule's (``inf`` forbids any positive

@@ -10,9 +10,9 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet, make_scenarios
 
 from .model import Params
-from .routes import resolve_method
-from .schedule import Schedule
-from .solve import solve
+from .schedule import StochasticSchedule
+from .solvers.extensive import solve
+from .solvers.routes import resolve_method
 
 
 @dataclass(frozen=True)
@@ -21,12 +21,12 @@ class Instance:
     scen: ScenarioSet
     params: Params
 
-    def solve(self, method: str = "extensive", workers: int = 2, progress=None, **options) -> Schedule:
+    def solve(self, method: str = "extensive", workers: int = 2, progress=None, **options) -> StochasticSchedule:
         """The extensive form (reference) or the Benders decomposition (or "auto": by scenario count); both
         certify their gap. ``progress(message)`` hears of each Benders iteration (the extensive form reports
         through HiGHS's own log, ``verbose``)."""
         if resolve_method(method, self.scen.S) == "benders":
-            from .decomposition import solve_decomposed  # noqa: PLC0415
+            from .solvers.benders import solve_decomposed  # noqa: PLC0415
 
             return solve_decomposed(self.case, self.scen, self.params, workers=workers, progress=progress,
                                     **{k: v for k, v in options.items() if k in ("gap", "time_limit")})

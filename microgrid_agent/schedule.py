@@ -11,8 +11,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-HOURS = 24
+from scenarios.horizon import HOURS
+
 COST_CONVENTIONS = ("real", "paper")
+
+
+def start_indicators(state: np.ndarray, initial: np.ndarray) -> np.ndarray:
+    """max(0, x_t - x_{t-1}) per row of a (M, 24) 0/1 state, with x_0 = ``initial`` (M,): where the state starts
+    (a unit's start-ups from I, its shut-downs from 1 - I)."""
+    before = np.concatenate([np.asarray(initial, float).reshape(-1, 1), state[:, :-1]], axis=1)
+    return np.maximum(state - before, 0.0)
 
 
 def energy_weight(subperiods: int, convention: str) -> float:
@@ -95,7 +103,7 @@ class Timings:
 
 
 @dataclass(frozen=True)
-class Schedule:
+class StochasticSchedule:
     """A solved stochastic day-ahead schedule.
 
     ``objective`` is the expected cost of the returned schedule, ``bound`` a valid lower bound on the optimum,
@@ -160,7 +168,7 @@ class Schedule:
         return pd.DataFrame(cols, index=index)
 
     def summary(self) -> dict:
-        """The JSON object of SPEC section 4 for ``dmosim solve --json``."""
+        """The JSON object of ``dmosim solve --json`` (README, "Commands")."""
         return {
             "status": self.status,
             "objective": self.objective,

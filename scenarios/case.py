@@ -10,7 +10,8 @@ from typing import Annotated
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-HOURS = 24
+from scenarios.horizon import HOURS
+
 DATA_DIR = Path(__file__).parent / "data"
 
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -25,11 +26,11 @@ class CaseError(ValueError):
     """A case file that cannot be used; the message names the file and the field."""
 
 
-class _Frozen(BaseModel):
+class _CaseModel(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
 
-class Unit(_Frozen):
+class Unit(_CaseModel):
     """A dispatchable unit i in G: limits of (3), ramps of (4)-(5), minimum up/down times of (6)-(7), cost F."""
 
     name: str
@@ -64,7 +65,7 @@ class Unit(_Frozen):
         return self.p_min if self.p_initial is None else self.p_initial
 
 
-class Renewable(_Frozen):
+class Renewable(_CaseModel):
     """A nondispatchable unit: its hourly availability forecast, which scenarios perturb."""
 
     name: str
@@ -80,7 +81,7 @@ class Renewable(_Frozen):
         return self
 
 
-class Storage(_Frozen):
+class Storage(_CaseModel):
     """The energy storage i in S: power limits (8)-(9), energy (11)-(12), minimum charge/discharge times (13)-(14)."""
 
     name: str
@@ -105,7 +106,7 @@ class Storage(_Frozen):
         return self
 
 
-class AdjustableLoad(_Frozen):
+class AdjustableLoad(_CaseModel):
     """An adjustable load d in D: power limits (15), energy E_d within [alpha, beta] (16), minimum operating time (17)."""
 
     name: str
@@ -134,7 +135,7 @@ class AdjustableLoad(_Frozen):
         return self
 
 
-class Grid(_Frozen):
+class Grid(_CaseModel):
     """The point of common coupling: P_M^max of (18), the DMO's award P^sch of (19), penalty c and value of lost load."""
 
     p_m_max: Pos
@@ -145,12 +146,12 @@ class Grid(_Frozen):
     provenance: dict[str, str] = {}
 
 
-class FixedLoad(_Frozen):
+class FixedLoad(_CaseModel):
     forecast: Profile
     provenance: dict[str, str] = {}
 
 
-class Uncertainty(_Frozen):
+class Uncertainty(_CaseModel):
     """Half-widths of the uniform forecast errors, as fractions of the forecast."""
 
     load: Annotated[float, Field(ge=0, lt=1)]
@@ -163,13 +164,13 @@ class Uncertainty(_Frozen):
         return getattr(self, name, self.wind)
 
 
-class CaseInfo(_Frozen):
+class CaseInfo(_CaseModel):
     name: str
     description: str = ""
     provenance: dict[str, str] = {}
 
 
-class Case(_Frozen):
+class Case(_CaseModel):
     """A whole microgrid case. Array views (``unit_array`` and friends) feed the vectorised model."""
 
     case: CaseInfo

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from messages.keys import check_agent_id
 from scenarios.case import Case, CaseError, builtin_cases, load_case, parse_case
+from scenarios.names import check_agent_id
 
 SCALE_RANGE = (0.6, 1.4)
 SHIFTS = (-2, -1, 0, 1, 2)

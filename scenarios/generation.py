@@ -7,9 +7,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from scenarios.case import Case
+from scenarios.horizon import HOURS
 from scenarios.reduction import forward_selection
-
-HOURS = 24
 
 # Independent random streams per quantity, so that changing one input (the islanding duration, the number of
 # renewables, n) leaves the other draws as they were: a sweep over H then compares costs under the same errors.
@@ -196,3 +195,30 @@ def expected_value(scen: ScenarioSet) -> ScenarioSet:
         renewable=np.einsum("s,rsn->rn", p, scen.renewable)[:, None, :],
         connected=(p @ scen.connected)[None, :],
     )
+
+
+def clipped_mean(forecast: np.ndarray, bound: float, capacity: float) -> np.ndarray:
+    """E[min(f (1 + b e), cap)] for e ~ U(-1, 1): the mean availability ``sample`` draws (clipped at capacity).
+
+    Where f (1 + b) <= cap nothing is clipped and the mean is f. Otherwise, with e* = (cap / f - 1) / b the error
+    at which the clip starts, the mean is (1/2) [f ((e* + 1) + b (e*^2 - 1) / 2) + cap (1 - e*)].
+    """
+    f = np.asarray(forecast, float)
+    clipped = (bound > 0) & (f * (1.0 + bound) > capacity)
+    safe_f = np.where(clipped, f, 1.0)
+    e = np.where(clipped, (capacity / safe_f - 1.0) / max(bound, 1e-300), 1.0)
+    mean = 0.5 * (safe_f * ((e + 1.0) + bound * (e * e - 1.0) / 2.0) + capacity * (1.0 - e))
+    return np.where(clipped, mean, f)
+
+
+def forecast_scenario(case: Case, subperiods: int) -> ScenarioSet:
+    """One grid-connected scenario of probability 1 holding the exact expected load and renewable availability
+    of ``sample`` (the forecast; renewables slightly below it where the error is clipped)."""
+    if subperiods < 1:
+        raise ValueError(f"subperiods must be at least 1 per hour, got {subperiods}")
+    load = np.repeat(np.asarray(case.fixed_load.forecast, float), subperiods)[None, :]
+    renewable = np.zeros((len(case.renewables), 1, HOURS * subperiods))
+    for r, unit in enumerate(case.renewables):
+        mean = clipped_mean(np.asarray(unit.forecast), case.uncertainty.for_renewable(unit.name), unit.capacity)
+        renewable[r, 0] = np.repeat(mean, subperiods)
+    return ScenarioSet(subperiods, np.ones(1), load, renewable, np.ones((1, HOURS * subperiods)))

@@ -1,12 +1,5 @@
 """``dmosim bench NAME``: benchmarks that print ratios and absolute times measured side by side in one run.
 
 Each benchmark module has ``add_arguments(parser)`` and ``run(args) -> dict``: the dict is printed as a table,
-or as one JSON object with ``--json``. Never timed assertions in tests: figures belong here.
+or as one JSON object with ``--json`` (dmo/cli/bench.py). Never timed assertions in tests: figures belong here.
 """
-
-BENCHES = {
-    "day": "dmo.bench.day",
-    "messaging": "dmo.bench.messaging",
-    "recording": "dmo.bench.recording",
-    "solver": "dmo.bench.solver",
-}

@@ -2,7 +2,7 @@
 
 For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
 (``phase_s``) and each agent logs, at the end of its day, the wall and CPU time of every message it handled
-(``compute`` line of ``microgrid_agent.agent``). The split is ``split_day``: per step (the call for bids, the award,
+(``compute`` line of ``microgrid_agent.agent.process``). The split is ``split_day``: per step (the call for bids, the award,
 each hour's grid state) the slowest agent's compute time is on the critical path; the day's wall time minus that
 critical path is the overhead (definition in docs/benchmarks.md).
 """
@@ -15,12 +15,13 @@ import os
 import re
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from ..cli.flags import gap, nonneg_float, positive_int
+from ..launch.processes import dmosim_command, role_env
+
 GOAL_PCT = 5.0
 # The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
 STEP_PHASE = {"call_for_bids": "bidding", "award": "scheduling", "grid_state": "realtime"}
@@ -28,8 +29,6 @@ _COMPUTE_LINE = re.compile(r" compute (\[.*\])\s*$")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..cli import gap, nonneg_float, positive_int  # noqa: PLC0415  (the CLI imports this module)
-
     parser.add_argument("--agents", type=positive_int, nargs="+", default=[1, 5, 10], metavar="N",
                         help="fleet sizes, one day each (default: 1 5 10)")
     parser.add_argument("--scenarios", type=positive_int, default=2, help="scenarios per agent schedule (default: 2)")
@@ -125,7 +124,7 @@ def read_compute(log: Path) -> list[dict]:
 
 def recording_option() -> str | None:
     """``--no-record`` if ``dmosim run`` offers it, else ``--record`` (then sent to a scratch file) if it has that."""
-    text = subprocess.run(_dmosim("run", "--help"), capture_output=True, text=True, env=_env(), check=True).stdout
+    text = subprocess.run(dmosim_command("run", "--help"), capture_output=True, text=True, env=role_env(), check=True).stdout
     return next((flag for flag in ("--no-record", "--record") if re.search(rf"{flag}\b", text)), None)
 
 
@@ -134,14 +133,14 @@ def run_day(n: int, args, recording: str | None) -> dict:
     Its logs (and recording) go to a scratch directory, removed unless the day fails."""
     logs = Path(tempfile.mkdtemp(prefix=f"dmosim-bench-day-{n}-"))
     record = {None: [], "--no-record": ["--no-record"], "--record": ["--record", str(logs / "day.mcap")]}[recording]
-    argv = _dmosim("run", "--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
+    argv = dmosim_command("run", "--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
                    "--gap", repr(args.gap), "--time-limit", repr(args.time_limit),
                    "--registration-timeout", "300", "--bid-timeout", "600", "--schedule-timeout", "600",
                    "--hour-timeout", "120", "--logs", str(logs), "--json", "--quiet", *record)
     start = time.perf_counter()
     # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started.
     process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True, env=_env())
+                               start_new_session=True, env=role_env())
     try:
         out, err = process.communicate(timeout=args.timeout)
     except BaseException:
@@ -161,9 +160,3 @@ def run_day(n: int, args, recording: str | None) -> dict:
     return {"result": result, "compute": compute, "process_s": process_s}
 
 
-def _dmosim(*args: str) -> list[str]:
-    return [sys.executable, "-m", "dmo.cli", *args]
-
-
-def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}

@@ -18,7 +18,6 @@ import subprocess
 import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -27,16 +26,14 @@ from messages.keys import new_run_id
 from messages.schemas import DMO
 from messages.transport import Bus, BusConfig
 
-from ..processes import free_port
+from ..cli.flags import positive_int
+from ..launch.processes import free_port, role_env
 
 AGENT = "mg1"
-ROOT = Path(__file__).resolve().parents[2]
 TIMEOUT_S = 30.0  # for any single reply or handshake: a dead peer fails the bench instead of hanging it
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..cli import positive_int  # noqa: PLC0415  (the CLI imports this module to build its parser)
-
     parser.add_argument("--messages", type=positive_int, default=2000,
                         help="round trips, one at a time (default: 2000)")
     parser.add_argument("--burst", type=positive_int, default=20000,
@@ -205,9 +202,8 @@ class Echo:
         self.process: subprocess.Popen | None = None
 
     def __enter__(self) -> Echo:
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
         self.process = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                        start_new_session=True, env=env)
+                                        start_new_session=True, env=role_env())
         threading.Thread(target=self._read, daemon=True, name="echo-stdout").start()
         try:
             self._answer("ready")

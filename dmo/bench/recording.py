@@ -1,7 +1,7 @@
 """Recording: the recorder's sustained write rate, replay at maximum rate, and the size of a recorded agent-day.
 
 The messages are those of a real market day (``synthetic_day``: every kind, real schemas, settlement statements
-from ``dmo.settlement``), built without solving anything. Figures:
+from ``dmo.market.settlement``), built without solving anything. Figures:
 
 - ``write``: messages/s through ``RecordingWriter`` alone (validation, chunking, zstd, a chunk closed every
   ``chunk_messages``), and end to end: a ``dmosim record`` process receiving the mix over Zenoh from a publisher
@@ -18,7 +18,6 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -26,19 +25,31 @@ from pathlib import Path
 
 import numpy as np
 
-from messages import (DMO, Award, Bid, BidStep, CallForBids, Clock, DaySummary, GridState, MeterReport,
-                      Registration, Schedule, encode)
+from messages import (
+    DMO,
+    Award,
+    Bid,
+    BidStep,
+    CallForBids,
+    Clock,
+    GridState,
+    MeterReport,
+    Registration,
+    Schedule,
+    encode,
+)
 from messages.keys import Keys, new_run_id
 from messages.recording import CHUNK_MESSAGES, RecordingWriter, read_recording
-from messages.schemas import AgentTotals
 
-ROOT = Path(__file__).resolve().parents[2]
+from ..cli.flags import positive_int
+from ..launch.processes import dmosim_command, role_env
+from ..market.settlement import settle
+from ..operator.outbox import day_summary, statement_message
+
 GOAL_MSGS_S = 20_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..cli import positive_int  # noqa: PLC0415  (the CLI imports this module)
-
     parser.add_argument("--messages", type=positive_int, default=100_000,
                         help="messages per write-rate measurement (default: 100000)")
     parser.add_argument("--agents", type=positive_int, default=10, help="agents of the day whose mix is used (default: 10)")
@@ -80,9 +91,7 @@ def run(args) -> dict:
 def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str = "2026-07-01",
                   seed: int = 0) -> list[tuple[str, bytes]]:
     """Every message of one market day of ``agents`` agents, in the order of the day, as (key, payload):
-    stamped as a Bus would, with realistic numbers; statements settled by ``dmo.settlement``."""
-    from dmo.day import DayConfig, statement_message  # noqa: PLC0415
-    from dmo.settlement import settle  # noqa: PLC0415
+    stamped as a Bus would, with realistic numbers; statements settled by ``dmo.market.settlement``."""
 
     rng = np.random.default_rng(seed)
     keys = Keys(run_id)
@@ -103,8 +112,6 @@ def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str
 
     prices, k = hourly(20, 90), subperiods
     penalty, cap = 150.0, 10.0
-    c = DayConfig(market_day=market_day, agents=agents, iso_price=prices, import_limit=8.0 * agents,
-                  export_limit=5.0 * agents, penalty=penalty, subperiods=k, islanded_hours=(12,))
     put(Clock(sender=DMO, market_day=market_day, phase="registration", deadline_s=60.0))
     for a in names:
         put(Registration(sender=a, market_day=market_day, case="paper", max_import_mw=cap, max_export_mw=cap))
@@ -140,12 +147,8 @@ def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str
     put(Clock(sender=DMO, market_day=market_day, phase="settlement", deadline_s=300.0))
     statements, _ = settle(awards, prices, meter, subperiods=k, penalty=penalty, p_m_max=cap)
     for st in statements.values():
-        put(statement_message(st, c))
-    put(DaySummary(sender=DMO, market_day=market_day, agents=tuple(names), clearing_price_per_mwh=prices,
-                   totals={a: AgentTotals(energy_charge=float(st.energy_charge),
-                                          deviation_penalty=float(st.deviation_penalty),
-                                          deviation_credit=float(st.credit), total=float(st.total))
-                           for a, st in statements.items()}, rejected_messages=0, incidents=()))
+        put(statement_message(st, market_day, penalty, 0.0))
+    put(day_summary(market_day, names, prices, statements, 0, ()))
     return out
 
 
@@ -200,12 +203,6 @@ def cost_split(mix, n: int) -> dict:
             "bids_and_statements_share_of_messages": round(share, 3)}
 
 
-def _dmosim(*args: str) -> list[str]:
-    return [sys.executable, "-m", "dmo.cli", *args]
-
-
-def _env() -> dict:
-    return {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
 
 
 def _cpu_s(pid: int) -> float:
@@ -224,16 +221,16 @@ def wire_rate(mix, n: int, chunk_messages: int, scratch: Path) -> dict:
     working through counts against it; its CPU time is read from /proc."""
     import zenoh  # noqa: PLC0415
 
-    from dmo.processes import Roles, free_port  # noqa: PLC0415
+    from dmo.launch.processes import Roles, free_port  # noqa: PLC0415
     from messages.transport import Bus, BusConfig  # noqa: PLC0415
 
     run_id = mix[0][0].split("/")[1]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     path, ready, log = scratch / "wire.mcap", scratch / "ready", scratch / "recorder.log"
     with Roles() as roles:
-        recorder = roles.start("recorder", _dmosim("record", "--out", str(path), "--run-id", run_id, "--mode", "router",
+        recorder = roles.start("recorder", dmosim_command("record", "--out", str(path), "--run-id", run_id, "--mode", "router",
                                                    "--listen", endpoint, "--ready-file", str(ready),
-                                                   "--chunk-messages", str(chunk_messages)), log=log, env=_env())
+                                                   "--chunk-messages", str(chunk_messages)), log=log, env=role_env())
         _wait_file(ready, recorder.process, 60)
         cpu_before = _cpu_s(recorder.process.pid)
         with Bus(run_id, "bench", BusConfig(mode="client", connect=(endpoint,)), announce=False) as bus:
@@ -274,7 +271,7 @@ def wire_rate(mix, n: int, chunk_messages: int, scratch: Path) -> dict:
 
 def replay_rate(path: Path, scratch: Path) -> dict:
     """``dmosim replay --rate max`` of a recording to a subscriber here; rate from the subscriber's clock."""
-    from dmo.processes import Roles, free_port  # noqa: PLC0415
+    from dmo.launch.processes import Roles, free_port  # noqa: PLC0415
     from messages.transport import Bus, BusConfig  # noqa: PLC0415
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -295,9 +292,9 @@ def replay_rate(path: Path, scratch: Path) -> dict:
     with Bus(run_id, "tap", BusConfig(mode="router", listen=(endpoint,)), announce=False) as bus, Roles() as roles:
         bus.subscribe_raw(bus.keys.everything(), on_sample)
         start = time.perf_counter()
-        player = roles.start("replay", _dmosim("replay", str(path), "--rate", "max", "--run-id", run_id, "--mode",
+        player = roles.start("replay", dmosim_command("replay", str(path), "--rate", "max", "--run-id", run_id, "--mode",
                                                "client", "--connect", endpoint, "--quiet"),
-                             log=scratch / "replay.log", env=_env())
+                             log=scratch / "replay.log", env=role_env())
         done.wait(120)
         code = player.process.wait(timeout=60)
         process_s = time.perf_counter() - start

@@ -13,17 +13,16 @@ import resource
 import time
 
 from microgrid_agent.checker import check_schedule
-from microgrid_agent.decomposition import solve_decomposed
 from microgrid_agent.instance import make_instance
-from microgrid_agent.solve import SolveError
+from microgrid_agent.solvers.benders import solve_decomposed
+from microgrid_agent.solvers.extensive import SolveError
 from scenarios.case import load_case
 
-from ..console import progress
+from ..cli.console import progress
+from ..cli.flags import gap, nonneg_float, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ..cli import gap, nonneg_float, positive_int  # noqa: PLC0415
-
     parser.add_argument("--scenarios", type=positive_int, nargs="+", default=[10, 20, 50, 100])
     parser.add_argument("--subperiods", type=positive_int, default=6)
     parser.add_argument("--gap", type=gap, default=0.005)

@@ -1,0 +1,77 @@
+"""``dmosim dmo``: the market operator role alone, for days spread over several hosts (the Zenoh router by default)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import threading
+from pathlib import Path
+
+from messages.transport import Bus
+from scenarios.case import load_case
+
+from ..operator.config import DayConfig, draw_islanding
+from ..operator.day import MarketDay
+from .flags import (add_bus_flags, add_day_flags, add_fault_flags, bus_config, message_faults, nonneg_float,
+                    positive_int, setup_logging, today)
+
+HELP = "the market operator role alone (the Zenoh router by default)"
+log = logging.getLogger("dmosim")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--agents", type=positive_int, required=True, help="agents to wait for at registration")
+    p.add_argument("--run-id", default="day", help="key prefix shared with the agents (default: day)")
+    add_day_flags(p)
+    p.add_argument("--credit", type=nonneg_float, default=0.0, help="$/MWh credited below the award (default: 0)")
+    p.add_argument("--import-limit", type=nonneg_float, default=None, help="feeder import limit, MW (default: 8 x agents)")
+    p.add_argument("--export-limit", type=nonneg_float, default=None, help="feeder export limit, MW (default: 5 x agents)")
+    p.add_argument("--result", help="write the day's JSON result here (default: stdout)")
+    p.add_argument("--journal", metavar="PATH",
+                   help="journal the day here; a DMO restarted with the same journal, run id and market day "
+                        "resumes the day from it (docs/faults.md)")
+    p.add_argument("--await-recorder", type=nonneg_float, default=0.0, metavar="S",
+                   help="wait up to S seconds for a recorder of this run before the first message (default: 0, "
+                        "do not wait)")
+    add_fault_flags(p)
+    add_bus_flags(p)
+
+
+def day_config(args) -> DayConfig:
+    case = load_case(args.case)
+    return DayConfig(
+        market_day=args.market_day or today(), agents=args.agents, iso_price=tuple(case.grid.iso_price),
+        import_limit=args.import_limit if args.import_limit is not None else 8.0 * args.agents,
+        export_limit=args.export_limit if args.export_limit is not None else 5.0 * args.agents,
+        penalty=case.grid.penalty if args.penalty is None else args.penalty, credit=args.credit,
+        subperiods=args.subperiods, islanded_hours=draw_islanding(args.island_hours, args.seed),
+        fixed_awards=tuple(case.grid.p_sch) if args.market == "fixed" else None,
+        registration_s=args.registration_timeout, bids_s=args.bid_timeout, schedule_s=args.schedule_timeout,
+        hour_s=args.hour_timeout, journal=args.journal)
+
+
+def run(args) -> int:
+    setup_logging("dmo", args.quiet)
+    config = day_config(args)
+    progress = lambda phase, hour: log.info("phase %s%s", phase, f" hour {hour}/24" if hour else "")  # noqa: E731
+    with Bus(args.run_id, "dmo", bus_config(args, "router", "dmo", args.run_id)) as bus:
+        bus.faults = message_faults(args, bus)
+        before_start = (lambda: await_recorder(bus, args.await_recorder)) if args.await_recorder else None
+        result = MarketDay(bus, config, progress).run(before_start)
+        transport = bus.stats() | ({"faults_injected": bus.faults.summary()} if bus.faults else {})
+    text = json.dumps(result.report(args.run_id, config, transport), indent=2)
+    if args.result:
+        Path(args.result).write_text(text + "\n")
+    else:
+        print(text)
+    return 0
+
+
+def await_recorder(bus: Bus, timeout_s: float) -> None:
+    """Block until the run's recorder is present (its token is declared after its subscription, so it listens)."""
+    present = threading.Event()
+    with bus.watch_presence(lambda name: name == "recorder" and present.set(), lambda name: None):
+        if not present.wait(timeout_s):
+            raise RuntimeError(f"no recorder joined run {bus.keys.run_id} within {timeout_s:g} s")
+    log.info("recorder present")

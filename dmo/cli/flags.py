@@ -1,0 +1,201 @@
+"""What several verbs share on the command line: value types that refuse bad input in one line, the flag groups of
+the roles (Zenoh endpoints, credentials, message faults), the logging of a role, and where a recording may go.
+
+A verb's own flags sit beside its body, in its module; only what two verbs or more take is here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import logging
+import math
+import sys
+from pathlib import Path
+
+from messages.recording import Recording, RecordingError, read_recording
+from messages.transport import MODES, BusConfig
+from messages.transport.access import auth_settings
+from messages.transport.faults import FaultSpecError, injector
+from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
+
+from .console import UsageError
+
+log = logging.getLogger("dmosim")
+
+
+# --- value types: each raises ArgumentTypeError, which the parser turns into one line and exit 2 ----------------
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def hours(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 24:
+        raise argparse.ArgumentTypeError(f"expected whole hours 0..24, got {text!r}")
+    return value
+
+
+def nonneg_float(text: str, allow_inf: bool = False) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {text!r}") from None
+    if math.isnan(value) or value < 0 or (math.isinf(value) and not allow_inf):
+        raise argparse.ArgumentTypeError(f"expected a non-negative{' ' if not allow_inf else ' (or inf) '}number, got {text!r}")
+    return value
+
+
+def penalty(text: str) -> float:
+    return nonneg_float(text, allow_inf=True)
+
+
+def gap(text: str) -> float:
+    value = nonneg_float(text)
+    if value >= 1:
+        raise argparse.ArgumentTypeError(f"expected a relative gap below 1 (e.g. 0.005), got {text!r}")
+    return value
+
+
+def market_day(text: str) -> str:
+    try:
+        return dt.date.fromisoformat(text).isoformat()
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, got {text!r}") from None
+
+
+def today() -> str:
+    return dt.date.today().isoformat()
+
+
+# --- flag groups --------------------------------------------------------------------------------------------------
+
+def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
+    """How a stochastic schedule is solved: ``solve``, ``study``, ``run``, ``agent``."""
+    p.add_argument("--method", choices=METHODS, default="auto",
+                   help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
+                        f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
+    p.add_argument("--workers", type=positive_int, default=workers,
+                   help=f"processes for the Benders subproblems (default: {workers})")
+
+
+def add_agent_flags(p: argparse.ArgumentParser) -> None:
+    """How each agent schedules its day: ``run``, ``agent``."""
+    p.add_argument("--scenarios", type=positive_int, default=5, help="scenarios of each agent's schedule (default: 5)")
+    p.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of each agent's schedule (default: 0.01)")
+    p.add_argument("--time-limit", type=nonneg_float, default=600.0, help="seconds per agent solve (default: 600)")
+    add_method_flags(p, workers=1)  # the agents of one machine share its cores
+
+
+def add_fault_flags(p: argparse.ArgumentParser) -> None:
+    """Message faults on what one role publishes: ``dmo``, ``agent`` (``run`` takes process faults too)."""
+    p.add_argument("--fault", action="append", default=[], metavar="SPEC",
+                   help="message fault on what this process publishes: drop|duplicate|corrupt:PATTERN:P or "
+                        "delay:PATTERN:SECONDS[:P] (repeatable; docs/faults.md)")
+    p.add_argument("--fault-seed", type=int, default=0, help="seed of the fault draws (default: 0)")
+
+
+def add_bus_flags(parser: argparse.ArgumentParser) -> None:
+    """The Zenoh and authentication flags every networked role takes. Never a password on the command line: it
+    would show in ``ps``."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--mode", choices=MODES, help="zenoh session mode (default: peer)")
+    group.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    group.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    group.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config file; the flags above override it")
+    group.add_argument("--lease", type=float, metavar="SECONDS",
+                       help="liveliness lease: how soon a frozen process is declared gone (zenoh default 10)")
+    group.add_argument("--connect-timeout", type=float, default=60.0, metavar="SECONDS",
+                       help="how long to keep trying the --connect endpoints before giving up (default 60), "
+                            "so a process may start before the one it connects to")
+    auth = parser.add_argument_group("authentication (docs/security.md)")
+    auth.add_argument("--auth-dir", metavar="DIR",
+                      help="credentials made by `dmosim credentials` (or `dmosim run`): the router uses DIR, a "
+                           "client its bundle DIR/<its name>; without it the process joins, or serves, an open network")
+    auth.add_argument("--user", metavar="NAME", help="log in as NAME (default: this process's name)")
+    auth.add_argument("--password-file", metavar="FILE", help="file holding the password (instead of --auth-dir)")
+
+
+def bus_config(args, default_mode: str, name: str | None = None, run_id: str | None = None) -> BusConfig:
+    """The bus settings of the flags of ``add_bus_flags``; ``name`` is who a client logs in as by default, and a
+    router with ``run_id`` checks that its --auth-dir was made for that run (messages/transport/access.py)."""
+    try:
+        mode = args.mode or default_mode
+        listen, connect = tuple(args.listen), tuple(args.connect)
+        auth = auth_settings(args.auth_dir, args.user, args.password_file, name, router=mode == "router",
+                             run_id=run_id, endpoints=listen if mode == "router" else connect)
+        if mode == "router" and not auth:
+            log.warning("no --auth-dir: anyone who reaches %s may join and publish anything (trusted networks "
+                        "only; docs/security.md)", ", ".join(listen) or "this router")
+        return BusConfig(mode=mode, connect=connect, listen=listen, lease_s=args.lease,
+                         connect_timeout_s=args.connect_timeout, config_file=args.zenoh_config, overrides=auth)
+    except ValueError as exc:  # AuthError is one
+        raise UsageError(str(exc)) from None
+
+
+def setup_logging(role: str, quiet: bool = False) -> None:
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
+                        format=f"%(asctime)s {role} %(levelname)s %(message)s", datefmt="%H:%M:%S")
+
+
+def recording_path(path: str, overwrite: bool) -> Path:
+    """Where a recording may go: an existing directory, and no file there unless ``overwrite``."""
+    out = Path(path)
+    if out.is_dir():
+        raise UsageError(f"{path} is a directory; give a file name, e.g. {out / 'day.mcap'}")
+    if not out.parent.is_dir():
+        raise UsageError(f"cannot write {path}: directory {out.parent} does not exist")
+    if out.exists() and not overwrite:
+        raise UsageError(f"{path} exists; remove it, choose another name or pass --overwrite")
+    return out
+
+
+def load_recording(path: str) -> Recording:
+    """A recording, or the one-line UsageError (exit 2) of a file that is not one."""
+    try:
+        return read_recording(path)
+    except RecordingError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def add_day_flags(p: argparse.ArgumentParser) -> None:
+    """Settings of the day the DMO runs: ``run``, ``dmo``."""
+    p.add_argument("--case", default="paper",
+                   help="case giving the ISO price, penalty and Table I awards (default: paper)")
+    p.add_argument("--market", choices=("bids", "fixed"), default="bids",
+                   help="bids: clear the agents' bids; fixed: award the case's Table I to every agent")
+    p.add_argument("--island-hours", type=hours, default=1,
+                   help="hours the feeder is islanded during the day (default: 1)")
+    p.add_argument("--penalty", type=nonneg_float, default=None, help="$/MWh above the award (default: the case's)")
+    p.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the day (islanding, fleet) (default: 0)")
+    p.add_argument("--market-day", type=market_day, default=None, help="the market day, YYYY-MM-DD (default: today)")
+    for name, default, what in (("registration", 60.0, "registration"), ("bid", 600.0, "bids"),
+                                ("schedule", 1800.0, "schedules"), ("hour", 300.0, "each hour's meter reports")):
+        p.add_argument(f"--{name}-timeout", type=nonneg_float, default=default, metavar="S",
+                       help=f"deadline for {what}, seconds (default: {default:g})")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
+
+
+def message_faults(args, bus):
+    """The FaultInjector of the ``--fault`` message faults (messages/transport/faults.py) for this process's bus,
+    or None."""
+    try:
+        faults = injector(getattr(args, "fault", []), bus.keys.prefix, getattr(args, "fault_seed", 0), bus.name)
+    except FaultSpecError as exc:
+        raise UsageError(f"--fault: {exc}") from None
+    if faults is not None:
+        log.warning("injecting message faults: %s", ", ".join(map(str, faults.faults)))
+    return faults

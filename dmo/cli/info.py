@@ -1,0 +1,113 @@
+"""``dmosim info PATH``: what a recording holds: the run, its market day and agents, duration, channels and counts."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+
+from messages.recording import Recording
+
+from .console import print_json
+from .flags import load_recording
+
+HELP = "summary of a recording: run, market day, agents, channels, counts"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def describe(rec: Recording) -> dict:
+    meta = rec.metadata
+    times = [m.log_time for m in rec.messages]
+    days, agents = set(), set()
+    for m in rec.messages:
+        parts = m.relative_key.split("/")
+        if len(parts) >= 3 and parts[0] == "agent":
+            agents.add(parts[1])
+        elif len(parts) == 3 and parts[0] == "dmo":
+            agents.add(parts[2])
+        if m.kind == "clock" and m.invalid is None:
+            try:
+                days.add(json.loads(m.payload)["market_day"])
+            except (ValueError, KeyError, TypeError):
+                pass
+    if meta.get("market_day"):
+        days.add(meta["market_day"])
+    if meta.get("agents"):
+        agents.update(a for a in meta["agents"].split(",") if a)
+    invalid = sum(1 for m in rec.messages if m.invalid)
+    return {
+        "path": rec.path, "bytes": rec.size, "complete": rec.complete, "cut": rec.cut_note,
+        "library": rec.library, "run_id": rec.run_id or None, "key_prefix": rec.prefix or None,
+        "schema_version": rec.schema_version, "market_days": sorted(days), "agents": sorted(agents),
+        "seed": _int(meta.get("seed")), "config": _json(meta.get("config")), "versions": _json(meta.get("versions")),
+        "recorder_started_at": meta.get("recorder_started_at"),
+        "start": _iso(min(times)) if times else None, "end": _iso(max(times)) if times else None,
+        "duration_s": round((max(times) - min(times)) / 1e9, 3) if times else 0.0,
+        "messages": len(rec.messages), "invalid_messages": invalid,
+        "chunks": rec.chunks, "compression": sorted(rec.compression),
+        "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)} for a in rec.attachments],
+        "channels": [{"key": c.relative_key, "messages": c.messages, "schema": c.schema_name,
+                      "schema_encoding": c.schema_encoding, "message_encoding": c.message_encoding}
+                     for c in sorted(rec.channels.values(), key=lambda c: c.relative_key)],
+    }
+
+
+def _int(text):
+    try:
+        return int(text)
+    except (TypeError, ValueError):
+        return text
+
+
+def _json(text):
+    if text is None:
+        return None
+    try:
+        return json.loads(text)
+    except ValueError:
+        return text
+
+
+def _iso(ns: int) -> str:
+    return dt.datetime.fromtimestamp(ns / 1e9, dt.timezone.utc).isoformat(timespec="milliseconds")
+
+
+def render(info: dict) -> str:
+    state = "complete" if info["complete"] else f"INCOMPLETE: {info['cut']}"
+    rows = [f"file:        {info['path']} ({info['bytes']:,} bytes, {state})",
+            f"run:         {info['run_id'] or '-'} (keys under {info['key_prefix'] or '-'}/)",
+            f"market day:  {', '.join(info['market_days']) or '-'}",
+            f"agents:      {', '.join(info['agents']) or '-'}",
+            f"seed:        {info['seed'] if info['seed'] is not None else '-'}"]
+    if isinstance(info["config"], dict):
+        shown = {k: v for k, v in info["config"].items() if v not in (None, [], False)}
+        rows.append("config:      " + ", ".join(f"{k}={v}" for k, v in shown.items()))
+    versions = info["versions"] if isinstance(info["versions"], dict) else {}
+    rows.append(f"versions:    message schemas v{info['schema_version'] or '?'}"
+                + "".join(f", {k} {v}" for k, v in sorted(versions.items())))
+    rows.append(f"written by:  {info['library'] or '-'}")
+    rows.append(f"duration:    {info['duration_s']:.3f} s" + (f" ({info['start']} to {info['end']})" if info["start"] else ""))
+    rows.append(f"messages:    {info['messages']} on {len(info['channels'])} channels"
+                + (f", {info['invalid_messages']} invalid" if info["invalid_messages"] else "")
+                + f"; {info['chunks']} chunks ({', '.join(info['compression']) or '-'})")
+    if info["attachments"]:
+        rows.append("attachments: " + ", ".join(f"{a['name']} ({a['bytes']:,} bytes)" for a in info["attachments"]))
+    width = max([len("channel")] + [len(c["key"]) for c in info["channels"]])
+    rows.append(f"{'channel':<{width}}  {'messages':>8}  schema")
+    for c in info["channels"]:
+        rows.append(f"{c['key']:<{width}}  {c['messages']:>8}  {c['schema'] or '-'} ({c['schema_encoding'] or 'none'}, "
+                    f"{c['message_encoding']})")
+    return "\n".join(rows)
+
+
+def run(args) -> int:
+    info = describe(load_recording(args.path))
+    if args.json:
+        print_json(info)
+    else:
+        print(render(info))
+    return 0

@@ -1,0 +1,123 @@
+"""``dmosim solve``: one verified stochastic day-ahead schedule of one microgrid, as a table or JSON.
+
+Like every verb module it holds its flags (``add_arguments``) and its body (``run``); the solver stack is
+imported only when a solve runs, so that the command line starts in about a second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import TYPE_CHECKING
+
+from scenarios.case import load_case
+
+from .console import print_json, progress
+from .flags import add_method_flags, gap, hours, nonneg_float, penalty, positive_int
+
+if TYPE_CHECKING:
+    from microgrid_agent.instance import Instance
+    from microgrid_agent.schedule import StochasticSchedule
+
+HELP = "one stochastic day-ahead schedule of one microgrid"
+
+
+def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
+    """The flags that define one scheduling instance, shared by ``solve`` and ``study``."""
+    p.add_argument("--case", default="paper", help="built-in case name or path to a case TOML file (default: paper)")
+    p.add_argument("--scenarios", type=positive_int, default=scenarios, help=f"scenarios after reduction (default: {scenarios})")
+    p.add_argument("--sample-size", type=positive_int, default=None, help="scenarios sampled before reduction (default: 10x)")
+    p.add_argument("--subperiods", type=positive_int, default=6, help="sub-periods per hour (default: 6, i.e. 10 minutes)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scenario draws (default: 0)")
+    p.add_argument("--gap", type=gap, default=0.005, help="relative MIP gap to reach (default: 0.005)")
+    p.add_argument("--time-limit", type=nonneg_float, default=900.0, help="seconds per solve (default: 900)")
+    p.add_argument("--cost-convention", choices=("real", "paper"), default="real",
+                   help="real: energy costs x dt; paper: objective (1) as printed, no dt (see docs/model.md)")
+    add_method_flags(p, workers=2)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    add_instance_flags(p, scenarios=10)
+    p.add_argument("--island-hours", type=hours, default=1, help="islanding hours per scenario (default: 1)")
+    p.add_argument("--transfer-scale", type=nonneg_float, default=1.0, help="multiplier of the award P_sch (default: 1)")
+    p.add_argument("--penalty", type=penalty, default=None, help="$/MWh above the award, or inf (default: the case's)")
+    p.add_argument("--metrics", action="store_true", help="also compute VSS and EVPI (solves S + 2 more problems)")
+    p.add_argument("--json", action="store_true", help="print one JSON object (README, \"Commands\")")
+    p.add_argument("--verbose", action="store_true", help="show the HiGHS log")
+
+
+def instance_from_args(args, **overrides) -> Instance:
+    """The instance that the shared instance flags describe (``overrides`` replace single settings)."""
+    from microgrid_agent.instance import make_instance  # noqa: PLC0415  (the solver stack: seconds to import)
+
+    settings = dict(
+        scenarios=args.scenarios, subperiods=args.subperiods, seed=args.seed, sample_size=args.sample_size,
+        cost_convention=args.cost_convention,
+        island_hours=getattr(args, "island_hours", 1), transfer_scale=getattr(args, "transfer_scale", 1.0),
+        penalty=getattr(args, "penalty", None),
+    )
+    return make_instance(load_case(args.case), **(settings | overrides))
+
+
+def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
+    """Solve, then verify with the independent checker; a schedule that fails the check is a runtime failure."""
+    from microgrid_agent.checker import check_schedule  # noqa: PLC0415
+    from microgrid_agent.solvers.routes import resolve_method  # noqa: PLC0415
+
+    s = inst.scen
+    progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S)}): {s.S} scenarios x {s.N} sub-periods, "
+             f"penalty {_money(inst.params.penalty)}/MWh, gap {args.gap:g}, time limit {args.time_limit:g} s")
+    schedule = inst.solve(method=args.method, workers=args.workers, gap=args.gap, time_limit=args.time_limit,
+                          verbose=getattr(args, "verbose", False), progress=lambda m: progress(label + m))
+    report = check_schedule(inst.case, inst.scen, schedule, p_sch=inst.params.p_sch)
+    if not report.ok:
+        raise RuntimeError(report.summary(5))
+    progress(f"{label}{schedule.status}: ${schedule.objective:,.2f}, gap {schedule.mip_gap:.3%}, "
+             f"{schedule.timings.total_s:.1f} s; checker: all constraints hold in every scenario")
+    return schedule
+
+
+def run(args) -> int:
+    inst = instance_from_args(args)
+    schedule = solve_verified(inst, args)
+    out = schedule.summary() | {"case": inst.case.name, "seed": args.seed, "verified": True}
+    if args.metrics:
+        from microgrid_agent.solvers.metrics import stochastic_metrics  # noqa: PLC0415
+
+        progress(f"computing VSS and EVPI ({inst.scen.S + 2} more solves)")
+        out["metrics"] = stochastic_metrics(inst, schedule, gap=args.gap, time_limit=args.time_limit).as_dict()
+    if args.json:
+        print_json(out)
+    else:
+        print(render(schedule, out))
+    return 0
+
+
+def _money(x: float) -> str:
+    return "$inf" if math.isinf(x) else f"${x:,.0f}"
+
+
+def render(schedule: StochasticSchedule, out: dict) -> str:
+    """A terminal report: hourly first-stage decisions, then costs, bound and timings."""
+    hours = "".join(f"{t:>3}" for t in range(1, 25))
+    rows = [f"{'hour':<12}{hours}"]
+    for frame in (schedule.commitment, schedule.storage_mode, schedule.load_state):
+        for name in frame.columns:
+            rows.append(f"{name:<12}" + "".join(f"{v:>3}" for v in frame[name]))
+        rows.append("")
+    c = schedule.cost
+    rows += [
+        f"expected cost   ${schedule.objective:>12,.2f}   ({schedule.cost_convention} convention)",
+        f"  generation    ${c.generation:>12,.2f}",
+        f"  start-up      ${c.startup:>12,.2f}",
+        f"  curtailment   ${c.curtailment:>12,.2f}",
+        f"  penalty       ${c.penalty:>12,.2f}",
+        f"bound           ${schedule.bound:>12,.2f}   gap {schedule.mip_gap:.3%}   status {schedule.status}",
+        f"time            build {schedule.timings.build_s:.2f} s, solve {schedule.timings.solve_s:.2f} s, "
+        f"total {schedule.timings.total_s:.2f} s",
+    ]
+    if "metrics" in out:
+        m = out["metrics"]
+        rows.append(f"VSS             ${m['vss']:>12,.2f}   (EEV ${m['eev']:,.2f} - RP ${m['rp']:,.2f})")
+        rows.append(f"EVPI            ${m['evpi']:>12,.2f}   (RP - WS ${m['ws']:,.2f})")
+    return "\n".join(rows)

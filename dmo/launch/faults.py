@@ -1,0 +1,40 @@
+"""Process faults of ``dmosim run --fault``: an agent (or the DMO) killed, or restarted, when the DMO's clock reaches
+an hour. Message faults (drop, delay, duplicate, corrupt) are injected at each role's bus instead
+(messages/transport/faults.py); ``parse_fault`` reads either (docs/faults.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from messages.transport.faults import MESSAGE_FAULTS, FaultSpecError, MessageFault, parse_message_fault
+from scenarios.horizon import HOURS
+
+PROCESS_FAULTS = ("kill", "restart")
+
+
+@dataclass(frozen=True)
+class Fault:
+    """``kill:AGENT:HOUR``: SIGKILL the agent's process when the DMO's clock reaches that hour; ``restart:AGENT:HOUR``
+    also starts it again at once, with the same command line (it registers again and rejoins the day)."""
+
+    agent: str
+    hour: int
+    kind: str = "kill"
+
+    def __str__(self) -> str:
+        return f"{self.kind}:{self.agent}:{self.hour}"
+
+
+def parse_fault(text: str) -> Fault | MessageFault:
+    """A process fault (kill, restart) or a message fault (drop, delay, duplicate, corrupt); FaultSpecError, one
+    line, if malformed."""
+    kind, _, rest = text.partition(":")
+    if kind in MESSAGE_FAULTS:
+        return parse_message_fault(text)
+    if kind not in PROCESS_FAULTS:
+        raise FaultSpecError(f"fault {text!r}: unknown kind {kind!r} (supported: kill:AGENT:HOUR, restart:AGENT:HOUR, "
+                             "drop|duplicate|corrupt:PATTERN:P, delay:PATTERN:SECONDS[:P])")
+    agent, _, hour = rest.partition(":")
+    if not agent or not hour.isdigit() or not 1 <= int(hour) <= HOURS:
+        raise FaultSpecError(f"fault {text!r}: expected {kind}:AGENT:HOUR with HOUR in 1..{HOURS}")
+    return Fault(agent, int(hour), kind)

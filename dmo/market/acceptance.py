@@ -1,0 +1,64 @@
+"""Which messages of a market day the DMO accepts: the rules, as pure functions, that the live DMO
+(``operator/day.py``) and the replayed one (``replay/as_dmo.py``) both apply.
+
+Each function returns None for an acceptable message, or the refusal as ``(code, reason)``: ``code`` one of
+``messages.REJECT_CODES``, ``reason`` one line. A refused message is published on ``dmo/rejected`` with both and
+never changes an award or a settlement (docs/protocol.md, "Rejections").
+"""
+
+from __future__ import annotations
+
+from messages import PHASES, MeterReport, Registration
+
+Refusal = tuple[str, str]
+
+PHASE_ORDER = {phase: i for i, phase in enumerate(PHASES)}  # the clock's phases, in the order of the day
+# The phase in which each kind an agent sends is due.
+ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}
+# A reading may exceed the registered max import by this much (MW) before it is refused: float noise, not energy.
+IMPORT_TOLERANCE_MW = 1e-9
+
+
+def check_day(msg, market_day: str) -> Refusal | None:
+    """A message of another market day is refused."""
+    if msg.market_day != market_day:
+        return "wrong_day", f"market day {msg.market_day}, expected {market_day}"
+    return None
+
+
+def check_registered(msg, registered) -> Refusal | None:
+    """Only a registration may come from an agent that is not registered."""
+    if not isinstance(msg, Registration) and msg.sender not in registered:
+        return "unregistered", f"{msg.sender} is not registered"
+    return None
+
+
+def out_of_phase(msg, phase: str) -> Refusal:
+    """The refusal of a message that is not due now: ``late`` if its phase has passed, else ``invalid``."""
+    if isinstance(msg, Registration):
+        return "late", f"registration is closed (now {phase}): {msg.sender} is not an agent of this day"
+    due = ANSWER_PHASE.get(msg.kind)
+    code = "late" if due is not None and PHASE_ORDER[due] < PHASE_ORDER[phase] else "invalid"
+    return code, f"{msg.kind} is out of phase (now {phase})"
+
+
+def repeated(what: str, sender: str) -> Refusal:
+    """A second answer of one kind from one agent: the first one stands."""
+    if what == "registration":
+        return "duplicate", f"{sender} is already registered"
+    return "duplicate", f"second {what} from {sender}; the first one stands"
+
+
+def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported, max_import_mw: float) -> Refusal | None:
+    """A meter report is accepted in real-time hour ``hour`` (1..24) if it is for this hour, at the day's
+    ``subperiods``, the first for the hour (``reported`` holds the agent's hour indices 0..23 already taken) and
+    has no reading above the agent's registered max import."""
+    if msg.subperiods != subperiods:
+        return "invalid", f"{msg.subperiods} sub-periods, the day has {subperiods}"
+    if msg.hour != hour:
+        return ("late" if msg.hour < hour else "invalid"), f"meter report for hour {msg.hour} during hour {hour}"
+    if hour - 1 in reported:
+        return "duplicate", f"second meter report for hour {hour}"
+    if max(msg.p_m_mw) > max_import_mw + IMPORT_TOLERANCE_MW:
+        return "invalid", f"P_M {max(msg.p_m_mw)} MW above registered max {max_import_mw}"
+    return None

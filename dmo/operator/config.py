@@ -1,0 +1,48 @@
+"""What the DMO needs to run one day: its terms, deadlines and where it journals; and the day's islanding."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from scenarios.horizon import HOURS
+
+
+@dataclass(frozen=True)
+class DayConfig:
+    """Everything the DMO needs to run one day. Deadlines are wall-clock seconds per phase (per hour in real
+    time). ``fixed_awards`` (24 MW) replaces clearing by those awards for every agent (the paper's Table I)."""
+
+    market_day: str
+    agents: int
+    iso_price: tuple[float, ...]
+    import_limit: float
+    export_limit: float
+    penalty: float
+    subperiods: int
+    islanded_hours: tuple[int, ...]
+    credit: float = 0.0
+    fixed_awards: tuple[float, ...] | None = None
+    price_floor: float = -1000.0
+    price_cap: float = 10_000.0
+    registration_s: float = 60.0
+    bids_s: float = 600.0
+    schedule_s: float = 1800.0
+    hour_s: float = 300.0
+    linger_s: float = 5.0  # after the summary, how long to wait for the agents to leave before closing
+    journal: str | None = None  # where the DMO journals its day, to resume it if it is restarted
+    resume_wait_s: float = 30.0  # a resumed DMO waits this long for its agents to reconnect
+
+
+def island_hours(start: int, hours: int) -> tuple[int, ...]:
+    """The hours start..start+hours-1 of one islanding event (none if ``hours`` is 0)."""
+    return tuple(range(start, start + hours)) if hours else ()
+
+
+def draw_islanding(hours: int, seed: int) -> tuple[int, ...]:
+    """One islanding event of ``hours`` whole hours at a seeded uniform start, as the scenarios draw them."""
+    if not hours:
+        return ()
+    start = 1 + int(np.random.default_rng([seed, 7]).integers(0, HOURS + 1 - hours))
+    return island_hours(start, hours)

@@ -1,0 +1,86 @@
+"""The DMO's journal of its day, and how a restarted DMO rebuilds the day from it (docs/faults.md).
+
+One JSON object a line, written as it goes: every clock step, every message the DMO accepted, every incident and
+rejection. Each line reaches the OS at once, so a DMO killed with SIGKILL loses nothing it had acted on. A DMO
+restarted on the same journal, run and market day reads it back (``restore``) and runs again the phase, or the
+real-time hour, it had reached; a journal of another run or day is started afresh.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, encode
+
+from .state import DayState
+
+
+class Journal:
+    """An open journal file. ``entries`` are those read back from a journal of the same run and day."""
+
+    def __init__(self, path: str | Path, run_id: str, market_day: str):
+        self.path, self.head = Path(path), {"journal": 1, "run_id": run_id, "market_day": market_day}
+        self.entries: list[dict] = []
+        if self.path.exists():
+            lines = self.path.read_text(errors="replace").splitlines()
+            try:
+                same = bool(lines) and json.loads(lines[0]) == self.head
+            except ValueError:
+                same = False
+            for line in lines[1:] if same else ():
+                try:
+                    self.entries.append(json.loads(line))
+                except ValueError:  # a line cut by the kill: the ones before it stand
+                    break
+        self._file = open(self.path, "a" if self.entries else "w", buffering=1)  # noqa: SIM115  (closed by close)
+        if not self.entries:
+            self.write(self.head)
+
+    def write(self, entry: dict) -> None:
+        self._file.write(json.dumps(entry, separators=(",", ":")) + "\n")
+
+    def clock(self, phase: str, hour: int | None) -> None:
+        self.write({"clock": phase, "hour": hour})
+
+    def accepted(self, key: str, msg) -> None:
+        self.write({"accepted": key, "message": encode(msg).decode()})
+
+    def incident(self, incident: Incident) -> None:
+        self.write({"incident": incident.model_dump()})
+
+    def rejected(self, code: str) -> None:
+        self.write({"rejected": code})
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def restore(state: DayState, entries: list[dict]) -> tuple[str, int | None] | None:
+    """Rebuild ``state`` from journal entries: what the DMO accepted, its incidents and rejections. Returns the
+    last clock step, (phase, hour), which the DMO then runs again from its start; None if it had not started."""
+    clock = None
+    for entry in entries:
+        if "clock" in entry:
+            clock = (entry["clock"], entry["hour"])
+        elif "incident" in entry:
+            state.log.incidents.append(Incident(**entry["incident"]))
+        elif "rejected" in entry:
+            state.log.count_rejection(entry["rejected"])
+        elif "accepted" in entry:
+            msg = decode(entry["message"].encode())
+            if isinstance(msg, Registration):
+                if msg.sender in state.registered:  # it rejoined: a new process, numbering from 0
+                    state.guard.forget(msg.sender)
+                state.registered.setdefault(msg.sender, msg)
+                state.meter.setdefault(msg.sender, {})
+            elif isinstance(msg, Bid):
+                state.bids[msg.sender] = msg
+            elif isinstance(msg, Schedule):
+                state.schedules[msg.sender] = msg
+            elif isinstance(msg, MeterReport):
+                state.meter[msg.sender][msg.hour - 1] = msg.p_m_mw
+            state.count_accepted(msg)
+    if clock is not None:
+        state.phase, state.hour = clock
+    return clock

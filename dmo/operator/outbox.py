@@ -1,0 +1,70 @@
+"""The messages the DMO publishes, built from its configuration and state: pure functions, one per kind.
+
+Hours are 0..23 inside the DMO (settlement lines, meter hour indices) and 1..24 on the wire.
+"""
+
+from __future__ import annotations
+
+from messages import (DMO, AgentTotals, Award, CallForBids, Clock, DaySummary, GridState, Incident,
+                      SettlementStatement, StatementLine)
+
+from ..market.clearing import ClearingResult
+from ..market.settlement import RULES, RULES_VERSION, Statement
+from .config import DayConfig
+
+
+def clock(config: DayConfig, phase: str, hour: int | None, deadline_s: float) -> Clock:
+    return Clock(sender=DMO, market_day=config.market_day, phase=phase, hour=hour, deadline_s=deadline_s)
+
+
+def call_for_bids(config: DayConfig, deadline_s: float) -> CallForBids:
+    """The day's terms; bids are due ``deadline_s`` after it is sent."""
+    c = config
+    return CallForBids(sender=DMO, market_day=c.market_day, iso_price_per_mwh=c.iso_price,
+                       price_floor_per_mwh=c.price_floor, price_cap_per_mwh=c.price_cap,
+                       import_limit_mw=c.import_limit, export_limit_mw=c.export_limit, penalty_per_mwh=c.penalty,
+                       credit_per_mwh=c.credit, subperiods=c.subperiods, deadline_s=deadline_s)
+
+
+def award(config: DayConfig, clearing: ClearingResult, agent: str) -> Award:
+    """One agent's award: its P_sch, the clearing prices and the settlement terms and rules."""
+    c = config
+    return Award(sender=DMO, market_day=c.market_day, agent=agent, p_sch_mw=clearing.awards[agent],
+                 clearing_price_per_mwh=clearing.price, penalty_per_mwh=c.penalty, credit_per_mwh=c.credit,
+                 subperiods=c.subperiods, rules_version=RULES_VERSION, rules=RULES)
+
+
+def grid_state(config: DayConfig, hour: int) -> GridState:
+    """Hour ``hour`` (1..24) as realised: islanded in every sub-period of an islanded hour, else connected."""
+    connected = hour not in config.islanded_hours
+    return GridState(sender=DMO, market_day=config.market_day, hour=hour, subperiods=config.subperiods,
+                     connected=(connected,) * config.subperiods)
+
+
+def statement_message(st: Statement, market_day: str, penalty: float, credit: float) -> SettlementStatement:
+    """A settlement Statement as the message the DMO publishes (hours 1..24 on the wire)."""
+    lines = tuple(StatementLine(hour=line.hour + 1, p_sch_mw=line.award_mwh, clearing_price_per_mwh=line.price,
+                                energy_charge=float(line.energy_charge), import_mwh=line.import_mwh,
+                                deviation_mwh=line.deviation_mwh, under_import_mwh=line.under_import_mwh,
+                                deviation_penalty=float(line.penalty), deviation_credit=float(line.credit),
+                                total=float(line.total), missing=line.missing,
+                                missing_subperiods=line.missing_subperiods) for line in st.lines)
+    return SettlementStatement(sender=DMO, market_day=market_day, agent=st.agent, penalty_per_mwh=penalty,
+                               credit_per_mwh=credit, rules_version=RULES_VERSION, lines=lines,
+                               energy_charge=float(st.energy_charge), deviation_penalty=float(st.deviation_penalty),
+                               deviation_credit=float(st.credit), total=float(st.total),
+                               missing_subperiods=st.missing_subperiods)
+
+
+def totals(st: Statement) -> AgentTotals:
+    """An agent's line of the day summary: its statement's totals."""
+    return AgentTotals(energy_charge=float(st.energy_charge), deviation_penalty=float(st.deviation_penalty),
+                       deviation_credit=float(st.credit), total=float(st.total))
+
+
+def day_summary(market_day: str, agents, prices, statements: dict[str, Statement], rejected: int,
+                incidents: list[Incident] | tuple[Incident, ...]) -> DaySummary:
+    """The day's outcome, sent once every statement is out: each agent's totals, the prices and the incidents."""
+    return DaySummary(sender=DMO, market_day=market_day, agents=tuple(sorted(agents)), clearing_price_per_mwh=prices,
+                      totals={a: totals(st) for a, st in statements.items()}, rejected_messages=rejected,
+                      incidents=tuple(incidents))

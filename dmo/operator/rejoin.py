@@ -1,0 +1,56 @@
+"""Agents that come back: one that vanished (liveliness lost) and reappears, reconnected or restarted, is sent
+again what it needs to go on; one restarted registers again and, if nothing about it changed, rejoins the day.
+
+Pure decisions on the DMO's state; ``MarketDay`` publishes what they name. Agents take what they already have as
+a no-op, so a message sent again harms no one. Hours an agent does not report are settled by the missing-data
+rule (docs/market.md).
+"""
+
+from __future__ import annotations
+
+from messages import Registration
+
+from ..market.acceptance import Refusal, repeated
+from .state import DayState
+
+CALL_FOR_BIDS, AWARD, GRID_STATE = "call_for_bids", "award", "grid_state"
+
+
+def rejoin_refusal(state: DayState, msg: Registration) -> Refusal | None:
+    """Whether a registered agent's new registration is refused: it must have vanished first, register with the
+    same case and limits as at first, and come before settlement."""
+    agent = msg.sender
+    if agent not in state.vanished:
+        return repeated("registration", agent)
+    first = state.registered[agent]
+    if (msg.case, msg.max_import_mw, msg.max_export_mw) != (first.case, first.max_import_mw, first.max_export_mw):
+        return "invalid", (f"{agent} cannot rejoin: it registered again with another case or other limits than "
+                           "at first")
+    if state.phase == "settlement":
+        return "late", f"{agent} cannot rejoin: the day is being settled"
+    return None
+
+
+def readmit(state: DayState, agent: str) -> None:
+    """Take a rejoining agent back: live again, numbering its messages from 0, and (once awards are out) owing a
+    new schedule, which is accepted even though it sent one before."""
+    del state.vanished[agent]
+    state.gone.discard(agent)
+    state.guard.forget(agent)
+    if state.phase in ("scheduling", "realtime"):
+        state.rescheduling.add(agent)
+
+
+def resend_plan(state: DayState, agent: str, cleared: bool, grid_known: bool) -> tuple[tuple[str, ...], str]:
+    """What to send an agent that comes back (kinds among CALL_FOR_BIDS, AWARD, GRID_STATE), and what to say of
+    it in the incident. ``cleared``: awards exist; ``grid_known``: this hour's grid state was published."""
+    phase = state.phase
+    if phase == "bidding":
+        if agent in state.bids:
+            return (), "nothing: its bid stands"
+        return (CALL_FOR_BIDS,), "the call for bids again"
+    if phase in ("scheduling", "realtime") and cleared:
+        if phase == "realtime" and grid_known:
+            return (AWARD, GRID_STATE), f"its award and the grid state of hour {state.hour} again"
+        return (AWARD,), "its award again"
+    return (), "nothing: registration is open" if phase == "registration" else "nothing"

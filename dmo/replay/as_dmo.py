@@ -1,0 +1,203 @@
+"""The DMO's side of a recorded day, played to one live agent process and settled by the recorded rules
+(``dmosim replay --as-dmo``).
+
+It stands in for the recorded DMO step by step: the recorded clock, call for bids, the agent's recorded award and
+each hour's recorded grid state, each step sent once the live agent has answered the one before (its
+registration, bid, schedule, the hour's meter report) or the timeout has passed. The agent's answers are accepted
+by the same rules as the live DMO's (market/acceptance.py) and settled as the DMO settles (the award's penalty,
+credit and sub-periods, its registration's max import for missing data); the new statement and a day summary are
+sent to it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+
+from messages import Bid, MeterReport, Registration, Schedule, decode, encode, make_rejection
+from messages.codec import MessageError
+from messages.recording import Player, Recording
+from messages.transport import Bus
+
+from ..market import acceptance
+from ..market.acceptance import Refusal
+from ..market.settlement import settle
+from ..operator.outbox import day_summary
+from .resettle import RecordedDay, as_message
+
+log = logging.getLogger("dmosim.replay")
+
+# What the live agent owes in each phase: the kind, and how an incident names it.
+_EXPECTED = {"registration": (Registration, "registration"), "bidding": (Bid, "bid"),
+             "scheduling": (Schedule, "schedule")}
+
+
+class AsDmo:
+    """The DMO's side of a recorded day, driven by one live agent's answers."""
+
+    def __init__(self, bus: Bus, day: RecordedDay, agent: str, steps: list[tuple], timeout_s: float):
+        self.bus, self.day, self.agent, self.steps, self.timeout_s = bus, day, agent, steps, timeout_s
+        self.events: queue.Queue = queue.Queue()
+        self.player = Player(bus, [])
+        self.registration: Registration | None = None
+        self.meter: dict[int, tuple[float, ...]] = {}
+        self.answered: set[str] = set()
+        self.incidents: list[str] = []
+        self.rejected = 0
+        self.phase, self.hour = "registration", None
+        bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
+
+    def run(self, stop: threading.Event) -> dict:
+        self.bus.subscribe(self.bus.keys.agent_all(self.agent), lambda k, m, t: self.events.put(("msg", k, m)))
+        with self.player:
+            for clock, messages in self.steps:
+                if stop.is_set():
+                    raise KeyboardInterrupt
+                self.phase, self.hour = clock.phase, clock.hour
+                if clock.phase == "settlement":
+                    break
+                for m in messages:
+                    self.player.publish(m)
+                self._await_answer(stop)
+                if clock.phase == "registration" and self.registration is None:
+                    raise RuntimeError(f"agent {self.agent} did not register within {self.timeout_s:g} s")
+        self.phase, self.hour = "settlement", None
+        while not self.events.empty():  # what arrived after the last hour is late
+            self._handle(self.events.get_nowait())
+        return self._settle()
+
+    def _expected(self) -> str | None:
+        if self.phase == "realtime":
+            return f"meter report for hour {self.hour}"
+        expected = _EXPECTED.get(self.phase)
+        return expected[1] if expected else None
+
+    def _done(self) -> bool:
+        if self.phase == "realtime":
+            return (self.hour - 1) in self.meter
+        expected = self._expected()
+        return expected is None or expected in self.answered
+
+    def _await_answer(self, stop: threading.Event) -> None:
+        expected = self._expected()
+        if expected is None:
+            return
+        deadline = time.monotonic() + self.timeout_s
+        while not self._done():
+            left = deadline - time.monotonic()
+            if left <= 0 or stop.is_set():
+                if stop.is_set():
+                    raise KeyboardInterrupt
+                self.incidents.append(f"{self._when()}: no {expected} from {self.agent} within {self.timeout_s:g} s")
+                log.warning(self.incidents[-1])
+                return
+            try:
+                event = self.events.get(timeout=min(left, 0.5))
+            except queue.Empty:
+                continue
+            self._handle(event)
+
+    def _handle(self, event) -> None:
+        if event[0] == "reject":
+            _, key, payload, err = event
+            self._reject(key, payload, err)
+            return
+        _, key, msg = event
+        refusal = self.refusal(msg)
+        if refusal:
+            self._refuse(key, msg, refusal)
+        elif isinstance(msg, Registration):
+            self.registration = msg
+            self.answered.add("registration")
+        elif isinstance(msg, MeterReport):
+            self.meter[msg.hour - 1] = msg.p_m_mw
+        else:
+            self.answered.add(_EXPECTED[self.phase][1])
+
+    def refusal(self, msg) -> Refusal | None:
+        """The live DMO's rules (market/acceptance.py), for the one agent of this day."""
+        refusal = acceptance.check_day(msg, self.day.market_day)
+        if refusal:
+            return refusal
+        if isinstance(msg, Registration) and self.registration is not None:
+            return acceptance.repeated("registration", msg.sender)
+        registered = {} if self.registration is None else {self.agent: self.registration}
+        refusal = acceptance.check_registered(msg, registered)
+        if refusal or isinstance(msg, Registration):
+            return refusal
+        if self.phase == "realtime" and isinstance(msg, MeterReport):
+            return acceptance.check_meter_report(msg, self.hour, self.day.terms.subperiods, self.meter,
+                                                 self.registration.max_import_mw)
+        kind, what = _EXPECTED.get(self.phase, (None, None))
+        if kind is not None and isinstance(msg, kind):
+            return acceptance.repeated(what, msg.sender) if what in self.answered else None
+        return acceptance.out_of_phase(msg, self.phase)
+
+    def _when(self) -> str:
+        return f"{self.phase}{f' hour {self.hour}' if self.hour else ''}"
+
+    def _refuse(self, key: str, msg, refusal: Refusal) -> None:
+        code, reason = refusal
+        self._reject(key, encode(msg), MessageError(reason, code))
+
+    def _reject(self, key: str, payload: bytes, err: MessageError) -> None:
+        self.rejected += 1
+        self.incidents.append(f"{self._when()}: rejected message on {key.split('/', 2)[-1]}: {err.reason}")
+        log.warning(self.incidents[-1])
+        self.bus.publish(make_rejection(key, payload, err, market_day=self.day.market_day, offender=self.agent))
+
+    def _settle(self) -> dict:
+        day, terms, agent = self.day, self.day.terms, self.agent
+        cap = self.registration.max_import_mw
+        statements, _ = settle({agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
+                               subperiods=terms.subperiods, penalty=terms.penalty_per_mwh, credit=terms.credit_per_mwh,
+                               p_m_max={agent: cap})
+        message = as_message(day, statements[agent])
+        self.bus.publish(message)
+        self.bus.publish(day_summary(day.market_day, (agent,), terms.clearing_price_per_mwh, statements,
+                                     self.rejected, ()))
+        recorded = day.statements.get(agent)
+        return {"run_id": self.bus.keys.run_id, "market_day": day.market_day, "agent": agent,
+                "statement": json.loads(message.model_dump_json(exclude={"seq", "sent_at"})),
+                "recorded_total": recorded.total if recorded else None,
+                "difference": round(message.total - recorded.total, 2) if recorded else None,
+                "meter_reports": len(self.meter), "rejected_messages": self.rejected, "incidents": self.incidents}
+
+
+def dmo_steps(rec: Recording, agent: str) -> list[tuple]:
+    """The recorded DMO messages the agent would see, grouped by the clock message that opens each step:
+    [(Clock, [RecordedMessage...])], the clock itself first in each list."""
+    steps: list[tuple] = []
+    for m in rec.in_log_order():
+        if m.invalid or not m.relative_key.startswith("dmo/"):
+            continue
+        if m.kind == "clock":
+            try:
+                steps.append((decode(m.payload, expected_kind="clock"), [m]))
+            except MessageError:
+                continue
+        elif steps and (m.kind in ("call_for_bids", "grid_state") or m.relative_key == f"dmo/award/{agent}"):
+            steps[-1][1].append(m)
+    return steps
+
+
+def render(result: dict) -> str:
+    st = result["statement"]
+    rows = [f"agent {result['agent']} against the recorded DMO of {result['market_day']} (run {result['run_id']})",
+            f"{'hour':>4}{'award MW':>10}{'import MWh':>12}{'dev. MWh':>10}{'energy $':>11}{'penalty $':>11}{'total $':>11}"]
+    for line in st["lines"]:
+        rows.append(f"{line['hour']:>4}{line['p_sch_mw']:>10.3f}{line['import_mwh']:>12.3f}{line['deviation_mwh']:>10.3f}"
+                    f"{line['energy_charge']:>11,.2f}{line['deviation_penalty']:>11,.2f}{line['total']:>11,.2f}"
+                    + ("  missing" if line["missing"] else ""))
+    rows.append(f"total: ${st['total']:,.2f} (energy ${st['energy_charge']:,.2f}, penalty ${st['deviation_penalty']:,.2f}, "
+                f"credit ${st['deviation_credit']:,.2f}); {result['meter_reports']}/24 meter reports")
+    if result["recorded_total"] is not None:
+        rows.append(f"recorded agent's total: ${result['recorded_total']:,.2f}; difference ${result['difference']:+,.2f}")
+    for incident in result["incidents"]:
+        rows.append(f"incident: {incident}")
+    if result.get("recording"):
+        rows.append(f"recording: {result['recording']}")
+    return "\n".join(rows)

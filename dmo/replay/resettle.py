@@ -1,0 +1,176 @@
+"""Re-settle a recorded day from its recording alone and compare the result with the recorded statements, line by line.
+
+What the DMO settled on is read back from the recording: the awards (P_sch, clearing prices and the settlement
+terms: penalty, credit, sub-periods, rules version), the registrations (each agent's max import, the P_M assumed
+for a missing sub-period) and the meter reports the DMO accepted. A meter report the DMO refused is recorded too,
+with a ``Rejection`` naming its key and SHA-256: of the copies of one payload on one key, as many are left out as
+there were rejections (identical payloads settle identically, so which copies does not matter), and of what
+remains the first report per agent and hour counts, as the DMO counts it.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+from dataclasses import dataclass, field
+
+from messages import Award, SettlementStatement, encode, relative_key, sender_matches_key
+from messages.recording import Recording
+
+from ..market.settlement import RULES_VERSION, Statement, settle
+from ..operator.outbox import statement_message
+
+STATEMENT_FIELDS = ("penalty_per_mwh", "credit_per_mwh", "rules_version", "energy_charge", "deviation_penalty",
+                    "deviation_credit", "total", "missing_subperiods")
+
+
+class ResettleError(ValueError):
+    """A recording that cannot be re-settled (no awards, terms that differ between agents...): one line."""
+
+
+@dataclass
+class RecordedDay:
+    """What settlement needs, as recorded."""
+
+    market_day: str
+    awards: dict[str, Award]
+    caps: dict[str, float]
+    meter: dict[str, dict[int, tuple[float, ...]]]
+    statements: dict[str, SettlementStatement]
+    summary_totals: dict[str, dict] | None
+    left_out: int = 0                      # meter reports left out because the DMO refused them
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def terms(self) -> Award:
+        return next(iter(self.awards.values()))
+
+
+def market_day_of(rec: Recording) -> str | None:
+    """The day the recording is of: as its metadata says (``dmosim run`` writes it), else as the DMO's first clock
+    message says. Messages of other days (anyone on the network may publish them) take no part in its settlement."""
+    if rec.metadata.get("market_day"):
+        return rec.metadata["market_day"]
+    clocks = rec.decoded("clock")
+    return clocks[0][1].market_day if clocks else None
+
+
+def recorded_day(rec: Recording) -> RecordedDay:
+    day = market_day_of(rec)
+
+    def decoded(kind: str) -> list:
+        # as the receivers read them: of this day, and from the key's owner to the key's addressee
+        return [(m, msg) for m, msg in rec.decoded(kind)
+                if (day is None or msg.market_day == day) and sender_matches_key(m.key, msg)]
+
+    awards: dict[str, Award] = {}
+    for _, msg in decoded("award"):
+        awards.setdefault(msg.agent, msg)  # the DMO awards each agent once
+    if not awards:
+        raise ResettleError(f"{rec.path}: no awards recorded" + (f" ({rec.cut_note})" if rec.cut_note else
+                                                                 ": not a recorded market day"))
+    first = next(iter(awards.values()))
+    for a in awards.values():
+        for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", "clearing_price_per_mwh"):
+            if getattr(a, name) != getattr(first, name):
+                raise ResettleError(f"{rec.path}: the awards of {first.agent} and {a.agent} differ in {name}")
+    if first.rules_version != RULES_VERSION:
+        raise ResettleError(f"{rec.path}: settlement rules version {first.rules_version}; this dmosim settles by "
+                            f"version {RULES_VERSION}")
+
+    refused = _refused(rec)
+    caps: dict[str, float] = {}
+    for m, msg in decoded("registration"):
+        if not _take(refused, m.relative_key, m.payload, msg):
+            caps.setdefault(msg.sender, msg.max_import_mw)
+    meter: dict[str, dict[int, tuple[float, ...]]] = {a: {} for a in awards}
+    left_out = 0
+    for m, msg in decoded("meter_report"):
+        if _take(refused, m.relative_key, m.payload, msg):
+            left_out += 1
+        elif msg.sender in meter and msg.subperiods == first.subperiods and msg.market_day == first.market_day:
+            meter[msg.sender].setdefault(msg.hour - 1, msg.p_m_mw)
+    missing = sorted(set(awards) - set(caps))
+    if missing:
+        raise ResettleError(f"{rec.path}: no registration recorded for {', '.join(missing)}, so no max import to "
+                            "settle missing meter data by")
+    statements = {}
+    for _, msg in decoded("settlement_statement"):
+        statements.setdefault(msg.agent, msg)
+    summaries = decoded("day_summary")
+    totals = {a: t.model_dump() for a, t in summaries[-1][1].totals.items()} if summaries else None
+    return RecordedDay(first.market_day, awards, caps, meter, statements, totals, left_out)
+
+
+def _refused(rec: Recording) -> collections.Counter:
+    """(key, sha256) -> how many payloads the DMO refused, from its recorded rejections."""
+    prefix = rec.prefix
+    out: collections.Counter = collections.Counter()
+    for _, msg in rec.decoded("rejection"):
+        out[relative_key(msg.key, prefix), msg.payload_sha256] += 1
+    return out
+
+
+def _take(refused: collections.Counter, key: str, payload: bytes, msg) -> bool:
+    """Whether this payload is one the DMO refused (using up one rejection). The DMO hashes either the payload as
+    received or, when it refuses a valid message, the message re-encoded; both are tried."""
+    if not refused:
+        return False
+    for digest in {hashlib.sha256(payload).hexdigest(), hashlib.sha256(encode(msg)).hexdigest()}:
+        if refused[key, digest] > 0:
+            refused[key, digest] -= 1
+            return True
+    return False
+
+
+def resettle(day: RecordedDay, penalty: float | None = None, credit: float | None = None) -> dict[str, Statement]:
+    """Every agent's statement from the recorded awards and meter reports, under the recorded terms unless
+    ``penalty`` or ``credit`` ($/MWh) say otherwise."""
+    terms = day.terms
+    statements, _ = settle({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh, day.meter,
+                           subperiods=terms.subperiods,
+                           penalty=terms.penalty_per_mwh if penalty is None else penalty,
+                           credit=terms.credit_per_mwh if credit is None else credit,
+                           p_m_max={a: day.caps[a] for a in day.awards})
+    return statements
+
+
+def as_message(day: RecordedDay, st: Statement, penalty: float | None = None,
+               credit: float | None = None) -> SettlementStatement:
+    terms = day.terms
+    return statement_message(st, day.market_day, terms.penalty_per_mwh if penalty is None else penalty,
+                             terms.credit_per_mwh if credit is None else credit)
+
+
+def compare(day: RecordedDay, statements: dict[str, Statement]) -> list[str]:
+    """Every difference between the recomputed and the recorded statements (and the day summary's totals):
+    per agent, each statement field and each field of each hour's line. Empty when identical."""
+    diffs = []
+    for agent in sorted(set(statements) | set(day.statements)):
+        if agent not in day.statements:
+            diffs.append(f"{agent}: no statement recorded")
+            continue
+        if agent not in statements:
+            diffs.append(f"{agent}: a statement was recorded, but the agent has no recorded award")
+            continue
+        new, old = as_message(day, statements[agent]), day.statements[agent]
+        for name in STATEMENT_FIELDS:
+            if getattr(new, name) != getattr(old, name):
+                diffs.append(f"{agent} {name}: recorded {getattr(old, name)!r}, recomputed {getattr(new, name)!r}")
+        for new_line, old_line in zip(new.lines, old.lines):
+            a, b = new_line.model_dump(), old_line.model_dump()
+            for name in a:
+                if a[name] != b[name]:
+                    diffs.append(f"{agent} hour {old_line.hour} {name}: recorded {b[name]!r}, recomputed {a[name]!r}")
+    if day.summary_totals is not None:
+        for agent in sorted(statements):
+            recorded = day.summary_totals.get(agent)
+            if recorded is None:
+                diffs.append(f"{agent}: missing from the day summary's totals")
+                continue
+            st = as_message(day, statements[agent])
+            for name in ("energy_charge", "deviation_penalty", "deviation_credit", "total"):
+                if recorded[name] != getattr(st, name):
+                    diffs.append(f"{agent} day summary {name}: recorded {recorded[name]!r}, "
+                                 f"recomputed {getattr(st, name)!r}")
+    return diffs

@@ -1,0 +1,71 @@
+"""The layout of a dmosim MCAP recording: names, encodings and schemas that the writer and the reader share.
+
+A recording is self-describing and opens in any MCAP reader with no code of ours:
+
+- one channel per key expression, topic = the key as it travelled (``dmosim/<run>/dmo/grid``), message encoding
+  ``json``, schema encoding ``jsonschema`` with the JSON Schema of the key's kind (``schemas.json_schema``);
+- a payload that fails its key's schema (not JSON, wrong kind, a missing field...) is never written on that
+  channel, so every message of a channel validates against the channel's schema. It goes, with the reason it
+  failed, to the one channel ``<prefix>/recorder/invalid`` (schema ``dmosim.invalid_payload``: the key, the
+  rejection code and reason, and the payload in base64). Payloads the DMO refuses for what they mean (late,
+  duplicate, unregistered...) are valid and stay on their key's channel; the DMO's ``Rejection`` on
+  ``dmo/rejected`` says which and why;
+- ``log_time`` is the recorder's receive time, ``publish_time`` the sender's ``sent_at``, ``sequence`` its ``seq``;
+- zstd-compressed chunks, message and chunk indexes, a summary section with statistics;
+- one metadata record ``dmosim`` (run id, key prefix, message schema version, versions, and what the caller adds:
+  configuration, seed, market day, agents) and the case and fleet files as attachments, both written first so
+  that a cut file still has them.
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from importlib import metadata as _metadata
+
+from ..schemas import SCHEMA_VERSION
+
+MAGIC = b"\x89MCAP0\r\n"
+MESSAGE_ENCODING = "json"
+SCHEMA_ENCODING = "jsonschema"
+METADATA_NAME = "dmosim"
+INVALID_KEY = "recorder/invalid"        # relative to the run prefix; not a key anyone publishes on
+INVALID_SCHEMA_NAME = "dmosim.invalid_payload"
+ANY_SCHEMA_NAME = "dmosim.any"
+CHUNK_MESSAGES = 500
+FLUSH_INTERVAL_S = 1.0
+CHUNK_BYTES = 1 << 20
+_DRAFT = "https://json-schema.org/draft/2020-12/schema"
+
+# A payload on a key outside the layout (no kind): any JSON value.
+ANY_SCHEMA = {"$schema": _DRAFT, "$id": f"urn:dmosim:any:v{SCHEMA_VERSION}", "title": "Unchecked",
+              "description": "a JSON payload on a key outside the dmosim layout, recorded as it arrived"}
+INVALID_SCHEMA = {
+    "$schema": _DRAFT, "$id": f"urn:dmosim:invalid_payload:v{SCHEMA_VERSION}", "title": "InvalidPayload",
+    "description": "a payload that failed its key's schema, recorded with the reason",
+    "type": "object", "additionalProperties": False,
+    "required": ["key", "code", "reason", "payload_size", "payload_base64"],
+    "properties": {"key": {"type": "string"}, "code": {"type": "string"}, "reason": {"type": "string"},
+                   "payload_size": {"type": "integer", "minimum": 0},
+                   "payload_base64": {"type": "string", "contentEncoding": "base64"}},
+}
+SCHEMA_ID = re.compile(r"^urn:dmosim:[a-z_]+:v([0-9]+)$")
+
+
+def versions() -> dict[str, str]:
+    """Versions of what shapes a recording's contents: this package, Python and the libraries on the path."""
+    out = {"dmosim": _version("dmosim"), "python": sys.version.split()[0]}
+    for name in ("mcap", "eclipse-zenoh", "pydantic", "numpy", "cvxpy", "highspy"):
+        out[name] = _version(name)
+    return out
+
+
+def _version(dist: str) -> str:
+    try:
+        return _metadata.version(dist)
+    except _metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def library() -> str:
+    return f"dmosim {_version('dmosim')} (message schemas v{SCHEMA_VERSION}); mcap-python {_version('mcap')}"

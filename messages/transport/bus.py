@@ -1,0 +1,394 @@
+"""A thin layer over one Zenoh session: publish typed messages, receive validated ones, track who is alive.
+
+Every process (DMO, agent, recorder) opens one ``Bus`` for one run under one name. What arrives is decoded and
+checked against its key before any handler sees it; what fails goes to ``on_reject`` with its reason and is
+counted, and a failing handler is logged and counted, so nothing received can crash the receiver.
+
+Handlers run on Zenoh's threads: keep them short (hand work to a queue) and never close the bus from one.
+"""
+
+from __future__ import annotations
+
+import atexit
+import collections
+import json
+import logging
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Callable
+
+import zenoh
+
+from scenarios.names import NAME_PATTERN, is_name
+
+from ..codec import MessageError, decode, encode
+from ..keys import Keys, check_route, parse_key
+from ..schemas import Envelope, Message
+
+log = logging.getLogger(__name__)
+
+MODES = ("peer", "client", "router")
+
+Handler = Callable[[str, Message, int], None]             # (key, message, received_at ns)
+RawHandler = Callable[[str, bytes, int], None]            # (key, payload, received_at ns)
+RejectHook = Callable[[str, bytes, MessageError], None]   # (key, payload, error: str(error) is the reason)
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    """How to reach the other processes. The same three endpoint settings as the Zenoh examples (``mode``,
+    ``connect``, ``listen``), an optional Zenoh config file under them, a ``lease_s`` and raw ``overrides``:
+    (config key, JSON5 value) pairs given to ``zenoh.Config.insert_json5`` last (auth, TLS...).
+
+    ``lease_s`` is the lease this process announces: the others declare it gone once it has been silent
+    (frozen) that long. A killed or closed process is seen gone within milliseconds whatever the lease.
+
+    ``connect_timeout_s`` is how long opening waits for a ``connect`` endpoint to answer, retrying, so an agent
+    may be started before its DMO or router; past it, opening fails (a client's Zenoh default is to fail at once).
+
+    With explicit endpoints, multicast scouting is off and the scouting delay 0: the process connects where
+    it is told at once and never meets a stranger's run.
+    """
+
+    mode: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    lease_s: float | None = None
+    connect_timeout_s: float | None = None
+    config_file: str | None = None
+    overrides: tuple[tuple[str, str], ...] = field(default_factory=tuple)
+
+    def __post_init__(self):
+        for name in ("connect", "listen", "overrides"):
+            value = getattr(self, name)
+            if isinstance(value, str):
+                raise ValueError(f"{name} must be a list, not a string")
+            object.__setattr__(self, name, tuple(tuple(v) if name == "overrides" else str(v) for v in value))
+        if self.mode is not None and self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, not {self.mode!r}")
+        if self.lease_s is not None and not 0.05 <= self.lease_s <= 3600:
+            raise ValueError(f"lease_s must be between 0.05 and 3600 seconds, not {self.lease_s}")
+        if self.connect_timeout_s is not None and not 0 <= self.connect_timeout_s <= 86400:
+            raise ValueError(f"connect_timeout_s must be between 0 and 86400 seconds, not {self.connect_timeout_s}")
+
+    def to_zenoh(self) -> zenoh.Config:
+        config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        settings: list[tuple[str, str]] = []
+        if self.mode is not None:
+            settings.append(("mode", json.dumps(self.mode)))
+        if self.connect:
+            settings.append(("connect/endpoints", json.dumps(list(self.connect))))
+        if self.listen:
+            settings.append(("listen/endpoints", json.dumps(list(self.listen))))
+        if self.connect or self.listen:
+            settings += [("scouting/multicast/enabled", "false"), ("scouting/delay", "0")]
+        if self.lease_s is not None:
+            # A killed peer is noticed when its link closes; a frozen one only when its lease expires.
+            settings.append(("transport/link/tx/lease", str(round(self.lease_s * 1000))))
+        if self.connect and self.connect_timeout_s is not None:
+            settings.append(("connect/timeout_ms", str(round(self.connect_timeout_s * 1000))))
+        for key, value in settings + list(self.overrides):
+            try:
+                config.insert_json5(key, value)
+            except Exception as err:  # zenoh raises its own ZError
+                raise ValueError(f"invalid zenoh setting {key}={value}: {err}") from None
+        return config
+
+
+class Subscription:
+    """A declared Zenoh subscriber; closing it (or its bus) stops delivery."""
+
+    def __init__(self, bus: Bus, subscriber):
+        self._bus = bus
+        self._subscriber = subscriber
+
+    def close(self) -> None:
+        subscriber, self._subscriber = self._subscriber, None
+        if subscriber is not None:
+            self._bus._forget(self)
+            _quietly(subscriber.undeclare, "undeclare subscriber")
+
+    def __enter__(self) -> Subscription:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class Bus:
+    """One process's Zenoh session for one run. Use as a context manager; everything declared on it is closed
+    with it. ``name`` is this process's sender id ("dmo", "recorder" or an agent id) and its liveliness name."""
+
+    def __init__(self, run_id: str, name: str, config: BusConfig | None = None, *,
+                 on_reject: RejectHook | None = None, announce: bool = True):
+        self.keys = Keys(run_id)
+        if not is_name(name):
+            raise ValueError(f"process name {name!r} must match {NAME_PATTERN}")
+        self.name = name
+        self.config = config or BusConfig()
+        self.on_reject = on_reject
+        self._announce = announce
+        self._session: zenoh.Session | None = None
+        self._token = None
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._subscriptions: list[Subscription] = []
+        self._seq = 0
+        self._send_lock = threading.RLock()  # also guards the publisher cache
+        self._state_lock = threading.Lock()
+        self._published = 0
+        self._received = 0
+        self._handler_errors = 0
+        self._rejected: collections.Counter[str] = collections.Counter()
+        # messages/transport/faults.py: a FaultInjector that drops, delays, duplicates or corrupts what this bus publishes
+        self.faults = None
+
+    # --- lifetime ----------------------------------------------------------------------------------------
+
+    def open(self) -> Bus:
+        if self._session is not None:
+            return self
+        if self.config.connect:
+            log.info("connecting to %s%s", ", ".join(self.config.connect), "" if self.config.connect_timeout_s is None
+                     else f" (waiting up to {self.config.connect_timeout_s:g} s for an answer)")
+        try:
+            self._session = zenoh.open(self.config.to_zenoh())
+        except zenoh.ZError as err:
+            if self.config.connect and "Unable to connect" in str(err):
+                waited = "" if self.config.connect_timeout_s is None else f" within {self.config.connect_timeout_s:g} s"
+                raise ConnectionError(f"could not connect to {', '.join(self.config.connect)}{waited}: nobody "
+                                      "listens there, or it refused us (credentials, TLS certificate)") from None
+            raise
+        _OPEN.add(self)
+        try:
+            if self._announce:
+                self._token = self._session.liveliness().declare_token(self.keys.alive(self.name))
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        """Undeclare everything and close the session; safe to call twice."""
+        session, self._session = self._session, None
+        if session is None:
+            return
+        _OPEN.discard(self)
+        if self.faults is not None:
+            self.faults.cancel()
+        for subscription in list(self._subscriptions):
+            subscription.close()
+        with self._send_lock:
+            publishers, self._publishers = list(self._publishers.values()), {}
+        for publisher in publishers:
+            _quietly(publisher.undeclare, "undeclare publisher")
+        if self._token is not None:
+            _quietly(self._token.undeclare, "undeclare liveliness token")
+            self._token = None
+        _quietly(session.close, "close zenoh session")
+
+    def __enter__(self) -> Bus:
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise RuntimeError(f"bus {self.name!r} is not open")
+        return self._session
+
+    # --- sending -----------------------------------------------------------------------------------------
+
+    def publish(self, msg: Envelope, key: str | None = None) -> Message:
+        """Stamp ``seq`` (this sender's next number) and ``sent_at`` (now, ns), and put the message on its key
+        (``keys.for_message`` unless given; a given key must fit the message). Returns the stamped message."""
+        if msg.sender != self.name:
+            raise ValueError(f"bus {self.name!r} cannot publish a message from {msg.sender!r}")
+        with self._send_lock:
+            stamped = msg.model_copy(update={"seq": self._seq, "sent_at": time.time_ns()})
+            key = key or self.keys.for_message(stamped)
+            check_route(key, stamped, self.keys.run_id)
+            payload = encode(stamped)
+            if self.faults is None:
+                self._publisher(key).put(payload)
+            else:
+                self.faults.send(key, payload, lambda k, p: self._publisher(k).put(p))
+            self._seq += 1
+            self._published += 1
+        return stamped
+
+    def publish_raw(self, key: str, payload: bytes) -> None:
+        """Put bytes as they are (replay, fault injection); no stamping, no checks beyond the run prefix."""
+        self._own(key)
+        self.session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON,
+                         congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
+        """Wait until someone subscribes to ``key`` (a concrete key), so a first message is not sent into the void."""
+        publisher = self._publisher(key)
+        matched = threading.Event()
+
+        def on_status(status) -> None:
+            if status.matching:
+                matched.set()
+
+        with publisher.declare_matching_listener(on_status):
+            return publisher.matching_status or matched.wait(timeout_s)
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        self._own(key)
+        with self._send_lock:
+            publisher = self._publishers.get(key)
+            if publisher is None:
+                publisher = self.session.declare_publisher(
+                    key, encoding=zenoh.Encoding.APPLICATION_JSON,
+                    # never drop under load: a lost meter report would be settled as missing
+                    congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+                self._publishers[key] = publisher
+            return publisher
+
+    # --- receiving ---------------------------------------------------------------------------------------
+
+    def subscribe(self, pattern: str, handler: Handler) -> Subscription:
+        """Deliver each valid message on keys matching ``pattern`` as handler(key, message, received_at_ns).
+        Payloads that do not decode, or do not belong on their key, go to ``on_reject`` instead."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            received_at = time.time_ns()
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            try:
+                msg = decode(payload, expected_kind=parse_key(key).kind)
+                check_route(key, msg, self.keys.run_id)
+            except MessageError as err:
+                self._reject(key, payload, err)
+                return
+            with self._state_lock:
+                self._received += 1
+            try:
+                handler(key, msg, received_at)
+            except Exception:
+                with self._state_lock:
+                    self._handler_errors += 1
+                log.exception("%s: handler for %s failed on %s #%d", self.name, pattern, msg.kind, msg.seq)
+
+        return self._declare(pattern, on_sample)
+
+    def subscribe_raw(self, pattern: str, handler: RawHandler) -> Subscription:
+        """Deliver every payload as it arrived, valid or not, as handler(key, payload, received_at_ns)."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            received_at = time.time_ns()
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            try:
+                handler(str(sample.key_expr), sample.payload.to_bytes(), received_at)
+            except Exception:
+                with self._state_lock:
+                    self._handler_errors += 1
+                log.exception("%s: raw handler for %s failed", self.name, pattern)
+
+        return self._declare(pattern, on_sample)
+
+    def _declare(self, pattern: str, callback) -> Subscription:
+        self._own(pattern)
+        subscription = Subscription(self, self.session.declare_subscriber(pattern, callback))
+        with self._state_lock:
+            self._subscriptions.append(subscription)
+        return subscription
+
+    def _reject(self, key: str, payload: bytes, err: MessageError) -> None:
+        with self._state_lock:
+            self._rejected[err.code] += 1
+        log.warning("%s: rejected %d bytes on %s: %s", self.name, len(payload), key, err.reason)
+        if self.on_reject is not None:
+            try:
+                self.on_reject(key, payload, err)
+            except Exception:
+                with self._state_lock:
+                    self._handler_errors += 1
+                log.exception("%s: on_reject hook failed", self.name)
+
+    def _forget(self, subscription: Subscription) -> None:
+        with self._state_lock:
+            if subscription in self._subscriptions:
+                self._subscriptions.remove(subscription)
+
+    def _own(self, key: str) -> None:
+        if not str(key).startswith(self.keys.prefix + "/"):
+            raise ValueError(f"key {key!r} is outside this run's prefix {self.keys.prefix}/")
+
+    # --- presence ----------------------------------------------------------------------------------------
+
+    def watch_presence(self, on_join: Callable[[str], None], on_leave: Callable[[str], None], *,
+                       history: bool = True) -> Subscription:
+        """Call on_join(name) when another process of this run appears (with ``history``, also for those already
+        there) and on_leave(name) when it vanishes: closed at once, killed within milliseconds, frozen after
+        its lease."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                name = parse_key(str(sample.key_expr)).topic
+            except MessageError:
+                return
+            if name == self.name:
+                return
+            try:
+                (on_join if sample.kind == zenoh.SampleKind.PUT else on_leave)(name)
+            except Exception:
+                with self._state_lock:
+                    self._handler_errors += 1
+                log.exception("%s: presence callback failed for %s", self.name, name)
+
+        subscriber = self.session.liveliness().declare_subscriber(self.keys.alive("*"), on_sample, history=history)
+        subscription = Subscription(self, subscriber)
+        with self._state_lock:
+            self._subscriptions.append(subscription)
+        return subscription
+
+    def present(self, timeout_s: float = 1.0) -> set[str]:
+        """Names of the processes of this run alive now (this one included if it announced itself)."""
+        names = set()
+        for reply in self.session.liveliness().get(self.keys.alive("*"), timeout=timeout_s):
+            try:
+                names.add(parse_key(str(reply.ok.key_expr)).topic)
+            except (AttributeError, MessageError):
+                continue  # an error reply, or a token that is not ours
+        return names
+
+    # --- counters ----------------------------------------------------------------------------------------
+
+    def stats(self) -> dict:
+        """Counters since the bus opened: published, received (valid), rejected by code, handler_errors."""
+        with self._state_lock:
+            return {"published": self._published, "received": self._received,
+                    "rejected": dict(self._rejected), "rejected_total": sum(self._rejected.values()),
+                    "handler_errors": self._handler_errors}
+
+
+def _quietly(action: Callable[[], object], what: str) -> None:
+    try:
+        action()
+    except Exception:
+        log.debug("could not %s", what, exc_info=True)
+
+
+# A session with a callback subscriber owns a non-daemon thread, so a process that forgets to close it hangs
+# at exit: Python joins that thread before running atexit hooks. threading's own exit hook runs before the
+# join (concurrent.futures relies on it), so open buses are closed there.
+_OPEN: weakref.WeakSet[Bus] = weakref.WeakSet()
+
+
+def _close_open_buses() -> None:
+    for bus in list(_OPEN):
+        bus.close()
+
+
+getattr(threading, "_register_atexit", atexit.register)(_close_open_buses)
+
+
+__all__ = ["MODES", "Bus", "BusConfig", "Subscription"]

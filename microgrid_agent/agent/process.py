@@ -1,0 +1,243 @@
+"""A microgrid agent's market day over a Bus: register, bid, schedule against the award, operate hour by hour.
+
+Zenoh's callback threads only enqueue what arrives; the agent handles it in order on its main thread, so a long
+solve delays, but never reorders or drops, what comes next. The agent ends with the DMO's day summary, or when
+it hears nothing for ``idle_s``.
+
+What the DMO sends is handled idempotently: a repeated call for bids or award, or the grid state of an hour
+already operated, changes nothing. A grid state after a gap (the agent restarted, or lost the DMO for a while)
+first brings the day up to that hour, unreported. The DMO's rejections of the agent's own messages are logged
+with their reason, and a refused registration ends the agent with that reason (exit 1).
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+import json
+import logging
+import queue
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MeterReport, Registration,
+                      Rejection, Schedule, SettlementStatement, encode)
+from scenarios.case import Case
+from scenarios.generation import forecast_scenario, make_scenarios, sample
+from scenarios.horizon import HOURS
+
+from ..instance import Instance
+from ..model import Params, first_stage_of
+from .bidding import bid_curve
+from .realtime import Operator
+
+log = logging.getLogger("dmosim.agent")
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """How the agent schedules: scenarios of its stochastic model, islanding hours it plans for, solver gap, time
+    limit, route (microgrid_agent/solvers/routes.py) and Benders workers, and the seed of its own scenarios (``seed``)
+    and of
+    the day it will actually live (``seed + 1000``)."""
+
+    scenarios: int = 5
+    island_hours: int = 1
+    gap: float = 0.01
+    time_limit: float = 600.0
+    seed: int = 0
+    idle_s: float = 3600.0
+    method: str = "auto"
+    workers: int = 1
+
+
+class AgentTimeout(RuntimeError):
+    pass
+
+
+class AgentRefused(RuntimeError):
+    """The DMO refused this agent's registration: the reason is the DMO's."""
+
+
+class MicrogridAgent:
+    def __init__(self, bus: Bus, case: Case, config: AgentConfig, market_day: str):
+        self.bus, self.case, self.config, self.market_day = bus, case, config, market_day
+        self.events: queue.Queue = queue.Queue()
+        self.operator: Operator | None = None
+        self.award: Award | None = None
+        self.statement: SettlementStatement | None = None
+        self.summary: DaySummary | None = None
+        self.compute: list[dict] = []  # per message handled: kind, hour, wall_s, cpu_s (read by dmosim bench day)
+        self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
+        self._sent: dict[str, tuple[str, int]] = {}  # sha256 of each payload published -> (kind, seq)
+        self._answers: dict[tuple[str, int | None], tuple[str, bytes]] = {}  # (phase, hour) -> (key, payload)
+        self._clocks: set[tuple[str, int | None]] = set()  # clock steps seen
+        self.resent = 0
+        self._bid_sent = False
+        self._grid_seen: dict[int, tuple[bool, ...]] = {}  # hour -> connection, of grid states not operated
+        self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
+
+    @property
+    def id(self) -> str:
+        return self.bus.name
+
+    def run(self) -> DaySummary:
+        k = self.bus.keys
+        put = lambda key, msg, t: self.events.put(msg)  # noqa: E731
+        for pattern in (k.clock(), k.call_for_bids(), k.award(self.id), k.grid(), k.statement(self.id),
+                        k.summary(), k.rejected()):
+            self.bus.subscribe(pattern, put)
+        self.bus.wait_for_subscribers(k.register(self.id), self.config.idle_s)
+        grid = self.case.grid
+        self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.case.name,
+                                   max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max))
+        log.info("%s registered", self.id)
+        while self.summary is None:
+            try:
+                msg = self.events.get(timeout=self.config.idle_s)
+            except queue.Empty:
+                raise AgentTimeout(f"{self.id}: nothing from the DMO for {self.config.idle_s:g} s") from None
+            started, self._answering = (time.perf_counter(), time.process_time()), None
+            self._handle(msg)
+            ended = self._answering or (time.perf_counter(), time.process_time())
+            self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None),
+                                 "wall_s": ended[0] - started[0], "cpu_s": ended[1] - started[1]})
+        # One line, so a benchmark can split the day's wall time into the agents' computation and the rest.
+        log.info("%s compute %s", self.id, json.dumps(self.compute, separators=(",", ":")))
+        log.info("%s messages %s", self.id, json.dumps(self.message_counts(), separators=(",", ":")))
+        return self.summary
+
+    def message_counts(self) -> dict:
+        """What the agent received and refused (transport), handled as no-ops, and injected as faults."""
+        faults = self.bus.faults.summary() if getattr(self.bus, "faults", None) is not None else {}
+        return {"transport": self.bus.stats(), "ignored": dict(self.ignored), "answers_sent_again": self.resent,
+                "faults_injected": faults}
+
+    def _publish(self, msg) -> None:
+        stamped = self.bus.publish(msg)
+        payload = encode(stamped)
+        self._sent[hashlib.sha256(payload).hexdigest()] = (stamped.kind, stamped.seq)
+        phase = _ANSWERS.get(stamped.kind)
+        if phase is not None:
+            self._answers[phase, getattr(stamped, "hour", None)] = (self.bus.keys.for_message(stamped), payload)
+
+    def _answer(self, msg) -> None:
+        """Publish the answer to the message being handled. Its computation ends as it goes out: sending it is the
+        protocol's work, and what the handler does afterwards overlaps the DMO's next step."""
+        self._answering = time.perf_counter(), time.process_time()
+        self._publish(msg)
+
+    def _handle(self, msg) -> None:
+        if msg.market_day != self.market_day:
+            self.ignored["wrong_day"] += 1
+            log.warning("%s: ignoring %s for market day %s", self.id, msg.kind, msg.market_day)
+        elif isinstance(msg, Rejection):
+            self._rejected(msg)
+        elif isinstance(msg, Clock):
+            self._clock(msg)
+        elif isinstance(msg, CallForBids):
+            if self._bid_sent:
+                self.ignored["call_for_bids_again"] += 1
+                log.info("%s: call for bids again; the bid already sent stands", self.id)
+            else:
+                self._bid(msg)
+        elif isinstance(msg, Award):
+            if self.award is not None and _terms(msg) == _terms(self.award):
+                self.ignored["award_again"] += 1
+                log.info("%s: the same award again; the schedule already solved stands", self.id)
+            else:
+                self._schedule(msg)
+        elif isinstance(msg, GridState):
+            self._operate(msg)
+        elif isinstance(msg, SettlementStatement):
+            self.statement = msg
+            log.info("%s statement: total $%.2f (penalty $%.2f)", self.id, msg.total, msg.deviation_penalty)
+        elif isinstance(msg, DaySummary):
+            self.summary = msg
+
+    def _bid(self, call: CallForBids) -> None:
+        curve = bid_curve(self.case, np.asarray(call.iso_price_per_mwh), seed=self.config.seed, gap=self.config.gap)
+        self._answer(Bid(sender=self.id, market_day=self.market_day, hours=curve))
+        self._bid_sent = True
+        log.info("%s bid sent", self.id)
+
+    def _schedule(self, award: Award) -> None:
+        """The stochastic schedule of the paper against the award (objective (1), constraints (2)-(21))."""
+        self.award = award
+        c, k = self.config, award.subperiods
+        scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=c.seed)
+        p_sch = np.asarray(award.p_sch_mw, float)
+        schedule = Instance(self.case, scen, Params(p_sch, award.penalty_per_mwh)).solve(
+            method=c.method, workers=c.workers, gap=c.gap, time_limit=c.time_limit)
+        realised = sample(self.case, 1, k, island_hours=0, seed=c.seed + 1000)
+        self.operator = Operator(self.case, first_stage_of(schedule), p_sch, award.penalty_per_mwh, k, realised,
+                                 forecast_scenario(self.case, k))
+        p_m_hourly = (schedule.probability @ schedule.dispatch.p_m).reshape(HOURS, k).mean(axis=1)
+        self._answer(Schedule(
+            sender=self.id, market_day=self.market_day, status=schedule.status,
+            commitment={n: tuple(int(x) for x in schedule.commitment[n]) for n in schedule.unit_names},
+            expected_cost=float(schedule.objective), p_m_expected_mw=tuple(float(x) for x in p_m_hourly),
+            scenarios=schedule.scenarios, mip_gap=float(schedule.mip_gap)))
+        log.info("%s scheduled: expected cost $%.2f, gap %.3f%%", self.id, schedule.objective, 100 * schedule.mip_gap)
+        if self._grid_seen:  # grid states came first (the agent rejoined mid-day): operate up to the latest, report it
+            hour = max(self._grid_seen)
+            connected = self._grid_seen[hour]
+            self._operate(GridState(sender=DMO, market_day=self.market_day, hour=hour, subperiods=len(connected),
+                                    connected=connected))
+
+    def _clock(self, clock: Clock) -> None:
+        """A clock step seen before, and answered, means that the DMO restarted and runs that step again: the
+        answer it may have missed goes again, byte for byte (same seq), so the DMO takes it at most once. (Only a
+        repeat counts: messages on different keys may overtake each other, so an answer can precede its clock.)"""
+        step = (clock.phase, clock.hour)
+        answer = self._answers.get(step) if step in self._clocks else None
+        self._clocks.add(step)
+        if answer is not None:
+            self.bus.publish_raw(*answer)
+            self.resent += 1
+            log.warning("%s: the DMO runs %s%s again (restarted?): sent my answer again", self.id, clock.phase,
+                        f" hour {clock.hour}" if clock.hour else "")
+
+    def _rejected(self, rejection: Rejection) -> None:
+        mine = self._sent.get(rejection.payload_sha256) if rejection.offender == self.id else None
+        if mine is None:  # someone else's message, or one published in this agent's name by someone else
+            self.ignored["rejection_of_another_message"] += 1
+            return
+        kind, seq = mine
+        log.warning("%s: the DMO rejected my %s #%d (%s): %s", self.id, kind, seq, rejection.code, rejection.reason)
+        if kind == "registration" and rejection.code != "duplicate":
+            raise AgentRefused(f"{self.id}: the DMO refused the registration ({rejection.code}): {rejection.reason}")
+
+    def _operate(self, grid: GridState) -> None:
+        if grid.subperiods != (self.award.subperiods if self.award else grid.subperiods):
+            self.ignored["grid_state_wrong_subperiods"] += 1
+            log.warning("%s: grid state with %d sub-periods, the award has %d; ignored", self.id, grid.subperiods,
+                        self.award.subperiods)
+            return
+        if self.operator is None:
+            self._grid_seen[grid.hour] = grid.connected
+            log.warning("%s: grid state for hour %d before any award; no report", self.id, grid.hour)
+            return
+        if grid.hour < self.operator.next_hour:
+            self.ignored["grid_state_of_an_operated_hour"] += 1
+            log.info("%s: grid state for hour %d again; already operated", self.id, grid.hour)
+            return
+        if grid.hour > self.operator.next_hour:
+            first = self.operator.next_hour
+            self.operator.catch_up(grid.hour, self._grid_seen)
+            log.warning("%s: no grid state for hour(s) %d..%d: operated them unreported (the DMO settles them as "
+                        "missing)", self.id, first, grid.hour - 1)
+        result = self.operator.operate_hour(grid.hour, grid.connected)
+        self._answer(MeterReport(sender=self.id, market_day=self.market_day, hour=grid.hour,
+                                 subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
+                                 deviation_mw=tuple(float(x) for x in result.deviation)))
+
+
+_ANSWERS = {"bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}  # answer kind -> its phase
+
+
+def _terms(award: Award) -> dict:
+    """An award's content, without the envelope that differs between copies (seq, sent_at)."""
+    return award.model_dump(exclude={"seq", "sent_at"})

@@ -1,0 +1,70 @@
+"""The power balance (2) and the main grid: transfer limits with islanding (18) and the mismatch against the award
+(19)-(21)."""
+
+from __future__ import annotations
+
+import cvxpy as cp
+import numpy as np
+
+from scenarios.case import Case
+from scenarios.generation import ScenarioSet
+
+from .index import Index
+from .params import Params
+
+
+def balance(case: Case, scen: ScenarioSet, ix: Index, v: dict) -> list[cp.Constraint]:
+    """Power balance (2) per scenario and sub-period, with renewables as used (availability minus spill).
+
+    Load curtailment LS (>= 0, with no upper bound: docs/model.md, "Conventions the paper leaves open") and
+    renewable spill make every commitment feasible in every scenario. Scenario data (load, availability) enter
+    only right-hand sides, so they may be cvxpy Parameters (solvers/benders.py).
+    """
+    supply = v["PM"] + v["LS"]
+    demand = scen.load
+    cons = []
+    if case.units:
+        supply = supply + ix.total(len(case.units)) @ v["P"]
+    if case.renewables:
+        R = len(case.renewables)
+        supply = supply + ix.total(R) @ v["Pr"]
+        cons.append(v["Pr"] <= _stacked(scen.renewable, R * ix.S, ix.N))
+    if case.storage is not None:
+        supply = supply + v["Pst"]
+    if case.loads:
+        demand = demand + ix.total(len(case.loads)) @ v["D"]
+    return [supply == demand, *cons]
+
+
+def _stacked(data, rows: int, n: int):
+    """(M, S, N) scenario data as (M S, N) rows member-major; a Parameter already has that shape."""
+    return data.reshape(rows, n) if isinstance(data, np.ndarray) else data
+
+
+def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict) -> list[cp.Constraint]:
+    """Main grid transfer (18) and its positive mismatch (19)-(21).
+
+    (18): islanded (U = 0) forces P_M = 0. The positive mismatch is modelled exactly as
+    dP+ >= P_M - P^sch, dP+ >= 0 (minimised through its penalty); an infinite penalty becomes P_M <= P^sch
+    wherever connected. ``mismatch="big-m"`` keeps the paper's indicator form (20)-(21), corrected so that it
+    is exact (docs/model.md), to test that both give the same optimum.
+    """
+    p_sch = np.tile(np.repeat(params.p_sch, ix.K), (ix.S, 1))
+    PM, dP, U = v["PM"], v["dP"], scen.connected
+    pm_max = case.grid.p_m_max
+    limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
+    if np.isinf(params.penalty):
+        # P_M <= P^sch where connected (U = 1) and no limit beyond (18) where islanded (U = 0).
+        return [*limits, PM <= pm_max - cp.multiply(pm_max - p_sch, U), dP == 0]
+    if params.mismatch == "positive-part":
+        return [*limits, dP >= PM - p_sch]
+    delta = v["delta"] = cp.Variable(PM.shape, boolean=True)
+    M = case.grid.p_m_max + np.abs(p_sch)
+    mismatch = PM - p_sch  # (19)
+    return [
+        *limits,
+        dP <= cp.multiply(M, delta),  # (20), with dP+ >= 0 in its bounds
+        mismatch - dP <= cp.multiply(M, 1 - delta),  # (21)
+        mismatch - dP >= -cp.multiply(M, 1 - delta),  # (21)
+        mismatch <= cp.multiply(M, delta),  # delta = 0 only where the mismatch is not positive
+    ]

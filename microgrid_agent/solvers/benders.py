@@ -1,0 +1,438 @@
+"""Multi-cut Benders (L-shaped) decomposition of the stochastic schedule: the fast, certified path.
+
+First stage x = (I, y, w, u, v, z): hourly binaries of units, start-ups/shut-downs, storage modes and loads.
+Given x, each scenario is an LP (objective (1) without start-up costs, constraints (2)-(5), (8)-(9), (11)-(12),
+(15)-(16), (18)-(21)); curtailment and spill make it feasible for every x the master allows, because the master
+carries the scenario-independent storage and load constraints itself (inside its relaxation). The scenario LPs
+are compiled once from the same cvxpy model as the extensive form (scenario data as Parameters), kept alive in
+HiGHS, and re-solved warm as x changes: their optimal value Q_s(x) is convex in x and the reduced costs of the
+fixed x columns are a subgradient, so theta_s >= Q_s(x^) + g_s (x - x^) is a valid cut. The master (first stage, an hourly Jensen
+relaxation of the second stage (relaxation.py), and theta per scenario) is first solved as an LP until its cuts
+describe the LP relaxation, then, with the cuts slack there set aside, as a MILP.
+The master's MIP dual bound is a valid lower bound; every integer x^ evaluated on all scenarios is an upper
+bound. docs/solver.md gives the design and the measurements.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from dataclasses import dataclass, field
+
+import cvxpy as cp
+import highspy
+import numpy as np
+
+from scenarios.case import Case
+from scenarios.generation import ScenarioSet
+from scenarios.horizon import HOURS
+
+from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, first_stage_constraints, recourse,
+                     second_stage_constraints, startup_cost, variables)
+from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
+from .extensive import SolveError
+from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
+from .relaxation import group_relaxation
+
+
+@dataclass
+class _OneScenario:
+    """One scenario's data as cvxpy Parameters, so the compiled LP is re-used for every scenario."""
+
+    subperiods: int
+    load: cp.Parameter
+    renewable: cp.Parameter
+    connected: cp.Parameter
+    probability: np.ndarray = field(default_factory=lambda: np.ones(1))
+    S: int = 1
+
+    def set(self, scen: ScenarioSet, s: int) -> None:
+        self.load.value = scen.load[s:s + 1]
+        self.renewable.value = scen.renewable[:, s]
+        self.connected.value = scen.connected[s:s + 1]
+
+
+class Subproblems:
+    """The scenario LPs of a subset of scenarios, each a live HiGHS model (warm re-solves)."""
+
+    def __init__(self, case: Case, scen: ScenarioSet, params: Params, indices):
+        K, N, R = scen.subperiods, scen.N, len(case.renewables)
+        one = _OneScenario(K, cp.Parameter((1, N)), cp.Parameter((max(R, 1), N)), cp.Parameter((1, N)))
+        v = variables(case, 1, N, first_stage="continuous")
+        terms = recourse(case, one, params, Index(1, K), v)  # start-ups are first-stage: the master carries them
+        constraints = second_stage_constraints(case, one, params, Index(1, K), v)
+        problem = cp.Problem(cp.Minimize(sum(terms.values())), constraints)
+        self.indices = list(indices)
+        self.models: dict[int, highspy.Highs] = {}
+        for s in self.indices:
+            one.set(scen, s)
+            data, self.columns = compile_problem(problem)
+            self.models[s] = highs_model(data, integer=False)
+        self.var, self.terms = v, terms
+        self.x_cols = np.concatenate([self.columns.of(v[n]) for n in FIRST_STAGE if n in v])
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Q_s(x) and a subgradient per scenario of this subset."""
+        values, grads = np.empty(len(self.indices)), np.empty((len(self.indices), len(self.x_cols)))
+        for i, s in enumerate(self.indices):
+            h = self._solve(s, x)
+            values[i] = h.getInfo().objective_function_value
+            grads[i] = np.asarray(h.getSolution().col_dual)[self.x_cols]
+        return values, grads
+
+    def dispatch(self, x: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Second-stage values (name -> (subset, *shape)) and cost terms (name -> (subset,)) at x."""
+        out = {n: [] for n in SECOND_STAGE if n in self.var}
+        costs = {n: [] for n in self.terms}
+        for s in self.indices:
+            col = np.asarray(self._solve(s, x).getSolution().col_value)
+            for name in out:
+                self.var[name].value = self.columns.value(self.var[name], col)
+                out[name].append(self.var[name].value)
+            for name in FIRST_STAGE:
+                if name in self.var:
+                    self.var[name].value = self.columns.value(self.var[name], col)
+            for name, term in self.terms.items():
+                costs[name].append(float(term.value))
+        return {n: np.array(v) for n, v in out.items()}, {n: np.array(v) for n, v in costs.items()}
+
+    def _solve(self, s: int, x: np.ndarray) -> highspy.Highs:
+        h = self.models[s]
+        fix_columns(h, self.x_cols, x)
+        h.run()
+        if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
+            raise SolveError(f"scenario {s}: subproblem {h.modelStatusToString(h.getModelStatus())} for the "
+                             "master's first stage (complete recourse violated: check the case)")
+        return h
+
+
+def _worker(conn, case, scen, params, indices) -> None:
+    sub = Subproblems(case, scen, params, indices)
+    conn.send("ready")
+    while True:
+        command, x = conn.recv()
+        if command == "stop":
+            return
+        try:
+            conn.send(("ok", sub.evaluate(x) if command == "evaluate" else sub.dispatch(x)))
+        except Exception as exc:  # the parent re-raises it; the worker stays usable
+            conn.send(("error", exc))
+
+
+class ScenarioPool:
+    """Subproblems spread over ``workers`` processes (fork), or kept in this process when workers == 1."""
+
+    def __init__(self, case: Case, scen: ScenarioSet, params: Params, workers: int):
+        self.S = scen.S
+        parts = [list(range(w, scen.S, workers)) for w in range(min(workers, scen.S))]
+        self.parts = parts
+        if len(parts) == 1:
+            self.local, self.procs = Subproblems(case, scen, params, parts[0]), []
+            return
+        self.local = None
+        ctx = mp.get_context("fork")
+        self.conns, self.procs = [], []
+        for part in parts:
+            parent, child = ctx.Pipe()
+            proc = ctx.Process(target=_worker, args=(child, case, scen, params, part), daemon=True)
+            proc.start()
+            self.conns.append(parent)
+            self.procs.append(proc)
+        for conn in self.conns:
+            conn.recv()
+
+    def _map(self, command: str, x: np.ndarray) -> list:
+        if self.local is not None:
+            return [self.local.evaluate(x) if command == "evaluate" else self.local.dispatch(x)]
+        for conn in self.conns:
+            conn.send((command, x))
+        replies = [conn.recv() for conn in self.conns]
+        for status, payload in replies:
+            if status == "error":
+                raise payload
+        return [payload for _, payload in replies]
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        values, grads = np.empty(self.S), None
+        for part, (v, g) in zip(self.parts, self._map("evaluate", x)):
+            values[part] = v
+            grads = np.empty((self.S, g.shape[1])) if grads is None else grads
+            grads[part] = g
+        return values, grads
+
+    def dispatch(self, x: np.ndarray):
+        arrays, costs = {}, {}
+        for part, (a, c) in zip(self.parts, self._map("dispatch", x)):
+            for name, value in a.items():
+                arrays.setdefault(name, np.empty((self.S, *value.shape[1:])))[part] = value
+            for name, value in c.items():
+                costs.setdefault(name, np.empty(self.S))[part] = value
+        return arrays, costs
+
+    def close(self) -> None:
+        for conn in getattr(self, "conns", []):
+            conn.send(("stop", None))
+        for proc in self.procs:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.kill()
+
+
+_SLACK = 1e-6  # relative slack above which a cut counts as not binding
+_EARLY_GAP = 0.02  # relative gap of the first MILP masters
+
+
+class CutPool:
+    """Every cut found so far, theta_s - g x >= rhs, whether or not the master currently carries it."""
+
+    def __init__(self, nx: int):
+        self.scenario = np.zeros(0, dtype=np.int64)
+        self.rhs = np.zeros(0)
+        self.grads = np.zeros((0, nx))
+
+    @property
+    def size(self) -> int:
+        return len(self.rhs)
+
+    def add(self, scenario: np.ndarray, rhs: np.ndarray, grads: np.ndarray) -> None:
+        self.scenario = np.concatenate([self.scenario, scenario])
+        self.rhs = np.concatenate([self.rhs, rhs])
+        self.grads = np.vstack([self.grads, grads])
+
+    def slack(self, ids: np.ndarray, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
+        """theta_s - g x - rhs of cuts ``ids`` at (x, theta): negative where a cut is violated."""
+        return theta[self.scenario[ids]] - self.grads[ids] @ x - self.rhs[ids]
+
+
+class Master:
+    """First stage, the groups' hourly relaxation (relaxation.py) linked to theta_s, and theta_s >= cuts."""
+
+    def __init__(self, case: Case, scen: ScenarioSet, params: Params, label: np.ndarray | None = None):
+        # The groups' hourly relaxation (relaxation.py) also carries the scenario-independent storage and load
+        # constraints, so every x the master allows has a feasible dispatch in every scenario. One group (all
+        # scenarios) by default: finer groups (by islanding pattern) made each MILP master several times slower
+        # for no better final bound (docs/solver.md).
+        label = np.zeros(scen.S, dtype=int) if label is None else label
+        v = variables(case, int(label.max()) + 1, HOURS)
+        theta = cp.Variable(scen.S, nonneg=True)  # Q_s >= 0: every cost term is non-negative
+        relaxation = group_relaxation(case, scen, params, v, label)
+        cons = (first_stage_constraints(case, v, 1.0 / scen.subperiods) + relaxation.constraints
+                + [relaxation.linking(theta)])
+        problem = cp.Problem(cp.Minimize(startup_cost(case, v) + scen.probability @ theta), cons)
+        data, columns = compile_problem(problem)
+        self.h = highs_model(data, integer=True)
+        self.var = v
+        self.x_cols = np.concatenate([columns.of(v[n]) for n in FIRST_STAGE if n in v])
+        self.theta_cols = columns.of(theta)
+        self.cost = np.asarray(data["c"], float)[self.x_cols]  # start-up and shut-down costs of x
+        self.binary = np.asarray(data["bool_vars_idx"], dtype=np.int32)
+        self.base_rows = self.h.getNumRow()
+        self.pool = CutPool(len(self.x_cols))
+        self.active = np.zeros(0, dtype=np.int64)  # pool ids of the cut rows, in master row order
+        self.incumbent = None
+        self.last = None
+
+    def first_stage_cost(self, x: np.ndarray) -> float:
+        return float(self.cost @ x)
+
+    def add_cuts(self, x: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
+        """theta_s - g_s x >= Q_s(x^) - g_s x^ for every scenario s: into the pool, and active in the master."""
+        self.pool.add(np.arange(len(values)), values - grads @ x, grads)
+        self._activate(np.arange(self.pool.size - len(values), self.pool.size))
+
+    def _activate(self, ids: np.ndarray) -> None:
+        """Append pool cuts ``ids`` as master rows (zero coefficients dropped)."""
+        if len(ids) == 0:
+            return
+        scenario, rhs, grads = self.pool.scenario[ids], self.pool.rhs[ids], self.pool.grads[ids]
+        n, nx = grads.shape
+        index = np.column_stack([self.theta_cols[scenario][:, None], np.broadcast_to(self.x_cols, (n, nx))])
+        coef = np.column_stack([np.ones(n), -grads])
+        keep = coef != 0
+        starts = np.concatenate([[0], np.cumsum(keep.sum(axis=1))[:-1]]).astype(np.int32)
+        self.h.addRows(n, rhs, np.full(n, INF), int(keep.sum()), starts, index[keep].astype(np.int32), coef[keep])
+        self.active = np.concatenate([self.active, ids])
+
+    def prune(self) -> None:
+        """Drop the active cuts that are slack at the last master solution; they stay in the pool.
+
+        Dense cuts make each MILP master's root slow (presolve, separation): keeping only the binding ones
+        made a 10-scenario master about 8 times faster. A master with fewer cuts is a relaxation, so its bound
+        stays valid. Called once, when the LP phase ends: its cuts at fractional points are mostly slack for
+        the integer phase, while every cut at an integer x^ stays, so a repeated x^ cannot cycle.
+        """
+        slack = self.pool.slack(self.active, self.last[self.x_cols], self.last[self.theta_cols])
+        drop = np.flatnonzero(slack > _SLACK * (1 + np.abs(self.pool.rhs[self.active])))
+        self.h.deleteRows(len(drop), (self.base_rows + drop).astype(np.int32))
+        self.active = np.delete(self.active, drop)
+
+    def solve(self, relaxed: bool, gap: float, time_limit: float | None) -> tuple[np.ndarray, float, float]:
+        """x^, the master's objective and its lower bound (for an LP, the two are equal)."""
+        kind = highspy.HighsVarType.kContinuous if relaxed else highspy.HighsVarType.kInteger
+        self.h.changeColsIntegrality(len(self.binary), self.binary, np.array([kind] * len(self.binary)))
+        self.h.setOptionValue("mip_rel_gap", gap)
+        self.h.setOptionValue("time_limit", float(time_limit) if time_limit else INF)
+        if not relaxed and self.incumbent is not None:
+            self.h.setSolution(self._start())
+        self.h.run()
+        info = self.h.getInfo()
+        if info.primal_solution_status != FEASIBLE:
+            raise SolveError(f"master: no solution ({self.h.modelStatusToString(self.h.getModelStatus())})")
+        self.last = np.asarray(self.h.getSolution().col_value)
+        x = self.last[self.x_cols]
+        objective = info.objective_function_value
+        bound = objective if relaxed else info.mip_dual_bound
+        return (x if relaxed else np.rint(x)), objective, bound
+
+    def remember(self, x: np.ndarray, values: np.ndarray) -> None:
+        """The best integer x so far and its scenario costs: the next MILP starts from it."""
+        self.incumbent = (self.last.copy(), x, values)
+
+    def _start(self) -> highspy.HighsSolution:
+        # theta_s = Q_s(x) satisfies every cut at x (cuts under-estimate Q_s), so this start is feasible.
+        col, x, values = self.incumbent
+        col = col.copy()
+        col[self.x_cols], col[self.theta_cols] = x, values
+        start = highspy.HighsSolution()
+        start.col_value = col
+        start.value_valid = True
+        return start
+
+
+@dataclass
+class Trace:
+    """Where the time went: per iteration (phase, lower bound, upper bound, master s, subproblem s)."""
+
+    rows: list = field(default_factory=list)
+    build_s: float = 0.0
+
+    def add(self, phase, lb, ub, master_s, sub_s):
+        self.rows.append({"phase": phase, "lower_bound": lb, "upper_bound": ub, "master_s": master_s,
+                          "subproblems_s": sub_s})
+
+    def summary(self) -> dict:
+        master = sum(r["master_s"] for r in self.rows)
+        sub = sum(r["subproblems_s"] for r in self.rows)
+        return {"iterations": len(self.rows), "lp_iterations": sum(r["phase"] == "lp" for r in self.rows),
+                "build_s": self.build_s, "master_s": master, "subproblems_s": sub}
+
+
+def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: float = 0.005,
+                     time_limit: float | None = None, workers: int = 2, lp_tolerance: float = 1e-3,
+                     max_lp_iterations: int = 100, stability: float = 0.5, progress=None) -> StochasticSchedule:
+    """Benders decomposition to a certified relative gap; returns the same StochasticSchedule as the extensive form."""
+    start = time.perf_counter()
+    deadline = start + time_limit if time_limit else None
+    trace = Trace()
+    pool = ScenarioPool(case, scen, params, workers)
+    try:
+        master = Master(case, scen, params)
+        trace.build_s = time.perf_counter() - start
+        pr = scen.probability
+        lower, upper, best = -np.inf, np.inf, None
+
+        def evaluate(phase: str, x: np.ndarray, bound: float, master_s: float) -> tuple[float, np.ndarray]:
+            t1 = time.perf_counter()
+            values, grads = pool.evaluate(x)
+            master.add_cuts(x, values, grads)
+            value = master.first_stage_cost(x) + float(pr @ values)
+            trace.add(phase, bound, value, master_s, time.perf_counter() - t1)
+            return value, values
+
+        def report(what: str, lb: float, ub: float, master_s: float) -> None:
+            if progress:
+                progress(f"benders {what} {len(trace.rows)}: bound {lb:,.2f}, best {ub:,.2f} "
+                         f"({_apart(lb, ub):.2%} apart), master {master_s:.1f} s, "
+                         f"{time.perf_counter() - start:.0f} s in all")
+
+        def master_solve(relaxed: bool):
+            # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
+            # half the target gap once close, where their bound is the one certified.
+            t0 = time.perf_counter()
+            remaining = None if deadline is None else max(1.0, deadline - t0)
+            master_gap = max(gap / 2, min(_EARLY_GAP, _apart(lower, upper) / 4))
+            x, _, bound = master.solve(relaxed=relaxed, gap=master_gap, time_limit=remaining)
+            return x, bound, time.perf_counter() - t0
+
+        # The LP relaxation first: cheap masters, most of the cuts. In-out stabilisation (Ben-Ameur and Neto
+        # 2007): cuts are taken between the master's point and the best point so far, which damps Kelley's
+        # zig-zag; the LP bound is the master's, the value at any point an upper bound of the LP relaxation.
+        core, core_value = None, np.inf
+        for _ in range(max_lp_iterations):
+            x_master, bound, master_s = master_solve(relaxed=True)
+            x = x_master if core is None else stability * x_master + (1 - stability) * core
+            value, _ = evaluate("lp", x, bound, master_s)
+            if value < core_value:
+                core, core_value = x, value
+            report("LP relaxation, iteration", bound, core_value, master_s)
+            if _apart(bound, core_value) <= lp_tolerance or _late(deadline):
+                break
+        master.prune()
+        status = "optimal"
+        while True:
+            x, bound, master_s = master_solve(relaxed=False)
+            lower = max(lower, bound)
+            value, values = evaluate("milp", x, bound, master_s)
+            if value < upper:
+                upper, best = value, x
+                master.remember(x, values)
+            report("integer master, iteration", lower, upper, master_s)
+            if _apart(lower, upper) <= gap:
+                break
+            if _late(deadline):
+                status = "time_limit"
+                break
+        arrays, costs = pool.dispatch(best)
+    finally:
+        pool.close()
+    return _schedule(case, scen, params, master, best, arrays, costs, upper, lower, status, trace,
+                     time.perf_counter() - start)
+
+
+def first_stage_values(var: dict[str, cp.Variable], x: np.ndarray) -> dict[str, np.ndarray]:
+    """The flat first stage x (names in FIRST_STAGE order, each flattened column-major) by variable name."""
+    pieces, offset = {}, 0
+    for name in FIRST_STAGE:
+        if name in var:
+            pieces[name] = x[offset:offset + var[name].size].reshape(var[name].shape, order="F")
+            offset += var[name].size
+    return pieces
+
+
+def _apart(lower: float, upper: float) -> float:
+    """The relative gap (upper - lower) / |upper|; infinite until there is an upper bound. A schedule that costs
+    nothing (a microgrid importing free energy) is closed once the bound reaches it."""
+    if not np.isfinite(upper):
+        return np.inf
+    if upper == 0:
+        return 0.0 if lower >= upper else np.inf
+    return (upper - lower) / abs(upper)
+
+
+def _late(deadline: float | None) -> bool:
+    return deadline is not None and time.perf_counter() >= deadline
+
+
+def _schedule(case, scen, params, master, x, arrays, costs, upper, lower, status, trace, total) -> StochasticSchedule:
+    G, R, Dn, S, N = len(case.units), len(case.renewables), len(case.loads), scen.S, scen.N
+    pieces = first_stage_values(master.var, x)
+    pr = scen.probability
+
+    def stacked(name, rows):  # (S, rows, N) per scenario -> (rows, S, N)
+        return np.moveaxis(arrays[name].reshape(S, rows, N), 0, 1) if name in arrays else np.zeros((rows, S, N))
+
+    dispatch = Dispatch(p_unit=stacked("P", G), p_renewable=stacked("Pr", R), p_storage=stacked("Pst", 1)[0],
+                        soc=stacked("C", 1)[0], d_load=stacked("D", Dn), p_m=stacked("PM", 1)[0],
+                        load_shed=stacked("LS", 1)[0], dp_plus=stacked("dP", 1)[0])
+    first = FirstStage(commitment=pieces["I"], startup=pieces["y"], shutdown=pieces["w"],
+                       discharging=pieces.get("u", np.zeros(HOURS)), charging=pieces.get("v", np.zeros(HOURS)),
+                       load_on=pieces.get("z", np.zeros((Dn, HOURS))))
+    expected = {name: float(pr @ values) for name, values in costs.items()}
+    cost = CostBreakdown(startup=master.first_stage_cost(x), **expected)
+    summary = trace.summary()
+    return StochasticSchedule(status=status, objective=cost.total, bound=min(lower, cost.total), cost=cost, first=first,
+                    dispatch=dispatch, probability=pr.copy(), subperiods=scen.subperiods, penalty=params.penalty,
+                    cost_convention=params.cost_convention,
+                    timings=Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"], total_s=total),
+                    unit_names=tuple(u.name for u in case.units), load_names=tuple(d.name for d in case.loads),
+                    extra={"method": "benders", "decomposition": summary, "trace": trace.rows})

@@ -1,0 +1,76 @@
+"""Compile a cvxpy problem once and drive it in HiGHS directly: change bounds, re-solve warm, read duals.
+
+cvxpy builds the model (one code path for every solver route); highspy then keeps each compiled LP alive, so a
+decomposition changes a few column bounds and re-solves from the last basis instead of recompiling.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cvxpy as cp
+import highspy
+import numpy as np
+
+INF = highspy.kHighsInf
+# HiGHS reports a feasible incumbent with primal_solution_status 2 (kSolutionStatusFeasible).
+FEASIBLE = 2
+
+
+@dataclass(frozen=True)
+class Columns:
+    """Where each cvxpy variable's entries sit among the compiled columns (cvxpy flattens column-major)."""
+
+    offsets: dict[int, int]
+
+    def of(self, var: cp.Variable) -> np.ndarray:
+        return np.arange(self.offsets[var.id], self.offsets[var.id] + var.size, dtype=np.int32)
+
+    def value(self, var: cp.Variable, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x)[self.of(var)].reshape(var.shape, order="F")
+
+
+def compile_problem(problem: cp.Problem) -> tuple[dict, Columns]:
+    """The HiGHS-ready data of ``problem`` at its current parameter values, and its column map.
+
+    With parameters (DPP), repeated calls only re-apply the parameters: about 2 ms for one scenario here.
+    """
+    data, _, inverse = problem.get_problem_data(cp.HIGHS, canon_backend="SCIPY")
+    offsets = next(d.var_offsets for d in reversed(inverse) if hasattr(d, "var_offsets"))
+    return data, Columns(dict(offsets))
+
+
+def highs_model(data: dict, integer: bool = True) -> highspy.Highs:
+    """A HiGHS instance holding cvxpy's conic data: rows A x = b (zero cone) then A x <= b (nonneg cone)."""
+    A = data["A"].tocsc()
+    m, n = A.shape
+    zero = data["dims"].zero
+    lp = highspy.HighsLp()
+    lp.num_col_, lp.num_row_ = n, m
+    lp.col_cost_ = np.asarray(data["c"], float)
+    lb, ub = data["lower_bounds"], data["upper_bounds"]
+    lp.col_lower_ = np.full(n, -INF) if lb is None else np.asarray(lb, float)
+    lp.col_upper_ = np.full(n, INF) if ub is None else np.asarray(ub, float)
+    b = np.asarray(data["b"], float)
+    lp.row_lower_ = np.concatenate([b[:zero], np.full(m - zero, -INF)])
+    lp.row_upper_ = b
+    lp.a_matrix_.format_ = highspy.MatrixFormat.kColwise
+    lp.a_matrix_.start_, lp.a_matrix_.index_, lp.a_matrix_.value_ = A.indptr, A.indices, A.data
+    binaries = list(data["bool_vars_idx"]) + list(data["int_vars_idx"])
+    if integer and binaries:
+        kinds = [highspy.HighsVarType.kContinuous] * n
+        for j in binaries:
+            kinds[j] = highspy.HighsVarType.kInteger
+        lp.integrality_ = kinds
+        lower, upper = np.array(lp.col_lower_), np.array(lp.col_upper_)
+        lower[binaries], upper[binaries] = np.maximum(lower[binaries], 0), np.minimum(upper[binaries], 1)
+        lp.col_lower_, lp.col_upper_ = lower, upper
+    h = highspy.Highs()
+    h.setOptionValue("output_flag", False)
+    h.passModel(lp)
+    return h
+
+
+def fix_columns(h: highspy.Highs, cols: np.ndarray, values: np.ndarray) -> None:
+    values = np.asarray(values, float)
+    h.changeColsBounds(len(cols), cols, values, values)

@@ -1,0 +1,191 @@
+"""The DMO's units, each on its own and without a network: the replay guard, the incident log, the journal and
+resuming from it, rejoining agents, and the messages the DMO builds."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from dmo.market.clearing import fixed_awards
+from dmo.market.settlement import RULES, RULES_VERSION, settle
+from dmo.operator import incidents, outbox
+from dmo.operator.config import DayConfig, draw_islanding
+from dmo.operator.guard import SequenceGuard
+from dmo.operator.incidents import IncidentLog
+from dmo.operator.journal import Journal, restore
+from dmo.operator.rejoin import AWARD, CALL_FOR_BIDS, GRID_STATE, readmit, rejoin_refusal, resend_plan
+from dmo.operator.state import DayState
+from messages import Bid, MeterReport, Registration, decode, encode
+from scenarios.horizon import HOURS
+
+DAY = "2026-07-01"
+K = 2
+
+
+def registration(agent="mg1", case="paper", cap=10.0, seq=0):
+    return Registration(sender=agent, market_day=DAY, case=case, max_import_mw=cap, max_export_mw=cap, seq=seq)
+
+
+def meter(agent="mg1", hour=1, p_m=(1.0, 2.0), seq=0):
+    return MeterReport(sender=agent, market_day=DAY, hour=hour, subperiods=len(p_m), p_m_mw=p_m,
+                       deviation_mw=tuple(p - 1.0 for p in p_m), seq=seq)
+
+
+def config(**kw):
+    settings = dict(market_day=DAY, agents=2, iso_price=(40.0,) * HOURS, import_limit=16.0, export_limit=10.0,
+                    penalty=150.0, subperiods=K, islanded_hours=(5, 6))
+    return DayConfig(**(settings | kw))
+
+
+# --- replay guard ------------------------------------------------------------------------------------------------
+
+def test_guard_refuses_copies_and_overtaken_messages_until_the_sender_restarts():
+    guard = SequenceGuard()
+    for seq in (0, 1, 3):
+        assert guard.check("mg1", seq) is None
+        guard.accept("mg1", seq)
+    assert guard.check("mg1", 1)[0] == "duplicate"
+    assert guard.check("mg1", 2)[0] == "late"  # older than #3, which is accepted
+    assert guard.check("mg1", 4) is None and guard.check("mg2", 0) is None  # senders are separate
+    guard.forget("mg1")  # restarted: numbers from 0 again
+    assert guard.check("mg1", 0) is None and guard.check("mg1", 1) is None
+
+
+# --- incidents ---------------------------------------------------------------------------------------------------
+
+def test_rejections_are_listed_up_to_a_cap_then_counted_and_the_list_is_capped(monkeypatch):
+    monkeypatch.setattr(incidents, "MAX_LISTED_REJECTIONS", 3)
+    monkeypatch.setattr(incidents, "MAX_INCIDENTS", 6)
+    log = IncidentLog()
+    listed = [log.count_rejection(code) for code in ("late", "late", "invalid", "late", "duplicate")]
+    assert listed == [True, True, True, False, False]
+    for n in range(7):
+        log.add("mg1", "realtime", n + 1, f"incident {n}" + "x" * 600)
+    assert all(len(i.reason) == incidents.MAX_REASON for i in log.incidents)
+    added = log.close("settlement", None)
+    assert [i.reason.split(" ", 2)[:2] for i in added] == [["5", "messages"], ["3", "more"]]
+    assert "duplicate 1, invalid 1, late 3" in added[0].reason
+    assert len(log.incidents) == 6 and log.incidents[-1] is added[-1]
+    assert log.rejected == 5 and log.rejected_by_code == {"late": 3, "invalid": 1, "duplicate": 1}
+
+
+# --- journal and resume ------------------------------------------------------------------------------------------
+
+def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
+    path = tmp_path / "dmo.journal"
+    journal = Journal(path, "run1", DAY)
+    journal.clock("registration", None)
+    for msg in (registration("mg1"), registration("mg2", seq=0)):
+        journal.accepted(f"dmosim/run1/agent/{msg.sender}/register", msg)
+    journal.clock("bidding", None)
+    bid = Bid(sender="mg1", market_day=DAY, hours=((),) * HOURS, seq=1)
+    journal.accepted("dmosim/run1/agent/mg1/bid", bid)
+    journal.clock("realtime", 3)
+    journal.accepted("dmosim/run1/agent/mg2/meter", meter("mg2", hour=3, seq=2))
+    journal.incident(IncidentLog().add("mg1", "realtime", 3, "late: no meter report for hour 3 by the deadline"))
+    journal.rejected("duplicate")
+    journal.close()
+    with open(path, "a") as f:
+        f.write('{"accepted": "cut by a kil')  # a line cut by SIGKILL: the ones before it stand
+
+    again = Journal(path, "run1", DAY)
+    state = DayState()
+    assert restore(state, again.entries) == ("realtime", 3)
+    again.close()
+    assert (state.phase, state.hour) == ("realtime", 3)
+    assert sorted(state.registered) == ["mg1", "mg2"] and state.bids["mg1"] == bid
+    assert state.meter == {"mg1": {}, "mg2": {2: (1.0, 2.0)}}
+    assert state.accepted == {"registration": 2, "bid": 1, "meter_report": 1}
+    assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg2", 1)[0] == "late"
+    assert [i.reason[:4] for i in state.incidents] == ["late"] and state.rejected_by_code == {"duplicate": 1}
+
+
+def test_a_journal_of_another_run_or_day_is_started_afresh(tmp_path):
+    path = tmp_path / "dmo.journal"
+    journal = Journal(path, "run1", DAY)
+    journal.clock("bidding", None)
+    journal.close()
+    for run_id, day in (("run2", DAY), ("run1", "2026-07-02")):
+        other = Journal(path, run_id, day)
+        other.close()
+        assert other.entries == []
+        assert [json.loads(line) for line in path.read_text().splitlines()] == [
+            {"journal": 1, "run_id": run_id, "market_day": day}]
+
+
+def test_restoring_a_rejoined_agent_numbers_its_messages_from_zero():
+    state = DayState()
+    entries = [{"accepted": "k", "message": encode(m).decode()}
+               for m in (registration(seq=0), meter(hour=1, seq=5), registration(seq=0), meter(hour=2, seq=1))]
+    assert restore(state, entries) is None  # no clock: the day had not started
+    assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg1", 2) is None
+    assert set(state.meter["mg1"]) == {0, 1}
+
+
+# --- agents that come back ---------------------------------------------------------------------------------------
+
+def test_only_a_vanished_agent_with_the_same_case_and_limits_may_rejoin_before_settlement():
+    state = DayState(registered={"mg1": registration()}, phase="realtime", hour=4)
+    assert rejoin_refusal(state, registration())[0] == "duplicate"  # it never vanished
+    state.vanished["mg1"], state.gone = ("realtime", 2), {"mg1"}
+    assert rejoin_refusal(state, registration(case="other"))[0] == "invalid"
+    assert rejoin_refusal(state, registration(cap=11.0))[0] == "invalid"
+    assert rejoin_refusal(state, registration()) is None
+    state.guard.accept("mg1", 7)
+    readmit(state, "mg1")
+    assert "mg1" not in state.vanished and state.live() == ["mg1"] and state.rescheduling == {"mg1"}
+    assert state.guard.check("mg1", 0) is None
+    state.vanished["mg1"], state.phase = ("realtime", 24), "settlement"
+    assert rejoin_refusal(state, registration())[0] == "late"
+
+
+@pytest.mark.parametrize("phase, hour, has_bid, cleared, grid, sent", [
+    ("registration", None, False, False, False, ()),
+    ("bidding", None, False, False, False, (CALL_FOR_BIDS,)),
+    ("bidding", None, True, False, False, ()),
+    ("scheduling", None, True, True, False, (AWARD,)),
+    ("realtime", 5, True, True, True, (AWARD, GRID_STATE)),
+    ("settlement", None, True, True, True, ()),
+])
+def test_an_agent_that_comes_back_is_sent_what_it_needs_to_go_on(phase, hour, has_bid, cleared, grid, sent):
+    state = DayState(phase=phase, hour=hour)
+    if has_bid:
+        state.bids["mg1"] = Bid(sender="mg1", market_day=DAY, hours=((),) * HOURS)
+    kinds, said = resend_plan(state, "mg1", cleared, grid)
+    assert kinds == sent
+    assert ("hour 5" in said) == (GRID_STATE in sent) and said.startswith("nothing") == (not sent)
+
+
+# --- what the DMO publishes --------------------------------------------------------------------------------------
+
+def test_the_dmos_messages_carry_its_terms_and_survive_the_wire():
+    c = config(credit=5.0)
+    clearing = fixed_awards({"mg1": (1.0,) * HOURS, "mg2": (2.0,) * HOURS}, c.iso_price)
+    award = outbox.award(c, clearing, "mg2")
+    assert award.p_sch_mw == (2.0,) * HOURS and award.clearing_price_per_mwh == c.iso_price
+    assert (award.penalty_per_mwh, award.credit_per_mwh, award.subperiods) == (150.0, 5.0, K)
+    assert (award.rules_version, award.rules) == (RULES_VERSION, RULES)
+    assert [outbox.grid_state(c, h).connected for h in (4, 5, 6, 7)] == [(True,) * K, (False,) * K,
+                                                                        (False,) * K, (True,) * K]
+    call = outbox.call_for_bids(c, 12.5)
+    assert call.deadline_s == 12.5 and call.import_limit_mw == 16.0 and call.iso_price_per_mwh == c.iso_price
+    meters = {"mg1": {h: (1.5, 0.5) for h in range(HOURS)}, "mg2": {}}
+    statements, _ = settle(clearing.awards, clearing.price, meters, subperiods=K, penalty=150.0, credit=5.0,
+                           p_m_max=10.0)
+    message = outbox.statement_message(statements["mg1"], DAY, 150.0, 5.0)
+    assert [line.hour for line in message.lines] == list(range(1, HOURS + 1))
+    assert message.total == float(statements["mg1"].total) and message.deviation_penalty == 24 * 150.0 * 0.25
+    summary = outbox.day_summary(DAY, ["mg2", "mg1"], clearing.price, statements, 3, ())
+    assert summary.agents == ("mg1", "mg2") and summary.rejected_messages == 3
+    assert summary.totals["mg2"].total == float(statements["mg2"].total)
+    for msg in (award, call, message, summary, outbox.clock(c, "realtime", 3, 60.0)):
+        assert decode(encode(msg)) == msg
+
+
+def test_the_days_islanding_is_one_seeded_event_of_whole_hours():
+    assert draw_islanding(0, 1) == ()
+    event = draw_islanding(3, 1)
+    assert len(event) == 3 and event == tuple(range(event[0], event[0] + 3)) and 1 <= event[0] <= HOURS - 2
+    assert draw_islanding(3, 1) == event
+    assert draw_islanding(HOURS, 5) == tuple(range(1, HOURS + 1))

@@ -1,0 +1,282 @@
+"""Message schemas, JSON encoding and key expressions: everything on the wire short of the network."""
+
+from __future__ import annotations
+
+import json
+
+import jsonschema
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
+
+from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, Award, Bid, BidStep, BusConfig,
+                      CallForBids, Clock, DaySummary, GridState, Incident, Keys, MessageError, MeterReport,
+                      Registration, Schedule, SettlementStatement, StatementLine, check_route, decode, encode,
+                      json_schema, make_rejection, new_run_id, parse_key, sender_matches_key)
+from messages.schemas import AgentTotals
+
+DAY = "2024-07-01"
+K = 6
+
+
+def _statement() -> SettlementStatement:
+    def line(h: int) -> StatementLine:
+        energy, penalty = round(1.5 * (40 + h), 2), (15.0 if h == 5 else 0.0)
+        return StatementLine(hour=h, p_sch_mw=1.5, clearing_price_per_mwh=40.0 + h, energy_charge=energy,
+                             import_mwh=1.6 if h == 5 else 1.5, deviation_mwh=0.1 if h == 5 else 0.0,
+                             under_import_mwh=0.0, deviation_penalty=penalty, deviation_credit=0.0,
+                             total=energy + penalty, missing=h == 9, missing_subperiods=K if h == 9 else 0)
+
+    lines = [line(h) for h in range(1, HOURS + 1)]
+    energy = sum(line.energy_charge for line in lines)
+    return SettlementStatement(sender="dmo", market_day=DAY, agent="mg1", penalty_per_mwh=150.0, credit_per_mwh=0.0,
+                               rules_version=1, lines=lines, energy_charge=energy, deviation_penalty=15.0,
+                               deviation_credit=0.0, total=energy + 15.0, missing_subperiods=K)
+
+
+SAMPLES = {
+    "registration": Registration(sender="mg1", market_day=DAY, case="paper", max_import_mw=10.0, max_export_mw=5.0),
+    "call_for_bids": CallForBids(sender="dmo", market_day=DAY, iso_price_per_mwh=[30.0 + h for h in range(HOURS)],
+                                 price_floor_per_mwh=-100.0, price_cap_per_mwh=1000.0, import_limit_mw=10.0,
+                                 export_limit_mw=5.0, penalty_per_mwh=150.0, subperiods=K, deadline_s=5.0),
+    "bid": Bid(sender="mg1", market_day=DAY,
+               hours=[[BidStep(price_per_mwh=50.0, quantity_mw=2.0), BidStep(price_per_mwh=20.0, quantity_mw=-1.0)]
+                      if h % 2 else [] for h in range(HOURS)]),
+    "award": Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=[1.5] * HOURS,
+                   clearing_price_per_mwh=[41.0] * HOURS, penalty_per_mwh=150.0, subperiods=K, rules_version=1,
+                   rules="energy charge = price x award; penalty = c x max(P_M - P_sch, 0) x dt"),
+    "schedule": Schedule(sender="mg1", market_day=DAY, status="optimal",
+                         commitment={"G1": [1] * HOURS, "G2": [0] * HOURS},
+                         expected_cost=39566.0, p_m_expected_mw=[1.4] * HOURS, scenarios=10, mip_gap=0.004),
+    "clock": Clock(sender="dmo", market_day=DAY, phase="realtime", hour=3, deadline_s=2.0),
+    "grid_state": GridState(sender="dmo", market_day=DAY, hour=3, subperiods=K, connected=[True] * 4 + [False] * 2),
+    "meter_report": MeterReport(sender="mg1", market_day=DAY, hour=3, subperiods=K, p_m_mw=[1.5] * K,
+                                deviation_mw=[0.0] * K),
+    "settlement_statement": _statement(),
+    "day_summary": DaySummary(sender="dmo", market_day=DAY, agents=["mg1", "mg2"],
+                              clearing_price_per_mwh=[41.0] * HOURS,
+                              totals={"mg1": AgentTotals(energy_charge=100.0, deviation_penalty=15.0,
+                                                         deviation_credit=0.0, total=115.0)},
+                              rejected_messages=1,
+                              incidents=[Incident(agent="mg2", phase="bidding", hour=None,
+                                                  reason="no bid by deadline")]),
+    "rejection": make_rejection("dmosim/r1/agent/mg1/bid", b"not json", MessageError("not JSON", "not_json"),
+                                market_day=DAY, offender="mg1", received_at=123),
+}
+
+
+def _wire(kind: str) -> dict:
+    return json.loads(encode(SAMPLES[kind]))
+
+
+def _bytes(data: dict) -> bytes:
+    return json.dumps(data, separators=(",", ":")).encode()
+
+
+def test_a_sample_for_every_kind():
+    assert set(SAMPLES) == set(KINDS) == set(SCHEMAS)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_round_trip(kind):
+    msg = SAMPLES[kind]
+    payload = encode(msg)
+    assert decode(payload) == msg
+    assert decode(payload, expected_kind=kind) == msg
+    text = payload.decode("utf-8")
+    assert text.startswith(f'{{"kind":"{kind}","schema_version":{SCHEMA_VERSION},')
+    assert ", " not in text.split('"rules"')[0]  # compact (the award's rules text has its own spaces)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_json_schema_accepts_the_sample_and_rejects_mutations(kind):
+    validator = jsonschema.Draft202012Validator(json_schema(kind))
+    jsonschema.Draft202012Validator.check_schema(json_schema(kind))
+    data = _wire(kind)
+    validator.validate(data)
+    payload_field = next(name for name in data if name not in ("kind", "schema_version", "sender", "market_day",
+                                                               "seq", "sent_at"))
+    mutations = [{**data, "bogus": 1}, {**data, "kind": "other"}, {**data, "seq": -1}, {**data, "sender": 7},
+                 {**data, "schema_version": SCHEMA_VERSION + 1},
+                 {name: value for name, value in data.items() if name != payload_field},
+                 {name: value for name, value in data.items() if name != "sent_at"}]
+    for mutated in mutations:
+        assert not validator.is_valid(mutated), mutated
+        with pytest.raises(MessageError):
+            decode(_bytes(mutated))
+
+
+def _rejects(payload: bytes, code: str, *words: str, expected_kind: str | None = None) -> MessageError:
+    with pytest.raises(MessageError) as caught:
+        decode(payload, expected_kind=expected_kind)
+    err = caught.value
+    assert err.code == code, str(err)
+    assert "\n" not in str(err) and len(str(err)) <= 300
+    for word in words:
+        assert word in str(err), str(err)
+    return err
+
+
+def _with(kind: str, /, **changes) -> bytes:
+    return _bytes({**_wire(kind), **changes})
+
+
+def test_rejects_non_finite_numbers():
+    prices = [41.0] * HOURS
+    text = _with("award", clearing_price_per_mwh=prices).decode()
+    for bad in ("NaN", "Infinity", "-Infinity", "1e999"):
+        payload = text.replace('"clearing_price_per_mwh":[41.0,41.0', f'"clearing_price_per_mwh":[41.0,{bad}').encode()
+        _rejects(payload, "invalid", "clearing_price_per_mwh[1]", "finite")
+    with pytest.raises(ValidationError):
+        MeterReport(sender="mg1", market_day=DAY, hour=1, subperiods=1, p_m_mw=[float("nan")], deviation_mw=[0.0])
+
+
+def test_rejects_wrong_types():
+    _rejects(_with("bid", seq="3"), "invalid", "seq", "integer")
+    _rejects(_with("grid_state", connected=[1, 1, 1, 1, 0, 0]), "invalid", "connected[0]", "boolean")
+    _rejects(_with("meter_report", hour=3.0), "invalid", "hour")
+    _rejects(_with("award", p_sch_mw="1.5"), "invalid", "p_sch_mw")
+    _rejects(_with("bid", sender="1mg"), "invalid", "sender")
+    _rejects(_with("registration", sender="dmo"), "invalid", "reserved")
+    _rejects(_with("award", sender="mg1"), "invalid", "sender must be 'dmo'")
+    _rejects(_with("clock", market_day="2024-02-30"), "invalid", "market_day")
+
+
+def test_rejects_wrong_lengths():
+    _rejects(_with("award", p_sch_mw=[1.0] * (HOURS - 1)), "invalid", "p_sch_mw", "24")
+    _rejects(_with("bid", hours=[[]] * (HOURS + 1)), "invalid", "hours")
+    _rejects(_with("meter_report", p_m_mw=[1.0] * (K + 1)), "invalid", "p_m_mw", f"subperiods={K}")
+    _rejects(_with("grid_state", connected=[True]), "invalid", "connected")
+    lines = _wire("settlement_statement")["lines"]
+    _rejects(_with("settlement_statement", lines=lines[:-1]), "invalid", "lines")
+    _rejects(_with("settlement_statement", total=1.0), "invalid", "total", "add up")
+
+
+def test_rejects_bad_envelopes():
+    _rejects(_with("bid", kind="offer"), "unknown_kind", "'offer'")
+    _rejects(_bytes({"sender": "mg1"}), "unknown_kind", "kind")
+    err = _rejects(_with("bid", schema_version=7, new_field=1), "unsupported_version")
+    assert str(err) == f"schema_version 7 is newer than supported {SCHEMA_VERSION}"
+    _rejects(_with("bid", schema_version=0), "invalid", "schema_version")
+    _rejects(_with("bid", bogus=1), "invalid", "bogus")
+    missing = _wire("bid")
+    del missing["seq"]
+    _rejects(_bytes(missing), "invalid", "seq")
+    _rejects(encode(SAMPLES["bid"]), "wrong_key", "'award'", expected_kind="award")
+
+
+def test_rejects_non_json_and_oversize():
+    _rejects(b"\xff\xfe{", "not_json", "not JSON")
+    _rejects(b'{"kind": "bid",', "not_json", "not JSON")
+    _rejects(b"", "not_json")
+    _rejects(b"[1, 2]", "not_object", "array")
+    _rejects(b"[" * 100_000, "not_json")
+    big = b'{"kind":"bid","pad":"' + b"x" * MAX_PAYLOAD_BYTES + b'"}'
+    _rejects(big, "oversize", str(len(big)))
+    with pytest.raises(MessageError):
+        decode("a string")
+
+
+def test_messages_are_frozen():
+    with pytest.raises(ValidationError):
+        SAMPLES["bid"].seq = 5
+    assert isinstance(SAMPLES["award"].p_sch_mw, tuple)
+    assert SAMPLES["bid"].agent == "mg1"
+
+
+# --- property tests: decode refuses everything it cannot accept, and only with MessageError ------------
+
+_json = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
+                     lambda inner: st.lists(inner, max_size=5)
+                     | st.dictionaries(st.text(max_size=10), inner, max_size=5),
+                     max_leaves=30)
+
+
+def _decodes_or_refuses(payload: bytes) -> None:
+    try:
+        decode(payload)
+    except MessageError as err:
+        assert str(err) and "\n" not in str(err)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.binary(max_size=300))
+def test_decode_of_arbitrary_bytes(payload):
+    _decodes_or_refuses(payload)
+
+
+@settings(max_examples=150, deadline=None)
+@given(_json)
+def test_decode_of_arbitrary_json(value):
+    _decodes_or_refuses(json.dumps(value).encode())
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.sampled_from(KINDS), st.data())
+def test_decode_of_messages_with_one_field_replaced(kind, data):
+    wire = _wire(kind)
+    name = data.draw(st.sampled_from(sorted(wire)))
+    _decodes_or_refuses(json.dumps({**wire, name: data.draw(_json)}).encode())
+
+
+# --- keys ---------------------------------------------------------------------------------------------
+
+def test_every_message_has_one_key_that_parses_back():
+    keys = Keys(new_run_id())
+    for kind, msg in SAMPLES.items():
+        key = keys.for_message(msg)
+        parsed = parse_key(key)
+        assert (parsed.run_id, parsed.kind) == (keys.run_id, kind)
+        assert parsed.role == ("dmo" if msg.sender == "dmo" else "agent")
+        assert key.startswith(keys.prefix + ("/dmo/" if parsed.role == "dmo" else "/agent/mg1/"))
+        assert check_route(key, msg, keys.run_id) == parsed
+    assert keys.award("mg1") == f"dmosim/{keys.run_id}/dmo/award/mg1"
+    assert keys.bid("*") == f"dmosim/{keys.run_id}/agent/*/bid"
+    assert parse_key(keys.alive("mg3")).topic == "mg3"
+
+
+def test_route_checks():
+    keys, other = Keys("run1"), Keys("run2")
+    bid, award = SAMPLES["bid"], SAMPLES["award"]
+    assert sender_matches_key(keys.bid("mg1"), bid)
+    assert not sender_matches_key(keys.bid("mg2"), bid)
+    with pytest.raises(MessageError) as caught:
+        check_route(keys.bid("mg2"), bid)
+    assert caught.value.code == "unauthorised"
+    for key, msg in [(keys.schedule("mg1"), bid), (keys.award("mg2"), award), (other.bid("mg1"), bid)]:
+        with pytest.raises(MessageError) as caught:
+            check_route(key, msg, "run1")
+        assert caught.value.code == "wrong_key"
+    for junk in ["", "dmosim", "dmosim/run1/dmo/award", "dmosim/run1/dmo/grid/3", "dmosim/run1/agent/dmo/bid",
+                 "other/run1/dmo/grid", "dmosim/run1/agent/mg1/bid/x", "dmosim/run1/agent/mg1/award"]:
+        with pytest.raises(MessageError):
+            parse_key(junk)
+    with pytest.raises(ValueError):
+        keys.bid("dmo")
+    with pytest.raises(ValueError):
+        Keys("bad/run")
+
+
+def test_run_ids_are_unique_and_valid():
+    ids = {new_run_id() for _ in range(100)}
+    assert len(ids) == 100
+    for run_id in ids:
+        Keys(run_id)
+
+
+# --- configuration --------------------------------------------------------------------------------------
+
+def test_bus_config():
+    config = BusConfig(mode="client", connect=["tcp/127.0.0.1:7447"], lease_s=1.5,
+                       overrides=[("transport/link/tx/keep_alive", "2")]).to_zenoh()
+    assert json.loads(config.get_json("mode")) == "client"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(config.get_json("scouting/delay")) == 0
+    assert json.loads(config.get_json("transport/link/tx/lease")) == 1500
+    assert json.loads(config.get_json("transport/link/tx/keep_alive")) == 2
+    with pytest.raises(ValueError):
+        BusConfig(mode="server")
+    with pytest.raises(ValueError):
+        BusConfig(overrides=[("no/such/setting", "1")]).to_zenoh()

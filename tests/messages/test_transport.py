@@ -1,0 +1,170 @@
+"""The Zenoh transport with two real sessions in one process: a router (the DMO) and a client (an agent)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from messages import (HOURS, Award, Bid, BidStep, Bus, BusConfig, Keys, Schedule, encode, new_run_id)
+
+DAY = "2024-07-01"
+WAIT_S = 5.0
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _bid(sender: str = "mg1", price: float = 50.0) -> Bid:
+    return Bid(sender=sender, market_day=DAY, hours=[[BidStep(price_per_mwh=price, quantity_mw=1.0)]] * HOURS)
+
+
+def _get(q: queue.Queue):
+    try:
+        return q.get(timeout=WAIT_S)
+    except queue.Empty:
+        pytest.fail(f"nothing arrived within {WAIT_S} s")
+
+
+@pytest.fixture
+def net():
+    """A router bus "dmo" listening on a free loopback port and a client bus "mg1" connected to it."""
+    run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{_free_port()}"
+    rejected: queue.Queue = queue.Queue()
+    with contextlib.ExitStack() as stack:
+        dmo = stack.enter_context(Bus(run_id, "dmo", BusConfig(mode="router", listen=[endpoint]),
+                                      on_reject=lambda key, payload, err: rejected.put((key, payload, err))))
+        client = BusConfig(mode="client", connect=[endpoint])
+        agent = stack.enter_context(Bus(run_id, "mg1", client))
+        yield dmo, agent, rejected, client
+
+
+def test_messages_flow_both_ways_stamped_in_order(net):
+    dmo, agent, _, _ = net
+    keys = dmo.keys
+    bids: queue.Queue = queue.Queue()
+    awards: queue.Queue = queue.Queue()
+    dmo.subscribe(keys.bid("*"), lambda key, msg, at: bids.put((key, msg, at)))
+    agent.subscribe(keys.award("mg1"), lambda key, msg, at: awards.put((key, msg, at)))
+
+    assert agent.wait_for_subscribers(keys.bid("mg1"), WAIT_S)
+    sent = [agent.publish(_bid(price=p)) for p in (10.0, 20.0, 30.0)]
+    for expected in sent:
+        key, msg, received_at = _get(bids)
+        assert key == keys.bid("mg1") and msg == expected
+        assert received_at >= msg.sent_at > 0
+    assert [m.seq for m in sent] == [0, 1, 2]
+
+    award = Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=[1.0] * HOURS,
+                  clearing_price_per_mwh=[40.0] * HOURS, penalty_per_mwh=150.0, subperiods=6, rules_version=1,
+                  rules="paper")
+    assert dmo.wait_for_subscribers(keys.award("mg1"), WAIT_S)
+    stamped = dmo.publish(award)
+    assert _get(awards)[1] == stamped and stamped.seq == 0
+    assert agent.stats()["published"] == 3 and dmo.stats()["received"] == 3
+
+    with pytest.raises(ValueError):
+        agent.publish(_bid(sender="mg2"))  # a process only speaks for itself
+    with pytest.raises(ValueError):
+        agent.subscribe(Keys("otherrun").bid("*"), lambda *a: None)  # nor listens outside its run
+
+
+def test_invalid_payloads_are_rejected_and_counted_while_valid_ones_arrive(net):
+    dmo, agent, rejected, _ = net
+    keys = dmo.keys
+    bids: queue.Queue = queue.Queue()
+    dmo.subscribe(keys.agent_all("*"), lambda key, msg, at: bids.put(msg))
+    assert agent.wait_for_subscribers(keys.bid("mg1"), WAIT_S)
+
+    first = agent.publish(_bid(price=1.0))
+    agent.session.put(keys.bid("mg1"), b"{not json")
+    agent.session.put(keys.bid("mg1"), encode(_bid(sender="mg2")))          # speaks for another agent
+    schedule = Schedule(sender="mg1", market_day=DAY, status="optimal", commitment={}, expected_cost=1.0,
+                        p_m_expected_mw=[0.0] * HOURS, scenarios=1)
+    agent.session.put(keys.bid("mg1"), encode(schedule))                      # right sender, wrong key
+    agent.session.put(keys.bid("mg1"), encode(_bid()).replace(b'"seq":0', b'"seq":-1'))
+    last = agent.publish(_bid(price=2.0))
+
+    assert [_get(bids), _get(bids)] == [first, last]
+    reasons = {}
+    for _ in range(4):
+        key, payload, err = _get(rejected)
+        assert key == keys.bid("mg1") and payload
+        reasons[err.code] = str(err)
+    assert reasons.keys() == {"not_json", "unauthorised", "wrong_key", "invalid"}
+    assert "mg2" in reasons["unauthorised"] and "schedule" in reasons["wrong_key"] and "seq" in reasons["invalid"]
+    stats = dmo.stats()
+    assert stats["rejected"] == {"not_json": 1, "unauthorised": 1, "wrong_key": 1, "invalid": 1}
+    assert stats["received"] == 2 and stats["rejected_total"] == 4
+
+
+def test_a_failing_handler_neither_crashes_nor_stops_the_receiver(net):
+    dmo, agent, _, _ = net
+    got: queue.Queue = queue.Queue()
+
+    def handler(key, msg, at):
+        if msg.seq == 0:
+            raise RuntimeError("handler bug")
+        got.put(msg.seq)
+
+    dmo.subscribe(dmo.keys.bid("mg1"), handler)
+    assert agent.wait_for_subscribers(dmo.keys.bid("mg1"), WAIT_S)
+    agent.publish(_bid())
+    agent.publish(_bid())
+    assert _get(got) == 1
+    assert dmo.stats()["handler_errors"] == 1
+
+
+def test_presence_join_and_leave(net):
+    dmo, _, _, client = net
+    events: queue.Queue = queue.Queue()
+    with dmo.watch_presence(lambda name: events.put(("join", name)), lambda name: events.put(("leave", name))):
+        assert _get(events) == ("join", "mg1")  # already there: reported from history
+        with Bus(dmo.keys.run_id, "mg2", client) as mg2:
+            assert _get(events) == ("join", "mg2")
+            assert mg2.present(timeout_s=WAIT_S) >= {"dmo", "mg1", "mg2"}
+        assert _get(events) == ("leave", "mg2")
+
+
+_CHILD = """
+import sys
+from messages import Bus, BusConfig
+bus = Bus(sys.argv[1], "mg3", BusConfig(mode="client", connect=[sys.argv[2]], lease_s=0.5)).open()
+bus.subscribe(bus.keys.grid(), lambda *args: None)  # a callback subscriber: what makes a forgotten session hang
+print("up", flush=True)
+sys.stdin.readline()
+"""  # and exits without closing the bus
+
+
+def test_a_frozen_process_is_gone_after_its_lease_and_a_forgotten_bus_does_not_hang_at_exit(net):
+    dmo = net[0]
+    events: queue.Queue = queue.Queue()
+    dmo.watch_presence(lambda name: events.put(("join", name)), lambda name: events.put(("leave", name)))
+    assert _get(events) == ("join", "mg1")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    child = subprocess.Popen([sys.executable, "-c", _CHILD, dmo.keys.run_id, dmo.config.listen[0]],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert child.stdout.readline() == "up\n"
+        assert _get(events) == ("join", "mg3")
+        os.kill(child.pid, signal.SIGSTOP)
+        assert _get(events) == ("leave", "mg3")  # after its 0.5 s lease, not zenoh's default 10 s
+        os.kill(child.pid, signal.SIGCONT)
+        child.stdin.write("\n")
+        child.stdin.close()
+        assert child.wait(timeout=15) == 0
+    finally:
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGCONT)
+            child.kill()
+            child.wait()

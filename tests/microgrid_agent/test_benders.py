@@ -1,0 +1,163 @@
+"""The Benders decomposition against the extensive form, and the validity of its cuts and of its relaxation."""
+
+from __future__ import annotations
+
+import cvxpy as cp
+import numpy as np
+import pytest
+
+from microgrid_agent.checker import check_schedule
+from microgrid_agent.solvers.benders import (
+    Master,
+    Subproblems,
+    _apart,
+    first_stage_values,
+    solve_decomposed,
+)
+from microgrid_agent.instance import make_instance
+from microgrid_agent.model import variables
+from microgrid_agent.solvers.relaxation import group_means, group_relaxation, islanding_groups
+from microgrid_agent.solvers.extensive import SolveError, solve
+from scenarios.case import HOURS, load_case
+
+GAP = 0.005
+
+
+@pytest.fixture(scope="module")
+def small():
+    return make_instance(load_case("paper"), scenarios=3, sample_size=3, subperiods=2, seed=2, island_hours=1)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_benders_agrees_with_the_extensive_form_within_the_gap(small, workers):
+    reference = small.solve(gap=1e-6)
+    schedule = solve_decomposed(small.case, small.scen, small.params, gap=GAP, workers=workers)
+    check_schedule(small.case, small.scen, schedule).raise_if_failed()
+    assert schedule.bound <= reference.objective * (1 + 1e-6)
+    assert schedule.objective >= reference.bound * (1 - 1e-6)
+    assert schedule.mip_gap <= GAP + 1e-9
+    assert schedule.objective <= reference.objective * (1 + GAP) + 1e-6
+
+
+def test_cuts_under_estimate_the_scenario_cost(small):
+    """theta_s >= Q_s(x^) + g (x - x^) must hold at any other first stage x: check it at random neighbours."""
+    sub = Subproblems(small.case, small.scen, small.params, range(small.scen.S))
+    master = Master(small.case, small.scen, small.params)
+    x0, _, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    q0, g0 = sub.evaluate(x0)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(6):
+        x = np.clip(x0 + rng.uniform(-0.3, 0.3, x0.shape), 0, 1)
+        # a neighbour the master accepts: average with x0 stays inside the master's convex LP region
+        x = 0.5 * (x + x0)
+        try:
+            q, _ = sub.evaluate(x)
+        except SolveError:
+            continue  # outside the region where every scenario is feasible: no cut claim to check
+        assert np.all(q >= q0 + g0 @ (x - x0) - 1e-6 * np.abs(q))
+        checked += 1
+    assert checked >= 2
+
+
+def _neighbours(master, count: int, seed: int = 0):
+    """First stages near the master's LP optimum: the averaged neighbours stay in its convex LP region."""
+    x0, _, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    rng = np.random.default_rng(seed)
+    return [x0] + [0.5 * (np.clip(x0 + rng.uniform(-0.3, 0.3, x0.shape), 0, 1) + x0) for _ in range(count)]
+
+
+def _relaxation_value(inst, label, x) -> float:
+    """sum_g p_g Q_hourly(x, mean data of g): the group relaxation with the first stage fixed at x."""
+    v = variables(inst.case, int(label.max()) + 1, HOURS, first_stage="continuous")
+    relaxation = group_relaxation(inst.case, inst.scen, inst.params, v, label)
+    fixed = [v[name] == value for name, value in first_stage_values(v, x).items()]
+    problem = cp.Problem(cp.Minimize(relaxation.probability @ relaxation.cost), relaxation.constraints + fixed)
+    problem.solve(solver=cp.HIGHS)
+    assert problem.status == cp.OPTIMAL
+    return problem.value
+
+
+@pytest.mark.parametrize("grouping", ["one group", "islanding"])
+def test_group_relaxation_under_estimates_the_expected_recourse(small, grouping):
+    """Jensen and hour-averaging: sum_g p_g Q_hourly(x, mean of g) <= sum_s p_s Q_s(x) at several first stages."""
+    scen = small.scen
+    label = np.zeros(scen.S, dtype=int) if grouping == "one group" else islanding_groups(scen)
+    sub = Subproblems(small.case, scen, small.params, range(scen.S))
+    checked = 0
+    for x in _neighbours(Master(small.case, scen, small.params), 5):
+        try:
+            q, _ = sub.evaluate(x)
+        except SolveError:
+            continue  # outside the region where every scenario is feasible: no claim to check
+        expected = float(scen.probability @ q)
+        assert _relaxation_value(small, label, x) <= expected * (1 + 1e-7) + 1e-6
+        checked += 1
+    assert checked >= 2
+
+
+def test_group_means_keep_the_expectation(small):
+    """Each group's hourly mean data, weighted by p_g, is the expected hourly data; islanding groups keep U 0/1."""
+    scen = small.scen
+    label = islanding_groups(scen)
+    means = group_means(scen, label)
+    hourly = scen.load.reshape(scen.S, HOURS, scen.subperiods).mean(axis=2)
+    assert np.isclose(means.probability.sum(), 1.0)
+    assert np.allclose(means.probability @ means.load, scen.probability @ hourly)
+    assert set(np.unique(means.connected)) <= {0.0, 1.0}
+
+
+def test_pruning_keeps_the_pool_and_the_master_optimum(small):
+    """Pruning removes only slack rows: the pool keeps every cut and the master LP keeps its optimum."""
+    sub = Subproblems(small.case, small.scen, small.params, range(small.scen.S))
+    master = Master(small.case, small.scen, small.params)
+    points = _neighbours(master, 3)
+    for x in points:
+        master.add_cuts(x, *sub.evaluate(x))
+    _, before, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    master.prune()
+    _, after, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    assert master.pool.size == len(points) * small.scen.S
+    assert master.h.getNumRow() == master.base_rows + len(master.active)
+    assert after == pytest.approx(before, rel=1e-7)
+
+
+def test_the_master_allows_no_shut_down_that_ramps_cannot_reach():
+    """G2 starts the day at 4 MW with P_min 1 MW and ramp-down 2.5 MW/h: at 10-minute steps it cannot reach
+    its shut-down step (P_min + RD dt) by the end of hour 1, so no dispatch exists for a shut-down in hour 2,
+    though the master's hourly relaxation (a whole hour's ramp in one step) would allow it. A shut-down in
+    hour 3 is reachable and stays allowed."""
+    inst = make_instance(load_case("paper"), scenarios=1, sample_size=1, subperiods=6, seed=0)
+    units = [u.name for u in inst.case.units]
+    g = units.index("G2")
+    p0, p_min, rd = (inst.case.unit_array(k)[g] for k in ("initial_output", "p_min", "ramp_down"))
+    assert rd + rd / 6 < p0 - p_min <= 2 * rd + rd / 6  # the case's numbers make hour 2 unreachable, hour 3 not
+
+    def with_g2_off_from(hour: int) -> np.ndarray:
+        commitment = np.ones((len(units), HOURS))
+        commitment[g, hour - 1:] = 0
+        return commitment
+
+    def master_allows(commitment: np.ndarray) -> bool:
+        master = Master(inst.case, inst.scen, inst.params)
+        cols = master.x_cols[:commitment.size]  # I comes first in x, flattened column-major
+        values = commitment.flatten(order="F")
+        master.h.changeColsBounds(len(cols), cols.astype(np.int32), values, values)
+        try:
+            master.solve(relaxed=True, gap=1e-6, time_limit=None)
+        except SolveError:
+            return False
+        return True
+
+    assert not master_allows(with_g2_off_from(2))
+    assert master_allows(with_g2_off_from(3))
+    with pytest.raises(SolveError):  # the 10-minute model itself has no dispatch for it
+        solve(inst.case, inst.scen, inst.params, fixed={"I": with_g2_off_from(2)})
+    assert solve(inst.case, inst.scen, inst.params, fixed={"I": with_g2_off_from(3)}, gap=0.05).objective > 0
+
+
+def test_the_relative_gap_is_closed_only_when_the_bound_reaches_a_zero_cost():
+    assert _apart(5_940.0, 6_000.0) == pytest.approx(0.01)
+    assert _apart(-1.0, np.inf) == np.inf
+    assert _apart(0.0, 0.0) == 0.0  # a microgrid that imports free energy: no division by zero
+    assert _apart(-1e-3, 0.0) == np.inf

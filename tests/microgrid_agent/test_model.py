@@ -1,0 +1,174 @@
+"""The extensive-form model on small instances: brute force, formulation equivalence, islanding, penalties, VSS/EVPI."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from microgrid_agent.checker import check_schedule
+from microgrid_agent.instance import make_instance
+from microgrid_agent.solvers.metrics import stochastic_metrics
+from microgrid_agent.model import Params
+from microgrid_agent.solvers.extensive import solve
+from scenarios.case import load_case, parse_case
+from scenarios.generation import ScenarioSet
+
+EXACT = 1e-7  # relative MIP gap for tests that compare optima
+ACTIVE = 3  # hours with demand in the brute-force case
+
+
+def verified(case, scen, params, **options):
+    """Every solve a test makes is re-verified by the independent checker."""
+    schedule = solve(case, scen, params, gap=EXACT, **options)
+    check_schedule(case, scen, schedule, p_sch=params.p_sch, penalty=params.penalty).raise_if_failed()
+    return schedule
+
+
+def _unit(name, cost, p_min, p_max, startup, min_up=1, min_down=1):
+    return {"name": name, "cost": cost, "p_min": p_min, "p_max": p_max, "min_up": min_up, "min_down": min_down,
+            "ramp_up": 100.0, "ramp_down": 100.0, "startup_cost": startup, "initial_on": False}
+
+
+def tiny_case(min_up=(1, 1)):
+    """Two units, no storage, loads or renewables; demand only in the first ACTIVE hours, so any unit on later
+    costs its minimum output for nothing and the optimum keeps later hours off."""
+    load = [6.0, 9.0, 4.0] + [0.0] * 21
+    return parse_case({
+        "case": {"name": "tiny"},
+        "grid": {"p_m_max": 3.0, "p_sch": [2.0] * 24, "penalty": 80.0, "voll": 1000.0, "iso_price": [0.0] * 24},
+        "fixed_load": {"forecast": load},
+        "uncertainty": {"load": 0.2},
+        "units": [_unit("A", 20.0, 1.0, 5.0, 30.0, min_up=min_up[0]), _unit("B", 50.0, 0.5, 4.0, 5.0, min_up=min_up[1])],
+    })
+
+
+def tiny_scenarios(case):
+    """Two scenarios at hourly resolution: one with load 10% high, one islanded in hour 2."""
+    base = np.asarray(case.fixed_load.forecast)
+    connected = np.ones((2, 24))
+    connected[1, 1] = 0
+    return ScenarioSet(1, np.array([0.6, 0.4]), np.vstack([base * 1.1, base]), np.zeros((0, 2, 24)), connected)
+
+
+def merit_order_cost(case, scen, commitment, penalty):
+    """Expected cost of a fixed commitment by merit order, hour by hour (independent of the model).
+
+    With unlimited ramps and no storage, each hour and scenario is separate: committed units give their minimum,
+    any surplus is exported for free, and the rest comes from the cheapest source: units at their cost, the
+    award at no cost, extra import at the penalty, and curtailment at VOLL.
+    """
+    units = case.units
+    startup = sum(u.startup_cost * np.maximum(np.diff(np.r_[0, commitment[g]]), 0).sum() for g, u in enumerate(units))
+    total = 0.0
+    for s, t in itertools.product(range(scen.S), range(24)):
+        on = commitment[:, t] > 0
+        need = scen.load[s, t] - sum(u.p_min for u, o in zip(units, on) if o)
+        cost = sum(u.cost * u.p_min for u, o in zip(units, on) if o)
+        grid = case.grid.p_m_max * scen.connected[s, t]
+        award = min(case.grid.p_sch[t], grid)
+        sources = [(u.cost, u.p_max - u.p_min) for u, o in zip(units, on) if o]
+        sources += [(0.0, award), (penalty, grid - award), (case.grid.voll, np.inf)]
+        for price, amount in sorted(sources):
+            take = min(max(need, 0.0), amount)
+            cost, need = cost + price * take, need - take
+        total += scen.probability[s] * cost
+    return total + startup
+
+
+def feasible_min_up(row, min_up):
+    """A unit that starts stays on for min_up hours or until the end of the day."""
+    starts = np.flatnonzero(np.diff(np.r_[0, row]) > 0)
+    return all(row[s:s + min_up].all() for s in starts)
+
+
+@pytest.mark.parametrize("min_up", [(1, 1), (2, 1)])
+def test_optimum_equals_brute_force_enumeration(min_up):
+    case = tiny_case(min_up)
+    scen = tiny_scenarios(case)
+    params = Params(np.asarray(case.grid.p_sch), case.grid.penalty)
+    best = np.inf
+    for bits in itertools.product((0, 1), repeat=2 * ACTIVE):
+        commitment = np.zeros((2, 24))
+        commitment[:, :ACTIVE] = np.reshape(bits, (2, ACTIVE))
+        if all(feasible_min_up(commitment[g], min_up[g]) for g in range(2)):
+            best = min(best, merit_order_cost(case, scen, commitment, case.grid.penalty))
+    schedule = verified(case, scen, params)
+    assert schedule.objective == pytest.approx(best, rel=1e-6)
+    assert schedule.commitment.iloc[ACTIVE:].to_numpy().sum() == 0
+
+
+def test_min_up_time_changes_the_brute_force_optimum():
+    """The enumeration above must be sensitive to minimum up time, or it would not test it."""
+    costs = [verified(tiny_case(m), tiny_scenarios(tiny_case(m)), Params(np.full(24, 2.0), 80.0)).objective
+             for m in ((1, 1), (3, 3))]
+    assert costs[1] > costs[0] + 1.0
+
+
+@pytest.fixture(scope="module")
+def paper_small():
+    """The paper's case at hourly resolution with three scenarios, no reduction (same draws for every H)."""
+    return lambda **kw: make_instance(load_case("paper"), scenarios=3, sample_size=3, subperiods=1, seed=4, **kw)
+
+
+def test_positive_part_matches_papers_big_m(paper_small):
+    inst = paper_small(transfer_scale=0.6, penalty=150.0)
+    exact = verified(inst.case, inst.scen, inst.params)
+    big_m = verified(inst.case, inst.scen, replace(inst.params, mismatch="big-m"))
+    assert exact.cost.penalty > 1.0, "the instance must actually deviate, or both formulations trivially agree"
+    assert big_m.objective == pytest.approx(exact.objective, rel=1e-6)
+
+
+def test_islanding_forces_zero_transfer_and_infinite_penalty_caps_import(paper_small):
+    inst = paper_small(island_hours=2, penalty=float("inf"))
+    schedule = verified(inst.case, inst.scen, inst.params)
+    islanded = inst.scen.connected == 0
+    assert islanded.any()
+    assert np.abs(schedule.dispatch.p_m[islanded]).max() <= 1e-7
+    p_sch = np.broadcast_to(inst.params.p_sch, schedule.dispatch.p_m.shape)
+    assert (schedule.dispatch.p_m <= p_sch + 1e-7).all()
+    assert schedule.cost.penalty == 0.0
+
+
+def test_cheap_penalty_is_used_and_infinite_penalty_is_not(paper_small):
+    low = paper_small(transfer_scale=0.5, penalty=10.0)
+    cheap = verified(low.case, low.scen, low.params)
+    assert (cheap.dispatch.p_m > low.params.p_sch + 1e-3).any() and cheap.cost.penalty > 0
+    hard = paper_small(transfer_scale=0.5, penalty=float("inf"))
+    capped = verified(hard.case, hard.scen, hard.params)
+    assert (capped.dispatch.p_m <= hard.params.p_sch + 1e-7).all() and capped.cost.penalty == 0.0
+    assert capped.objective > cheap.objective  # the award now binds where the cheap penalty was paid
+
+
+def nondecreasing(costs):
+    return all(b >= a * (1 - 1e-6) for a, b in zip(costs, costs[1:]))
+
+
+def test_cost_grows_with_penalty_and_islanding_hours(paper_small):
+    by_penalty = [paper_small(transfer_scale=0.6, penalty=c) for c in (0.0, 50.0, 150.0, float("inf"))]
+    costs = [verified(i.case, i.scen, i.params).objective for i in by_penalty]
+    assert nondecreasing(costs) and costs[-1] > costs[0]
+    by_hours = [paper_small(island_hours=h, penalty=float("inf")) for h in (0, 1, 3)]
+    costs = [verified(i.case, i.scen, i.params).objective for i in by_hours]
+    assert nondecreasing(costs) and costs[-1] > costs[0]
+
+
+def test_vss_and_evpi_are_non_negative(paper_small):
+    inst = paper_small(island_hours=1)
+    rp = verified(inst.case, inst.scen, inst.params)
+    m = stochastic_metrics(inst, rp, gap=EXACT)
+    tol = 1e-6 * abs(rp.objective)
+    assert m.vss >= -tol
+    assert m.evpi >= -tol
+    assert m.ws <= m.rp <= m.eev
+
+
+def test_ten_minute_resolution_schedule_verifies():
+    inst = make_instance(load_case("paper"), scenarios=2, sample_size=4, subperiods=6, seed=1)
+    schedule = inst.solve(gap=0.02, time_limit=120)
+    check_schedule(inst.case, inst.scen, schedule).raise_if_failed()
+    assert schedule.dispatch.p_m.shape == (2, 144)
+    assert schedule.mip_gap <= 0.02 + 1e-9
+    assert schedule.bound <= schedule.objective

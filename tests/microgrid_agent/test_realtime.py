@@ -1,0 +1,150 @@
+"""Rolling-horizon real-time operation: the realised day is a valid schedule, islanding is obeyed, hours run in order."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dmo.market.settlement import settle
+from microgrid_agent.checker import check_schedule
+from microgrid_agent.model import first_stage_of
+from microgrid_agent.model import Params
+from microgrid_agent.agent.realtime import Operator
+from microgrid_agent.solvers.extensive import solve
+from scenarios.case import load_case
+from scenarios.generation import make_scenarios, sample
+
+K = 1
+PENALTY = 150.0
+
+
+@pytest.fixture(scope="module")
+def case():
+    return load_case("paper")
+
+
+@pytest.fixture(scope="module")
+def p_sch(case):
+    return np.asarray(case.grid.p_sch, float)
+
+
+@pytest.fixture(scope="module")
+def first_stage(case, p_sch):
+    """A day-ahead schedule at hourly resolution on two scenarios, verified."""
+    scen = make_scenarios(case, 2, K, island_hours=1, seed=0)
+    schedule = solve(case, scen, Params(p_sch, PENALTY), gap=1e-3)
+    check_schedule(case, scen, schedule, p_sch=p_sch, penalty=PENALTY).raise_if_failed()
+    return first_stage_of(schedule)
+
+
+def operator(case, first_stage, p_sch, seed, subperiods=K):
+    realised = sample(case, 1, subperiods, island_hours=0, seed=seed)
+    return Operator(case, first_stage, p_sch, PENALTY, subperiods, realised)
+
+
+def operate(op, hour, connected, case, p_sch):
+    """One hour, with the rolling LP's whole-day plan verified by the checker."""
+    result = op.operate_hour(hour, connected)
+    check_schedule(case, result.plan_scenario, result.plan, p_sch=p_sch, penalty=PENALTY).raise_if_failed()
+    return result
+
+
+@pytest.fixture(scope="module")
+def day(case, first_stage, p_sch):
+    op = operator(case, first_stage, p_sch, seed=11)
+    hours = [operate(op, h, [True] * K, case, p_sch) for h in range(1, 25)]
+    return op, hours, op.day_result()
+
+
+def test_realised_day_is_a_valid_schedule(case, p_sch, day):
+    _, _, result = day
+    report = check_schedule(case, result.scenario, result.schedule, p_sch=p_sch, penalty=PENALTY)
+    report.raise_if_failed()
+    assert report.objective == pytest.approx(result.cost.total)
+
+
+def test_realised_day_keeps_the_commitment_and_the_physics(case, first_stage, day):
+    _, hours, result = day
+    d, scen = result.schedule.dispatch, result.scenario
+    on = np.repeat(first_stage["I"], K, axis=1)
+    assert np.all(d.p_unit[:, 0][on == 0] == 0)
+    supply = d.p_unit.sum(axis=0) + d.p_renewable.sum(axis=0) + d.p_storage + d.p_m + d.load_shed
+    np.testing.assert_allclose(supply, scen.load + d.d_load.sum(axis=0), atol=1e-6)
+    assert np.all(d.soc >= -1e-7) and np.all(d.soc <= case.storage.c_max + 1e-7)
+    assert d.soc[0, -1] >= case.storage.c_initial - 1e-6
+    np.testing.assert_allclose(d.d_load[:, 0].sum(axis=1) / K, case.load_array("energy"), rtol=1e-6)
+    # the hour results are the day's arrays, and the hour costs add up to the day's
+    np.testing.assert_allclose(np.concatenate([h.p_m for h in hours]), result.p_m)
+    np.testing.assert_allclose([h.soc_end for h in hours], d.soc[0, K - 1::K])
+    assert math.fsum(h.cost.total for h in hours) == pytest.approx(result.cost.total)
+
+
+def test_the_operators_penalty_is_what_the_dmo_bills_for_its_reports(case, first_stage):
+    """Against an award that the realised day both exceeds and undershoots, each hour's penalty in the agent's own
+    cost is what the DMO's settlement charges for the meter readings the agent reports (to the cent), and the
+    reported deviations are what the DMO reads off those readings."""
+    p_sch = np.where(np.arange(24) % 2, 0.0, 12.0)  # nothing on odd hours, more than needed on even ones
+    op = operator(case, first_stage, p_sch, seed=5)
+    hours = [op.operate_hour(h, [True] * K) for h in range(1, 25)]
+    meter = {"mg1": {h.hour - 1: tuple(float(x) for x in h.p_m) for h in hours}}
+    statements, _ = settle({"mg1": p_sch}, [0.0] * 24, meter, subperiods=K, penalty=PENALTY,
+                           p_m_max=case.grid.p_m_max)
+    billed = [float(line.penalty) for line in statements["mg1"].lines]
+    assert billed == pytest.approx([h.cost.penalty for h in hours], abs=0.005)
+    assert any(b > 0 for b in billed) and any(b == 0 for b in billed)
+    for h, line in zip(hours, statements["mg1"].lines):
+        assert line.deviation_mwh == pytest.approx(np.maximum(h.deviation, 0).sum() / K, abs=1e-9)
+        assert line.under_import_mwh == pytest.approx(np.maximum(-h.deviation, 0).sum() / K, abs=1e-9)
+
+
+def test_islanded_subperiods_have_no_grid_transfer(case, first_stage, p_sch):
+    op = operator(case, first_stage, p_sch, seed=3, subperiods=2)
+    operate(op, 1, [True, True], case, p_sch)
+    islanded = operate(op, 2, [False, False], case, p_sch)
+    partly = operate(op, 3, [True, False], case, p_sch)
+    assert np.all(islanded.p_m == 0) and not islanded.connected.any()
+    assert partly.p_m[1] == 0 and partly.connected.tolist() == [True, False]
+    assert np.all(islanded.deviation == -p_sch[1])
+    # the plan's future is grid-connected on the forecast: only the announced sub-periods are islanded
+    assert partly.plan_scenario.connected[0].tolist() == [1, 1, 0, 0, 1, 0] + [1] * 42
+
+
+def test_hours_must_come_in_order(case, first_stage, p_sch):
+    op = operator(case, first_stage, p_sch, seed=1)
+    with pytest.raises(ValueError, match="expected hour 1"):
+        op.operate_hour(2, [True])
+    with pytest.raises(ValueError, match="booleans"):
+        op.operate_hour(1, [True, True])
+    with pytest.raises(ValueError, match="not over"):
+        op.day_result()
+    operate(op, 1, [True], case, p_sch)
+    with pytest.raises(ValueError, match="expected hour 2"):
+        op.operate_hour(1, [True])
+    assert op.next_hour == 2
+
+
+def test_day_over_refuses_more_hours(day):
+    op, _, _ = day
+    with pytest.raises(ValueError, match="day is over"):
+        op.operate_hour(25, [True])
+
+
+def test_operator_is_deterministic_for_a_seed(case, first_stage, p_sch):
+    runs = []
+    for seed in (5, 5, 6):
+        op = operator(case, first_stage, p_sch, seed=seed)
+        runs.append([operate(op, h, [True], case, p_sch) for h in (1, 2)])
+    for a, b in zip(runs[0], runs[1]):
+        for field in ("p_m", "p_unit", "p_storage", "soc", "d_load", "load_shed"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+    assert not np.array_equal(runs[0][0].plan_scenario.load, runs[2][0].plan_scenario.load)
+
+
+def test_bad_inputs_are_refused(case, first_stage, p_sch):
+    two = sample(case, 2, K, island_hours=0, seed=0)
+    with pytest.raises(ValueError, match="one scenario"):
+        Operator(case, first_stage, p_sch, PENALTY, K, two)
+    with pytest.raises(ValueError, match="penalty"):
+        Operator(case, first_stage, p_sch, -1.0, K, two.single(0))

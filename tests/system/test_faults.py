@@ -1,0 +1,472 @@
+"""Faults (docs/faults.md): message faults at the sender's Bus, duplicates and replays, delayed and
+lost messages, agents that restart or may not join, a gap in the hours, and ``dmosim run --fault`` end to end.
+
+The DMO runs in this process with scripted agents (no solver) where the protocol is under test, so those days
+take a few seconds; one test runs the real processes. Every bus and process is closed in a ``finally``.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import json
+import os
+import queue
+import random
+import signal
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dmo.cli import main as cli_main
+from dmo.operator.config import DayConfig
+from dmo.operator.day import MarketDay
+from dmo.launch.processes import free_port
+from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Registration,
+                      Rejection, Schedule, decode, encode)
+from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
+from messages.keys import new_run_id
+from messages.transport import Bus, BusConfig
+from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
+
+DAY = "2026-07-01"
+K = 2
+AWARD = 1.0
+CAP = 10.0
+
+
+# --- fault specs and the injector ------------------------------------------------------------------------------
+
+def test_fault_specs_parse_and_nonsense_is_refused_with_a_reason():
+    assert parse_message_fault("drop:agent/*/meter:0.25") == MessageFault("drop", "agent/*/meter", 0.25)
+    assert parse_message_fault("delay:dmo/grid:1.5") == MessageFault("delay", "dmo/grid", 1.0, 1.5)
+    assert parse_message_fault("delay:agent/**:2:0.5") == MessageFault("delay", "agent/**", 0.5, 2.0)
+    assert str(parse_message_fault("corrupt:agent/mg2/bid:1")) == "corrupt:agent/mg2/bid:1"
+    for bad in ("drop:agent/*/meter", "drop:agent/*/meter:2", "drop:agent/*/meter:nan", "melt:agent/*:1",
+                "delay:dmo/grid:-1", "delay:dmo/grid:1:0.5:9", "duplicate:agent/m+/meter:1", "drop::1",
+                "corrupt:agent//meter:1", "drop:/agent:1"):
+        with pytest.raises(FaultSpecError):
+            parse_message_fault(bad)
+
+
+def test_patterns_match_whole_key_levels_like_zenoh():
+    assert MessageFault("drop", "agent/*/meter", 1).matches("agent/mg1/meter")
+    assert not MessageFault("drop", "agent/*/meter", 1).matches("agent/mg1/bid")
+    assert not MessageFault("drop", "agent/*", 1).matches("agent/mg1/meter")
+    assert MessageFault("drop", "agent/**", 1).matches("agent/mg1/meter")
+    assert MessageFault("drop", "**", 1).matches("dmo/award/mg1")
+    assert MessageFault("drop", "dmo/**/mg1", 1).matches("dmo/award/mg1")
+    assert not MessageFault("drop", "dmo/grid", 1).matches("dmo/grid2")
+    assert MessageFault("drop", "dmo/award/mg*", 1).matches("dmo/award/mg12")  # as dmosim replay --topics
+
+
+messages = st.builds(
+    lambda hour, p_m, seq: MeterReport(sender="mg1", market_day=DAY, hour=hour, subperiods=len(p_m), p_m_mw=p_m,
+                                       deviation_mw=tuple(x - 1.0 for x in p_m), seq=seq),
+    st.integers(1, 24), st.lists(st.floats(-10, 10, allow_nan=False), min_size=1, max_size=6).map(tuple),
+    st.integers(0, 10**6))
+
+
+@settings(max_examples=300, deadline=None)
+@given(msg=messages, seed=st.integers(0, 2**32))
+def test_a_corrupted_payload_is_never_a_valid_message(msg, seed):
+    payload = encode(msg)
+    damaged = corrupt(payload, random.Random(seed))
+    assert damaged != payload
+    with pytest.raises(MessageError):
+        decode(damaged)
+
+
+def test_the_injector_is_seeded_never_blocks_and_counts_what_it_did():
+    sent: list[tuple[str, bytes, float]] = []
+    delayed = threading.Event()
+
+    def put(key, payload):
+        sent.append((key, payload, time.monotonic()))
+        if key.endswith("schedule"):
+            delayed.set()
+    prefix = "dmosim/r1"
+    faults = [parse_message_fault(s) for s in ("drop:agent/*/meter:0.3", "duplicate:agent/*/bid:1",
+                                               "delay:agent/*/schedule:0.3", "corrupt:agent/mg1/register:1")]
+
+    def run(seed):
+        sent.clear()
+        delayed.clear()
+        inj = FaultInjector(faults, prefix, seed, "mg1")
+        drops = []
+        for hour in range(1, 25):
+            before = len(sent)
+            inj.send(f"{prefix}/agent/mg1/meter", b"m%d" % hour, put)
+            drops.append(len(sent) == before)
+        inj.send(f"{prefix}/agent/mg1/bid", b"bid", put)
+        inj.send(f"{prefix}/agent/mg1/register", encode(Registration(sender="mg1", market_day=DAY, case="paper",
+                                                                     max_import_mw=1.0, max_export_mw=1.0)), put)
+        start = time.monotonic()
+        inj.send(f"{prefix}/agent/mg1/schedule", b"schedule", put)
+        assert time.monotonic() - start < 0.1  # the caller goes on; a timer thread sends it later
+        assert not any(k.endswith("schedule") for k, _, _ in sent)
+        assert delayed.wait(10), "the delayed schedule never went out"
+        return drops, inj.summary(), list(sent)
+
+    drops, counts, out = run(seed=7)
+    assert (drops, counts) == run(seed=7)[:2]  # same seed, same faults
+    assert counts["drop"] == sum(drops) and 0 < counts["drop"] < 24
+    assert [p for k, p, _ in out if k.endswith("/bid")] == [b"bid", b"bid"]
+    (register,) = [p for k, p, _ in out if k.endswith("/register")]
+    with pytest.raises(MessageError):
+        decode(register)
+    (schedule,) = [t for k, _, t in out if k.endswith("/schedule")]
+    assert schedule - max(t for k, _, t in out if not k.endswith("/schedule")) >= 0.25
+    assert counts == {"drop": counts["drop"], "duplicate": 1, "corrupt": 1, "delay": 1}
+
+
+# --- the DMO with scripted agents, in this process -------------------------------------------------------------
+
+class ScriptedAgent:
+    """A stand-in agent without a solver: it bids nothing, schedules nothing and meters its award plus ``excess``
+    MW in every sub-period. ``before_meter(agent, hour)`` runs before each meter report is sent."""
+
+    def __init__(self, run_id: str, name: str, endpoint: str, excess: float = 0.5, faults=(), before_meter=None):
+        self.name, self.excess, self.before_meter = name, excess, before_meter
+        self.bus = Bus(run_id, name, BusConfig(mode="client", connect=(endpoint,))).open()
+        if faults:
+            self.bus.faults = FaultInjector([parse_message_fault(f) for f in faults], self.bus.keys.prefix, 1, name)
+        self.events: queue.Queue = queue.Queue()
+        self.award = None
+        self.pending: GridState | None = None
+        self.metered = 0
+        self.rejections: list[Rejection] = []
+        self.summary = threading.Event()
+        self.registered = threading.Event()  # like a real agent, it registers before it handles anything
+        k = self.bus.keys
+        for key in (k.call_for_bids(), k.award(name), k.grid(), k.summary(), k.rejected()):
+            self.bus.subscribe(key, lambda key, msg, at: self.events.put(msg))
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+        self.thread.start()
+
+    def register(self) -> None:
+        assert self.bus.wait_for_subscribers(self.bus.keys.register(self.name), 10)
+        self.bus.publish(Registration(sender=self.name, market_day=DAY, case="scripted", max_import_mw=CAP,
+                                      max_export_mw=CAP))
+        self.registered.set()
+
+    def _loop(self) -> None:
+        self.registered.wait()
+        while (msg := self.events.get()) is not None:
+            try:
+                self._handle(msg)
+            except RuntimeError:  # the bus was closed under it (a "restart"): this incarnation is over
+                return
+
+    def _handle(self, msg) -> None:
+        if isinstance(msg, CallForBids):
+            self.bus.publish(Bid(sender=self.name, market_day=DAY, hours=((),) * HOURS))
+        elif msg.kind == "award" and self.award is None:
+            self.award = msg
+            self.bus.publish(Schedule(sender=self.name, market_day=DAY, status="scripted", commitment={},
+                                      expected_cost=0.0, p_m_expected_mw=msg.p_sch_mw, scenarios=1, mip_gap=0.0))
+            if self.pending is not None:  # the grid state overtook the award
+                self._meter(self.pending)
+        elif isinstance(msg, GridState):
+            if self.award is None:
+                self.pending = msg
+            elif msg.hour > self.metered:
+                self._meter(msg)
+        elif isinstance(msg, Rejection) and msg.offender == self.name:
+            self.rejections.append(msg)
+        elif isinstance(msg, DaySummary):
+            self.summary.set()
+
+    def _meter(self, grid: GridState) -> None:
+        self.metered = grid.hour
+        if self.before_meter is not None:
+            self.before_meter(self, grid.hour)
+        p_m = self.award.p_sch_mw[grid.hour - 1] + self.excess
+        self.bus.publish(MeterReport(sender=self.name, market_day=DAY, hour=grid.hour, subperiods=grid.subperiods,
+                                     p_m_mw=(p_m,) * grid.subperiods, deviation_mw=(self.excess,) * grid.subperiods))
+
+    def close(self) -> None:
+        self.registered.set()
+        self.events.put(None)
+        self.bus.close()
+
+
+@contextlib.contextmanager
+def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=None):
+    """A DMO (in a thread) and scripted agents; yields (day, agents, outcome) and closes everything on exit.
+    ``outcome`` fills in with "result" (the DayResult) or "error" once the DMO's day is over."""
+    run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
+    config = DayConfig(market_day=DAY, agents=len(agents), iso_price=(50.0,) * HOURS, import_limit=100.0,
+                       export_limit=100.0, penalty=150.0, subperiods=K, islanded_hours=(7,),
+                       fixed_awards=(AWARD,) * HOURS, registration_s=20.0, bids_s=10.0, schedule_s=10.0,
+                       hour_s=hour_s, linger_s=1.0)
+    outcome: dict = {}
+    done = threading.Event()
+    with contextlib.ExitStack() as stack:
+        bus = stack.enter_context(Bus(run_id, "dmo", BusConfig(mode="router", listen=(endpoint,))))
+        day = MarketDay(bus, config)
+
+        def run():
+            try:
+                outcome["result"] = day.run()
+            except Exception as exc:  # noqa: BLE001  (reported by the test)
+                outcome["error"] = exc
+            done.set()
+
+        threading.Thread(target=run, daemon=True).start()
+        scripted = {}
+        for name in agents:
+            scripted[name] = ScriptedAgent(run_id, name, endpoint, faults=(faults or {}).get(name, ()),
+                                           before_meter=before_meter)
+            stack.callback(lambda a=name: scripted[a].close())
+        for a in scripted.values():
+            a.register()
+        outcome["endpoint"], outcome["run_id"], outcome["done"] = endpoint, run_id, done
+        yield day, scripted, outcome
+        assert done.wait(120), "the DMO's day did not end"
+
+
+def finished(outcome):
+    assert outcome["done"].wait(120)
+    assert "error" not in outcome, outcome.get("error")
+    return outcome["result"]
+
+
+def totals(result) -> dict:
+    return {a: (str(st.total), st.missing_subperiods) for a, st in result.statements.items()}
+
+
+@pytest.fixture(scope="module")
+def baseline():
+    """The scripted day undisturbed: what every fault below must leave unchanged where it does not lose data."""
+    with scripted_day() as (day, agents, outcome):
+        pass
+    result = finished(outcome)
+    assert result.state.rejected == 0 and result.state.accepted["meter_report"] == 2 * HOURS
+    return result
+
+
+def test_duplicates_and_replays_are_rejected_once_each_and_change_no_settlement(baseline):
+    captured: list[tuple[str, bytes]] = []
+    replayed = []
+
+    def replay_the_past(agent, hour):
+        # Before its own report, the agent's bus plays back what this run's agents said before, byte for byte,
+        # and once more with the content changed but an old seq: replays, each must be refused as a duplicate.
+        if agent.name != "mg1" or hour % 4:
+            return
+        for key, payload in list(captured):
+            agent.bus.publish_raw(key, payload)
+            msg = decode(payload)
+            if isinstance(msg, MeterReport) and msg.hour < hour:  # its seq was accepted already
+                forged = msg.model_copy(update={"hour": hour, "p_m_mw": (0.0,) * K, "deviation_mw": (-AWARD,) * K})
+                agent.bus.publish_raw(key, encode(forged))
+                replayed.append(key)
+            replayed.append(key)
+
+    faults = {"mg1": ["duplicate:agent/**:1"], "mg2": ["duplicate:agent/*/meter:0.5"]}
+    with scripted_day(faults=faults, before_meter=replay_the_past) as (day, agents, outcome):
+        tap = Bus(outcome["run_id"], "tap", BusConfig(mode="client", connect=(outcome["endpoint"],)), announce=False)
+        with tap.open():
+            seen = set()
+
+            def keep(key, payload, at):
+                if payload not in seen and "/agent/" in key:
+                    seen.add(payload)
+                    captured.append((key, payload))
+
+            tap.subscribe_raw(tap.keys.agent_all("*"), keep)
+            assert outcome["done"].wait(120)
+    result = finished(outcome)
+    injected = sum(a.bus.faults.summary().get("duplicate", 0) for a in agents.values())
+    s = result.state
+    assert injected >= 27 and replayed
+    assert s.rejected == injected + len(replayed)
+    assert set(s.rejected_by_code) == {"duplicate"}
+    assert s.accepted == baseline.state.accepted  # nothing counted twice, nothing lost
+    assert totals(result) == totals(baseline)
+    print(f"\nscripted day: {injected} duplicates and {len(replayed)} replays, all rejected as duplicate; "
+          "settlement unchanged")
+
+
+def test_a_meter_report_delayed_past_its_hour_is_rejected_as_late_and_settled_as_missing(baseline):
+    with scripted_day(hour_s=0.5, faults={"mg2": ["delay:agent/mg2/meter:0.8:0.3"]}) as (day, agents, outcome):
+        pass
+    result = finished(outcome)
+    delayed = agents["mg2"].bus.faults.summary()["delay"]
+    st_ = result.statements
+    assert 0 < delayed < HOURS
+    assert st_["mg2"].missing_subperiods == K * delayed
+    assert totals(result)["mg1"] == totals(baseline)["mg1"]
+    # each delayed report arrived in a later hour (or after the day): refused as late, never counted
+    assert set(result.state.rejected_by_code) <= {"late"} and result.state.rejected <= delayed
+    assert result.state.accepted["meter_report"] == 2 * HOURS - delayed
+    assert sum(1 for i in result.state.incidents if "late" in i.reason and i.agent == "mg2") >= delayed
+
+
+def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline):
+    restarted = {}
+
+    def crash(agent, hour):
+        if agent.name == "mg2" and hour == 5 and not restarted:
+            restarted["old"] = agent
+            raise RuntimeError("mg2 crashes before reporting hour 5")
+
+    with scripted_day(hour_s=1.0, before_meter=crash) as (day, agents, outcome):
+        deadline = time.monotonic() + 30
+        while "old" not in restarted and time.monotonic() < deadline:
+            time.sleep(0.01)
+        restarted["old"].bus.close()  # the process is gone: its liveliness token with it
+        while "mg2" not in day.state.vanished and time.monotonic() < deadline:
+            time.sleep(0.01)
+        new = ScriptedAgent(outcome["run_id"], "mg2", outcome["endpoint"])  # a new process: seq from 0
+        try:
+            new.register()
+            assert new.summary.wait(60)
+        finally:
+            new.close()
+    result = finished(outcome)
+    reasons = [i.reason for i in result.state.incidents if i.agent == "mg2"]
+    assert any("vanished" in r for r in reasons)
+    assert any(r.startswith("rejoined after vanishing") and "sent its award" in r for r in reasons)
+    (rejoined,) = [i.hour for i in result.state.incidents if i.agent == "mg2" and i.reason.startswith("rejoined")]
+    missing = [line.hour + 1 for line in result.statements["mg2"].lines if line.missing]
+    assert missing == list(range(5, rejoined))  # from the hour it crashed in until the hour it rejoined in
+    assert result.state.accepted["meter_report"] == 2 * HOURS - len(missing)
+    assert result.state.rejected == 0
+    assert totals(result)["mg1"] == totals(baseline)["mg1"]
+
+
+def test_an_agent_that_may_not_join_is_told_why_and_exits_1(tmp_path):
+    from microgrid_agent.agent.process import AgentConfig, AgentRefused, MicrogridAgent  # noqa: PLC0415
+    from scenarios.case import load_case  # noqa: PLC0415
+
+    reached = threading.Event()
+
+    def wait_at_hour_3(agent, hour):
+        if hour == 3 and agent.name == "mg1":
+            reached.set()
+            time.sleep(1.0)
+
+    with scripted_day(hour_s=5.0, before_meter=wait_at_hour_3) as (day, agents, outcome):
+        assert reached.wait(60)
+        with Bus(outcome["run_id"], "mg9", BusConfig(mode="client", connect=(outcome["endpoint"],))) as bus:
+            late = MicrogridAgent(bus, load_case("paper"), AgentConfig(idle_s=30), DAY)
+            with pytest.raises(AgentRefused, match=r"mg9: the DMO refused the registration \(late\): registration "
+                                                   r"is closed \(now realtime\): mg9 is not an agent of this day"):
+                late.run()
+    result = finished(outcome)
+    assert result.state.rejected_by_code == {"late": 1} and "mg9" not in result.state.registered
+
+
+# --- the agent: a gap in the hours, repeated DMO messages ----------------------------------------------------
+
+def test_the_operator_catches_up_missed_hours_in_one_lp_and_the_day_stays_valid():
+    from microgrid_agent.checker import check_schedule  # noqa: PLC0415
+    from microgrid_agent.model import first_stage_of  # noqa: PLC0415
+    from microgrid_agent.model import Params  # noqa: PLC0415
+    from microgrid_agent.agent.realtime import Operator  # noqa: PLC0415
+    from microgrid_agent.solvers.extensive import solve  # noqa: PLC0415
+    from scenarios.case import load_case  # noqa: PLC0415
+    from scenarios.generation import make_scenarios, sample  # noqa: PLC0415
+
+    case = load_case("paper")
+    p_sch = np.asarray(case.grid.p_sch, float)
+    schedule = solve(case, make_scenarios(case, 1, 1, island_hours=1, seed=0), Params(p_sch, 150.0), gap=0.01)
+    op = Operator(case, first_stage_of(schedule), p_sch, 150.0, 1, sample(case, 1, 1, island_hours=0, seed=3))
+    op.operate_hour(1, [True])
+    assert op.catch_up(2) == () and op.next_hour == 2
+    caught = op.catch_up(9, {4: [False]})  # hours 2..8, hour 4 known islanded
+    assert [h.hour for h in caught] == list(range(2, 9)) and op.next_hour == 9
+    assert caught[2].p_m[0] == 0.0  # islanded: no transfer
+    with pytest.raises(ValueError, match="in order"):
+        op.operate_hour(12, [True])
+    op.operate_hour(9, [True])
+    op.catch_up(25)
+    day = op.day_result()
+    check_schedule(case, day.scenario, day.schedule, p_sch=p_sch, penalty=150.0).raise_if_failed()
+
+
+# --- real processes: dmosim run --fault ---------------------------------------------------------------------
+
+def test_dmosim_run_survives_message_faults_and_a_restart_and_settles_what_it_accepted(tmp_path):
+    # the grid state's delay paces the hours, so that the restarted agent (seconds to start) rejoins mid-day
+    faults = ["duplicate:agent/*/meter:1", "duplicate:dmo/grid:1", "delay:dmo/grid:0.5", "corrupt:agent/mg2/meter:0.15",
+              "drop:agent/mg1/meter:0.1", "delay:agent/*/bid:0.3", "restart:mg1:2"]
+    deadlines = [*DEADLINES[:-1], "2.5"]
+    assert DEADLINES[-2] == "--hour-timeout"
+    argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *deadlines, "--logs", str(tmp_path), "--json",
+                  "--seed", "3", *[flag for f in faults for flag in ("--fault", f)])
+    out = subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout)
+    assert result["faults"] == faults and result["restarts"] == {"mg1": 1}
+    assert "fault: restarting mg1" in out.stderr
+
+    # the DMO refused every duplicate and corruption, with its reason, and counted each once
+    by_code = result["rejected_by_code"]
+    assert by_code.get("duplicate", 0) >= 20 and sum(by_code.values()) == result["rejected_messages"]
+    assert set(by_code) <= {"duplicate", "not_json", "invalid", "late"}
+    # no accepted meter report lost: every hour not settled as missing is one accepted report
+    settled = sum(HOURS - s["missing_subperiods"] for s in result["settlement"].values())
+    assert settled == result["accepted_messages"]["meter_report"]
+    incidents = [i for i in result["incidents"] if i["agent"] == "mg1"]
+    assert any("vanished" in i["reason"] for i in incidents)
+    assert any(i["reason"].startswith("rejoined after vanishing") for i in incidents)
+    assert result["settlement"]["mg1"]["missing_subperiods"] < 20  # it came back and reported again
+
+    # the recording alone re-settles to the same statements, the refused reports left out
+    assert cli_main(["settle", result["recording"]]) == 0
+    assert result["recorded"]["complete"]
+    log = (tmp_path / "mg1.log").read_text()
+    assert "no grid state for hour(s) 1.." in log  # the restarted agent caught up on the hours it missed
+    counts = [json.loads(line.split(" messages ", 1)[1]) for line in log.splitlines() if " messages {" in line]
+    assert counts and counts[-1]["ignored"].get("grid_state_of_an_operated_hour", 0) >= 1  # duplicated grid states
+    injected = collections.Counter(result["transport"].get("faults_injected", {}))
+    for agent in ("mg1", "mg2"):  # mg1's log holds both of its lives
+        for line in (tmp_path / f"{agent}.log").read_text().splitlines():
+            if f"{agent} messages {{" in line:
+                injected.update(json.loads(line.split(" messages ", 1)[1])["faults_injected"])
+    missing = {a: s["missing_subperiods"] for a, s in result["settlement"].items()}
+    print(f"\ndmosim run faults: injected {dict(injected)} and 1 agent restart; DMO rejected "
+          f"{result['rejected_messages']} {by_code}; missing hours {missing}; settle on the recording: identical")
+
+
+def test_the_dmo_killed_mid_day_resumes_from_its_journal_and_settles_as_if_undisturbed(tmp_path):
+    """SIGKILL the DMO half a second into hour 8 and start it again: it reads back its journal, waits for the agents
+    to reconnect, runs hour 8 again; the agents send again the answers the dead DMO never got (their reports are
+    delayed, so that hour 8's are on their way when it dies). Run beside the same day undisturbed, same seed."""
+    common = ["run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--json", "--quiet", "--seed", "5"]
+    runs = {}
+    for name, faults in (("restarted", ["restart:dmo:8", "delay:agent/*/meter:0.6"]), ("undisturbed", [])):
+        (tmp_path / name).mkdir()
+        argv = dmosim(*common, "--logs", str(tmp_path / name), *[x for f in faults for x in ("--fault", f)])
+        runs[name] = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                                      env=ENV, start_new_session=True)
+    try:
+        out = {name: p.communicate(timeout=600) for name, p in runs.items()}
+    finally:
+        for p in runs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+    for name, p in runs.items():
+        assert p.returncode == 0, f"{name}: {out[name][1][-3000:]}"
+    restarted, undisturbed = (json.loads(out[name][0]) for name in ("restarted", "undisturbed"))
+    assert restarted["restarts"] == {"dmo": 1}
+    assert restarted["settlement"] == undisturbed["settlement"] and restarted["awards"] == undisturbed["awards"]
+    assert restarted["accepted_messages"] == undisturbed["accepted_messages"]  # nothing lost, nothing twice
+    (resumed,) = [i for i in restarted["incidents"] if "resumed the day" in i["reason"]]
+    assert resumed["hour"] == 8 and "not back" not in resumed["reason"]
+    resent = sum(json.loads(line.split(" messages ", 1)[1])["answers_sent_again"]
+                 for a in ("mg1", "mg2") for line in (tmp_path / "restarted" / f"{a}.log").read_text().splitlines()
+                 if f"{a} messages {{" in line)
+    assert resent >= 1  # hour 8's reports, lost with the DMO, went again
+    assert cli_main(["settle", restarted["recording"]]) == 0
+    print(f"\nDMO restart: resumed at hour {resumed['hour']}, {resent} answer(s) sent again by the agents; settlement "
+          f"identical to the undisturbed day: {restarted['settlement'] == undisturbed['settlement']}")

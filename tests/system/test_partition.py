@@ -1,0 +1,116 @@
+"""A network partition, and the roles across hosts: the DMO and each agent in its own network namespace, joined by
+veth pairs on a bridge in the DMO's namespace (docs/faults.md). One agent's link goes down mid-day and comes back;
+the day completes, the outage is in the incidents, and the agent catches up and reports again.
+
+Needs root and iproute2 (CI runs as root); skipped otherwise. Names are unique per run, and the namespaces (with
+their links and the bridge) are deleted in a ``finally``, after every process in them is stopped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+
+from dmo.launch.processes import Roles, wait_for_line
+from messages.keys import new_run_id
+from test_market_day import DAY, DEADLINES, ENV, TINY
+
+pytestmark = pytest.mark.skipif(not (hasattr(os, "geteuid") and os.geteuid() == 0 and shutil.which("ip")),
+                                reason="needs root and iproute2 (ip netns)")
+
+SUBNET = "10.77.0"
+PORT = 7447
+
+
+def ip(*args: str) -> None:
+    out = subprocess.run(["ip", *args], capture_output=True, text=True, timeout=30)
+    if out.returncode != 0:
+        raise RuntimeError(f"ip {' '.join(args)}: {out.stderr.strip()}")
+
+
+@contextlib.contextmanager
+def hosts(agents: tuple[str, ...]):
+    """One namespace for the DMO (with a bridge at SUBNET.1) and one per agent (SUBNET.2, .3, ...), each agent's
+    veth pair enslaved to the bridge. Yields (namespace of the DMO, {agent: (namespace, its link)})."""
+    tag = "dm" + secrets.token_hex(3)
+    dmo_ns = f"{tag}-dmo"
+    made: list[str] = []
+    try:
+        for ns in [dmo_ns, *(f"{tag}-{a}" for a in agents)]:
+            ip("netns", "add", ns)
+            made.append(ns)
+            ip("-n", ns, "link", "set", "lo", "up")
+        ip("-n", dmo_ns, "link", "add", "br0", "type", "bridge")
+        ip("-n", dmo_ns, "addr", "add", f"{SUBNET}.1/24", "dev", "br0")
+        ip("-n", dmo_ns, "link", "set", "br0", "up")
+        links = {}
+        for i, agent in enumerate(agents, start=1):
+            ns, near, far = f"{tag}-{agent}", f"{tag}h{i}", f"{tag}a{i}"
+            ip("link", "add", near, "netns", dmo_ns, "type", "veth", "peer", "name", far, "netns", ns)
+            ip("-n", dmo_ns, "link", "set", near, "master", "br0", "up")
+            ip("-n", ns, "addr", "add", f"{SUBNET}.{i + 1}/24", "dev", far)
+            ip("-n", ns, "link", "set", far, "up")
+            links[agent] = (ns, far)
+        yield dmo_ns, links
+    finally:
+        for ns in made:  # deleting a namespace deletes its links, the bridge and the veth peers
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True, timeout=30)
+
+
+def in_ns(ns: str, *args: str) -> list[str]:
+    return ["ip", "netns", "exec", ns, sys.executable, "-m", "dmo.cli", *args]
+
+
+def test_an_agent_cut_off_mid_day_comes_back_and_the_day_completes_across_hosts(tmp_path):
+    agents = ("mg1", "mg2")
+    run_id = new_run_id()
+    endpoint = f"tcp/{SUBNET}.1:{PORT}"
+    common = ["--run-id", run_id, "--market-day", DAY]
+    result_path = tmp_path / "result.json"
+    with hosts(agents) as (dmo_ns, links), Roles() as roles:
+        roles.start("dmo", in_ns(dmo_ns, "dmo", *common, "--listen", endpoint, "--agents", str(len(agents)),
+                                 "--subperiods", "1", "--result", str(result_path), "--lease", "2", *DEADLINES,
+                                 # paces the hours (mg1 alone runs one in a fraction of a second), so the outage
+                                 # spans a few hours rather than the rest of the day
+                                 "--fault", "delay:dmo/grid:0.4"),
+                    log=tmp_path / "dmo.log", env=ENV)
+        dmo_alive = lambda: roles.roles["dmo"].process.poll() is None  # noqa: E731
+        wait_for_line(tmp_path / "dmo.log", r"phase registration", 60, dmo_alive)
+        for i, agent in enumerate(agents):
+            roles.start(agent, in_ns(links[agent][0], "agent", *common, "--id", agent, "--connect", endpoint,
+                                     "--seed", str(i), "--lease", "1", *TINY), log=tmp_path / f"{agent}.log", env=ENV)
+
+        ns, link = links["mg2"]
+        wait_for_line(tmp_path / "dmo.log", r"phase realtime hour 4/24", 300, dmo_alive)
+        ip("-n", ns, "link", "set", link, "down")
+        down_at = time.monotonic()
+        wait_for_line(tmp_path / "dmo.log", r"mg2: vanished", 30, dmo_alive)
+        time.sleep(max(0.0, 3.0 - (time.monotonic() - down_at)))
+        ip("-n", ns, "link", "set", link, "up")
+        wait_for_line(tmp_path / "dmo.log", r"mg2: reappeared after vanishing", 60, dmo_alive)
+
+        for name in ("dmo", *agents):
+            code = roles.roles[name].process.wait(timeout=300)
+            assert code == 0, f"{name} exited {code}:\n" + (tmp_path / f"{name}.log").read_text()[-3000:]
+    result = json.loads(result_path.read_text())
+
+    incidents = [i for i in result["incidents"] if i["agent"] == "mg2"]
+    vanished = [i for i in incidents if "vanished (liveliness lost)" in i["reason"]]
+    back = [i for i in incidents if i["reason"].startswith("reappeared after vanishing")]
+    assert vanished and back and vanished[0]["hour"] >= 4 and back[0]["hour"] > vanished[0]["hour"]
+    # mg2 missed the hours of the outage, no more, and reported again once back; mg1 missed nothing
+    missing = result["settlement"]["mg2"]["missing_subperiods"]
+    assert 1 <= missing <= back[0]["hour"] - vanished[0]["hour"] + 1
+    assert result["settlement"]["mg1"]["missing_subperiods"] == 0
+    assert result["accepted_messages"]["meter_report"] == 2 * 24 - missing
+    assert "operated them unreported" in (tmp_path / "mg2.log").read_text()
+    print(f"\npartition: mg2 cut off at hour {vanished[0]['hour']}, back at hour {back[0]['hour']}; "
+          f"{missing} hour(s) settled as missing; the day completed")
