@@ -1,0 +1,91 @@
+"""The documentation is a contract: what it names in the code exists, docs/model.md maps each equation to the
+functions that build it, the README lists every verb, and nothing cites a document the repository does not hold."""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import re
+from pathlib import Path
+
+import pytest
+
+from dmo.cli.main import VERBS
+
+ROOT = Path(__file__).resolve().parents[2]
+DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
+PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo", "tests")
+CODE = [p for package in PACKAGES[:4] for p in sorted((ROOT / package).rglob("*.py"))]
+
+
+def text(path: Path) -> str:
+    return path.read_text()
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_every_path_a_document_names_exists(doc):
+    named = set(re.findall(r"\b((?:%s)/[\w/]*\w(?:\.py|\.toml|/(?=[`\s,.;)])))" % "|".join(PACKAGES), text(doc)))
+    for braces in re.findall(r"\b((?:%s)/[\w/]*)\{([\w,]+)\}\.py" % "|".join(PACKAGES), text(doc)):
+        named |= {f"{braces[0]}{name}.py" for name in braces[1].split(",")}
+    missing = sorted(p for p in named if not (ROOT / p).exists() and "{" not in p)
+    assert not missing, f"{doc.name} names {missing}"
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_every_dotted_name_a_document_gives_resolves(doc):
+    wrong = []
+    for name in sorted(set(re.findall(r"`((?:scenarios|messages|microgrid_agent|dmo)(?:\.\w+)+)`", text(doc)))):
+        parts = name.split(".")
+        for cut in range(len(parts), 0, -1):  # the longest importable module, then attributes
+            try:
+                obj = importlib.import_module(".".join(parts[:cut]))
+            except ImportError:
+                continue
+            try:
+                for attr in parts[cut:]:
+                    obj = getattr(obj, attr)
+            except AttributeError:
+                wrong.append(name)
+            break
+        else:
+            wrong.append(name)
+    assert not wrong, f"{doc.name} names {wrong}"
+
+
+def test_model_md_maps_each_equation_to_functions_that_build_it():
+    import microgrid_agent.model as model  # noqa: PLC0415
+
+    table = text(ROOT / "docs" / "model.md").split("## Equation by equation", 1)[1].split("\n## ", 1)[0]
+    rows = [r for r in table.splitlines() if re.match(r"\| \(\d+\)", r)]
+    covered = set()
+    modules = [importlib.import_module(f"microgrid_agent.model.{p.stem}")
+               for p in sorted((ROOT / "microgrid_agent" / "model").glob("*.py")) if p.stem != "__init__"]
+    for row in rows:
+        label, functions = row.split("|")[1:3]
+        first, last = (int(n) for n in re.match(r"\s*\((\d+)\)(?:-\((\d+)\))?", label).groups(default="0"))
+        equations = range(first, max(first, last) + 1)
+        names = re.findall(r"`(\w+)`", functions)
+        assert names, row
+        sources = []
+        for name in names:
+            found = [getattr(m, name) for m in modules if inspect.isfunction(getattr(m, name, None))
+                     and getattr(m, name).__module__ == m.__name__]
+            assert found, f"docs/model.md: {name} is not a function of microgrid_agent/model/"
+            sources.append(inspect.getsource(found[0]))
+        for n in equations:
+            assert any(f"({n})" in s for s in sources), f"docs/model.md: none of {names} builds ({n})"
+            covered.add(n)
+    assert covered == set(range(1, 22)), f"equations without a row: {sorted(set(range(1, 22)) - covered)}"
+    assert model.build  # the table maps the package the solvers build from
+
+
+def test_readme_lists_every_verb():
+    readme = text(ROOT / "README.md")
+    missing = [verb for verb in VERBS if f"`dmosim {verb}" not in readme]
+    assert not missing, missing
+
+
+@pytest.mark.parametrize("path", DOCS + CODE, ids=lambda p: str(p.relative_to(ROOT)))
+def test_nothing_cites_the_specification(path):
+    """Help texts, code and docs point to the repository's own documents; the product specification is not one."""
+    assert not re.search(r"\bSPEC section|\bSPEC\.md|\bSPEC \d", text(path)), path
