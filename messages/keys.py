@@ -9,6 +9,10 @@ Layout (``<run>`` is the run id, ``<agent>`` an agent id)::
 
 The DMO publishes only under ``dmo/``, an agent only under its own ``agent/<agent>/``, so access control can be
 a per-process key prefix. Everything sits under one run prefix, so concurrent runs never see each other.
+
+The DMO answers queries (``get``) on any key of its run: with no parameters, the latest message it published on
+each matching key (a late agent asks ``dmo/clock`` where the day stands); with the parameter ``history``, every
+payload it sent or received on the matching keys, in order (a late recorder asks for ``**?history``).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from .codec import MessageError
 from .schemas import Envelope
 
 ROOT = "dmosim"
+HISTORY = "history"  # the query parameter that asks the DMO for the whole traffic of its day, not the latest
 RUN_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 _RUN_ID = re.compile(RUN_ID_PATTERN)
 

@@ -26,6 +26,7 @@ MAX_BID_STEPS = 16
 MAX_UNITS = 64
 MAX_AGENTS = 1024
 CENT = 0.01
+KIND = "the message type: which schema the message follows and which key it travels on"
 
 # Strict scalars: the wire never coerces between types.
 Float = Annotated[float, Strict()]
@@ -71,11 +72,16 @@ class Envelope(_WireModel):
     """Fields every message carries. ``seq`` and ``sent_at`` are stamped by the transport when published."""
 
     kind: str  # each message type narrows it to its literal tag; declared here so it comes first on the wire
-    schema_version: Annotated[int, Strict(), Field(ge=1, le=SCHEMA_VERSION)] = SCHEMA_VERSION
-    sender: Name
-    market_day: MarketDay
-    seq: Count = 0
-    sent_at: Timestamp = 0
+    schema_version: Annotated[int, Strict(), Field(ge=1, le=SCHEMA_VERSION), Field(description=(
+        "version of the message schemas the sender wrote; this protocol is version 1"))] = SCHEMA_VERSION
+    sender: Annotated[Name, Field(description=(
+        "\"dmo\" or the agent id; must be the owner of the key the message travels on"))]
+    market_day: Annotated[MarketDay, Field(description="the market day the message belongs to, an ISO date YYYY-MM-DD")]
+    seq: Annotated[Count, Field(description=(
+        "the sender's sequence number: 0, 1, 2, ... over all its messages of the run, stamped when sent; the "
+        "DMO refuses a number it has accepted, or one older than the latest it accepted"))] = 0
+    sent_at: Annotated[Timestamp, Field(description=(
+        "the sender's clock when sending, ns since the Unix epoch, stamped when sent"))] = 0
 
     @model_validator(mode="before")
     @classmethod
@@ -124,10 +130,13 @@ class _FromDmo(Envelope):
 class Registration(_FromAgent):
     """Phase 1, agent -> DMO: the agent announces itself and what it can exchange with the grid."""
 
-    kind: Literal["registration"] = "registration"
-    case: Annotated[str, Strict(), Field(min_length=1, max_length=64)]
-    max_import_mw: NonNeg
-    max_export_mw: NonNeg
+    kind: Annotated[Literal["registration"], Field(description=KIND)] = "registration"
+    case: Annotated[str, Strict(), Field(min_length=1, max_length=64), Field(description=(
+        "the name of the microgrid's case; informative, but a rejoining agent must give the same"))]
+    max_import_mw: Annotated[NonNeg, Field(description=(
+        "MW the microgrid can import at most (P_M max); a missing meter reading is settled at it, and a "
+        "reading above it is refused"))]
+    max_export_mw: Annotated[NonNeg, Field(description="MW the microgrid can export at most")]
 
 
 # --- bidding ------------------------------------------------------------------------------------------------
@@ -135,16 +144,23 @@ class Registration(_FromAgent):
 class CallForBids(_FromDmo):
     """Phase 2, DMO -> all agents: the day's market terms; bids are due ``deadline_s`` after ``sent_at``."""
 
-    kind: Literal["call_for_bids"] = "call_for_bids"
-    iso_price_per_mwh: Hourly
-    price_floor_per_mwh: Float
-    price_cap_per_mwh: Float
-    import_limit_mw: NonNeg
-    export_limit_mw: NonNeg
-    penalty_per_mwh: NonNeg
-    credit_per_mwh: NonNeg = 0.0
-    subperiods: Subperiods
-    deadline_s: Annotated[float, Strict(), Field(gt=0, le=86_400)]
+    kind: Annotated[Literal["call_for_bids"], Field(description=KIND)] = "call_for_bids"
+    iso_price_per_mwh: Annotated[Hourly, Field(description=(
+        "24 hourly upstream (ISO) prices, $/MWh, hour 1 first: the clearing price of every hour no feeder "
+        "limit binds"))]
+    price_floor_per_mwh: Annotated[Float, Field(description=(
+        "lowest price a bid step should name, $/MWh (advisory: the DMO does not refuse a step below it)"))]
+    price_cap_per_mwh: Annotated[Float, Field(description=(
+        "highest price a bid step should name, $/MWh, at least the floor (advisory)"))]
+    import_limit_mw: Annotated[NonNeg, Field(description=(
+        "the feeder's import limit, MW: net imports of all agents above it congest the hour"))]
+    export_limit_mw: Annotated[NonNeg, Field(description=(
+        "the feeder's export limit, MW: net exports above it congest the hour"))]
+    penalty_per_mwh: Annotated[NonNeg, Field(description="c: $ per MWh imported above the award")]
+    credit_per_mwh: Annotated[NonNeg, Field(description="$ per MWh imported below the award (0: no credit)")] = 0.0
+    subperiods: Annotated[Subperiods, Field(description="K: metering sub-periods per hour, each 1/K h")]
+    deadline_s: Annotated[float, Strict(), Field(gt=0, le=86_400), Field(description=(
+        "bids are due this many seconds after sent_at"))]
 
     @model_validator(mode="after")
     def _price_band(self):
@@ -157,16 +173,20 @@ class CallForBids(_FromDmo):
 class BidStep(_WireModel):
     """One price-quantity step: buy up to ``quantity_mw`` at up to ``price_per_mwh``; negative = sell at least at it."""
 
-    price_per_mwh: Float
-    quantity_mw: Float
+    price_per_mwh: Annotated[Float, Field(description=(
+        "$/MWh: a purchase is accepted at clearing prices at or below it, a sale at or above it"))]
+    quantity_mw: Annotated[Float, Field(description=(
+        "MW: positive buys (imports) up to it, negative sells (exports) up to its magnitude; 0 trades nothing"))]
 
 
 class Bid(_FromAgent):
-    """Phase 2, agent -> DMO: per hour 1..24, up to MAX_BID_STEPS steps (no steps = no offer that hour)."""
+    """Phase 2, agent -> DMO: the agent's price-quantity steps for each hour of the day."""
 
-    kind: Literal["bid"] = "bid"
+    kind: Annotated[Literal["bid"], Field(description=KIND)] = "bid"
     hours: Annotated[tuple[Annotated[tuple[BidStep, ...], Field(max_length=MAX_BID_STEPS)], ...],
-                     Field(min_length=HOURS, max_length=HOURS)]
+                     Field(min_length=HOURS, max_length=HOURS, description=(
+                         "24 lists of steps, hour 1 first, at most 16 steps each; an empty list is no offer that "
+                         "hour"))]
 
 
 # --- clearing -----------------------------------------------------------------------------------------------
@@ -174,15 +194,19 @@ class Bid(_FromAgent):
 class Award(_FromDmo):
     """Phase 3, DMO -> one agent: its hourly award P_sch, the clearing prices and the settlement terms."""
 
-    kind: Literal["award"] = "award"
-    agent: AgentId
-    p_sch_mw: Hourly
-    clearing_price_per_mwh: Hourly
-    penalty_per_mwh: NonNeg
-    credit_per_mwh: NonNeg = 0.0
-    subperiods: Subperiods
-    rules_version: Annotated[int, Strict(), Field(ge=1, le=10_000)]
-    rules: Annotated[str, Strict(), Field(max_length=4000)]
+    kind: Annotated[Literal["award"], Field(description=KIND)] = "award"
+    agent: Annotated[AgentId, Field(description="the agent awarded (the key names it too)")]
+    p_sch_mw: Annotated[Hourly, Field(description=(
+        "24 hourly awards P_sch, MW, hour 1 first; positive imports, negative exports"))]
+    clearing_price_per_mwh: Annotated[Hourly, Field(description="24 hourly clearing prices, $/MWh")]
+    penalty_per_mwh: Annotated[NonNeg, Field(description="c: $ per MWh imported above the award")]
+    credit_per_mwh: Annotated[NonNeg, Field(description="$ per MWh imported below the award (0: no credit)")] = 0.0
+    subperiods: Annotated[Subperiods, Field(description=(
+        "K: metering sub-periods per hour; each meter report carries K readings"))]
+    rules_version: Annotated[int, Strict(), Field(ge=1, le=10_000), Field(description=(
+        "the version of the settlement rules the day is settled by"))]
+    rules: Annotated[str, Strict(), Field(max_length=4000), Field(description=(
+        "the settlement rules, in words"))]
 
 
 # --- scheduling ---------------------------------------------------------------------------------------------
@@ -190,15 +214,19 @@ class Award(_FromDmo):
 class Schedule(_FromAgent):
     """Phase 4, agent -> DMO: the day-ahead schedule the agent solved against its award."""
 
-    kind: Literal["schedule"] = "schedule"
-    status: Annotated[str, Strict(), Field(min_length=1, max_length=64)]
+    kind: Annotated[Literal["schedule"], Field(description=KIND)] = "schedule"
+    status: Annotated[str, Strict(), Field(min_length=1, max_length=64), Field(description=(
+        "free text, for the log: the DMO reads nothing from it; dmosim agents send \"optimal\" or \"time_limit\""))]
     commitment: Annotated[dict[Annotated[str, Strict(), Field(pattern=NAME_PATTERN)],
                                Annotated[tuple[Literal[0, 1], ...], Field(min_length=HOURS, max_length=HOURS)]],
-                          Field(max_length=MAX_UNITS)]
-    expected_cost: Float
-    p_m_expected_mw: Hourly
-    scenarios: Annotated[int, Strict(), Field(ge=1, le=100_000)]
-    mip_gap: Annotated[float, Strict(), Field(ge=0)] | None = None
+                          Field(max_length=MAX_UNITS,
+                                description="unit name -> 24 hourly values, 1 committed, 0 not (at most 64 units)")]
+    expected_cost: Annotated[Float, Field(description="the schedule's expected cost of the day, $")]
+    p_m_expected_mw: Annotated[Hourly, Field(description="24 hourly expected transfers P_M, MW; positive imports")]
+    scenarios: Annotated[int, Strict(), Field(ge=1, le=100_000), Field(description=(
+        "how many scenarios the schedule was solved on"))]
+    mip_gap: Annotated[Annotated[float, Strict(), Field(ge=0)] | None, Field(description=(
+        "the solve's certified relative gap, or null"))] = None
 
 
 # --- real-time operation ------------------------------------------------------------------------------------
@@ -206,10 +234,12 @@ class Schedule(_FromAgent):
 class Clock(_FromDmo):
     """DMO -> all: the simulated clock; a new phase (and, in real time, a new hour) starts now."""
 
-    kind: Literal["clock"] = "clock"
-    phase: Phase
-    hour: Hour | None = None
-    deadline_s: Annotated[float, Strict(), Field(gt=0, le=86_400)]
+    kind: Annotated[Literal["clock"], Field(description=KIND)] = "clock"
+    phase: Annotated[Phase, Field(description="the phase starting now")]
+    hour: Annotated[Hour | None, Field(description=(
+        "the real-time hour starting now, 1..24 (hour 1 is midnight to 1:00); null outside realtime"))] = None
+    deadline_s: Annotated[float, Strict(), Field(gt=0, le=86_400), Field(description=(
+        "seconds until the phase (or hour) ends: answers after it are late"))]
 
     @model_validator(mode="after")
     def _hour_in_realtime(self):
@@ -221,10 +251,11 @@ class Clock(_FromDmo):
 class GridState(_FromDmo):
     """Phase 5, DMO -> all, once per hour: the grid's realised state; connected False = islanded (U = 0)."""
 
-    kind: Literal["grid_state"] = "grid_state"
-    hour: Hour
-    subperiods: Subperiods
-    connected: tuple[Bool, ...]
+    kind: Annotated[Literal["grid_state"], Field(description=KIND)] = "grid_state"
+    hour: Annotated[Hour, Field(description="the hour this state holds for, 1..24")]
+    subperiods: Annotated[Subperiods, Field(description="K: sub-periods per hour")]
+    connected: Annotated[tuple[Bool, ...], Field(description=(
+        "K booleans, one per sub-period: true grid-connected, false islanded (U = 0: P_M must be 0)"))]
 
     @model_validator(mode="after")
     def _lengths(self):
@@ -235,11 +266,15 @@ class GridState(_FromDmo):
 class MeterReport(_FromAgent):
     """Phase 5, agent -> DMO, once per hour: metered transfer P_M per sub-period and its deviation P_M - P_sch."""
 
-    kind: Literal["meter_report"] = "meter_report"
-    hour: Hour
-    subperiods: Subperiods
-    p_m_mw: tuple[Float, ...]
-    deviation_mw: tuple[Float, ...]
+    kind: Annotated[Literal["meter_report"], Field(description=KIND)] = "meter_report"
+    hour: Annotated[Hour, Field(description=(
+        "the hour metered, 1..24: the hour the DMO's clock and grid state announced"))]
+    subperiods: Annotated[Subperiods, Field(description="K, as in the award")]
+    p_m_mw: Annotated[tuple[Float, ...], Field(description=(
+        "K metered transfers P_M, MW, one per sub-period; positive imports; none above the registered "
+        "max_import_mw"))]
+    deviation_mw: Annotated[tuple[Float, ...], Field(description=(
+        "K deviations P_M - P_sch, MW; informative: settlement reads p_m_mw"))]
 
     @model_validator(mode="after")
     def _lengths(self):
@@ -255,18 +290,22 @@ class StatementLine(_WireModel):
     by the missing-report rule); ``deviation_mwh`` the sum of max(P_M - P_sch, 0) dt, ``under_import_mwh`` the sum
     of max(P_sch - P_M, 0) dt; total = energy_charge + deviation_penalty - deviation_credit."""
 
-    hour: Hour
-    p_sch_mw: Float
-    clearing_price_per_mwh: Float
-    energy_charge: Float
-    import_mwh: Float
-    deviation_mwh: NonNeg
-    under_import_mwh: NonNeg
-    deviation_penalty: NonNeg
-    deviation_credit: NonNeg
-    total: Float
-    missing: Bool
-    missing_subperiods: Annotated[int, Strict(), Field(ge=0, le=MAX_SUBPERIODS)]
+    hour: Annotated[Hour, Field(description="the hour, 1..24")]
+    p_sch_mw: Annotated[Float, Field(description="the award P_sch, MW")]
+    clearing_price_per_mwh: Annotated[Float, Field(description="the clearing price, $/MWh")]
+    energy_charge: Annotated[Float, Field(description="$: clearing price x award x 1 h")]
+    import_mwh: Annotated[Float, Field(description=(
+        "the settled import, MWh: metered sub-periods as reported, missing ones at the registered max import"))]
+    deviation_mwh: Annotated[NonNeg, Field(description="MWh: the sum over sub-periods of max(P_M - P_sch, 0) dt")]
+    under_import_mwh: Annotated[NonNeg, Field(description=(
+        "MWh: the sum over metered sub-periods of max(P_sch - P_M, 0) dt"))]
+    deviation_penalty: Annotated[NonNeg, Field(description="$: penalty rate x deviation_mwh")]
+    deviation_credit: Annotated[NonNeg, Field(description="$: credit rate x under_import_mwh")]
+    total: Annotated[Float, Field(description="$: energy_charge + deviation_penalty - deviation_credit")]
+    missing: Annotated[Bool, Field(description=(
+        "true if a sub-period of the hour was settled by the missing-report rule"))]
+    missing_subperiods: Annotated[int, Strict(), Field(ge=0, le=MAX_SUBPERIODS), Field(description=(
+        "how many sub-periods were"))]
 
     @model_validator(mode="after")
     def _adds_up(self):
@@ -277,17 +316,19 @@ class StatementLine(_WireModel):
 class SettlementStatement(_FromDmo):
     """Phase 6, DMO -> one agent: its itemised bill, 24 lines and their totals (each the sum of its lines)."""
 
-    kind: Literal["settlement_statement"] = "settlement_statement"
-    agent: AgentId
-    penalty_per_mwh: NonNeg
-    credit_per_mwh: NonNeg
-    rules_version: Annotated[int, Strict(), Field(ge=1, le=10_000)]
-    lines: Annotated[tuple[StatementLine, ...], Field(min_length=HOURS, max_length=HOURS)]
-    energy_charge: Float
-    deviation_penalty: NonNeg
-    deviation_credit: NonNeg
-    total: Float
-    missing_subperiods: Count
+    kind: Annotated[Literal["settlement_statement"], Field(description=KIND)] = "settlement_statement"
+    agent: Annotated[AgentId, Field(description="the agent settled (the key names it too)")]
+    penalty_per_mwh: Annotated[NonNeg, Field(description="the penalty rate applied, $/MWh")]
+    credit_per_mwh: Annotated[NonNeg, Field(description="the credit rate applied, $/MWh")]
+    rules_version: Annotated[int, Strict(), Field(ge=1, le=10_000), Field(description=(
+        "the version of the settlement rules applied"))]
+    lines: Annotated[tuple[StatementLine, ...], Field(min_length=HOURS, max_length=HOURS), Field(description=(
+        "24 lines, hours 1..24 in order"))]
+    energy_charge: Annotated[Float, Field(description="$: the sum of the lines'")]
+    deviation_penalty: Annotated[NonNeg, Field(description="$: the sum of the lines'")]
+    deviation_credit: Annotated[NonNeg, Field(description="$: the sum of the lines'")]
+    total: Annotated[Float, Field(description="$: the sum of the lines', what the agent owes (negative: is owed)")]
+    missing_subperiods: Annotated[Count, Field(description="the sum of the lines'")]
 
     @model_validator(mode="after")
     def _adds_up(self):
@@ -308,31 +349,36 @@ def _check_sum(stated: float, computed: float, name: str) -> None:
 
 
 class AgentTotals(_WireModel):
-    energy_charge: Float
-    deviation_penalty: NonNeg
-    deviation_credit: NonNeg
-    total: Float
+    """One agent's line of the day summary: the totals of its settlement statement."""
+
+    energy_charge: Annotated[Float, Field(description="$, as in the agent's statement")]
+    deviation_penalty: Annotated[NonNeg, Field(description="$, as in the agent's statement")]
+    deviation_credit: Annotated[NonNeg, Field(description="$, as in the agent's statement")]
+    total: Annotated[Float, Field(description="$, as in the agent's statement")]
 
 
 class Incident(_WireModel):
     """Something that went wrong during the day: a late, missing or vanished agent, a rejected message."""
 
-    agent: AgentId | None
-    phase: Phase
-    hour: Hour | None
-    reason: Text
+    agent: Annotated[AgentId | None, Field(description="the agent concerned, or null")]
+    phase: Annotated[Phase, Field(description="the phase it happened in")]
+    hour: Annotated[Hour | None, Field(description="the real-time hour it happened in, or null")]
+    reason: Annotated[Text, Field(description="what happened, one line")]
 
 
 class DaySummary(_FromDmo):
     """Phase 6, DMO -> all: the day's outcome, once every statement is out."""
 
-    kind: Literal["day_summary"] = "day_summary"
-    agents: Annotated[tuple[AgentId, ...], Field(max_length=MAX_AGENTS)]
-    clearing_price_per_mwh: Hourly
+    kind: Annotated[Literal["day_summary"], Field(description=KIND)] = "day_summary"
+    agents: Annotated[tuple[AgentId, ...], Field(max_length=MAX_AGENTS), Field(description=(
+        "the registered agents, sorted"))]
+    clearing_price_per_mwh: Annotated[Hourly, Field(description="24 hourly clearing prices, $/MWh")]
     totals: Annotated[dict[Annotated[str, Strict(), Field(pattern=NAME_PATTERN)], AgentTotals],
-                      Field(max_length=MAX_AGENTS)]
-    rejected_messages: Count
-    incidents: Annotated[tuple[Incident, ...], Field(max_length=10_000)]
+                      Field(max_length=MAX_AGENTS,
+                            description="agent -> the totals of its statement; registered agents only")]
+    rejected_messages: Annotated[Count, Field(description="how many received payloads the DMO refused during the day")]
+    incidents: Annotated[tuple[Incident, ...], Field(max_length=10_000), Field(description=(
+        "what went wrong during the day: late, missing or vanished agents, rejections (at most 10,000)"))]
 
     @model_validator(mode="after")
     def _known_agents(self):
@@ -345,15 +391,18 @@ class DaySummary(_FromDmo):
 class Rejection(_FromDmo):
     """DMO -> recorder: a received payload was refused; says which, where and why, so the recording keeps it."""
 
-    kind: Literal["rejection"] = "rejection"
-    key: Annotated[str, Strict(), Field(min_length=1, max_length=512)]
-    code: RejectCode
-    reason: Text
-    offender: AgentId | None = None
-    rejected_kind: Annotated[str, Strict(), Field(max_length=64)] | None = None
-    payload_size: Count
-    payload_sha256: Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$")]
-    received_at: Timestamp
+    kind: Annotated[Literal["rejection"], Field(description=KIND)] = "rejection"
+    key: Annotated[str, Strict(), Field(min_length=1, max_length=512), Field(description=(
+        "the key the refused payload arrived on"))]
+    code: Annotated[RejectCode, Field(description="why, as a category")]
+    reason: Annotated[Text, Field(description="why, one line")]
+    offender: Annotated[AgentId | None, Field(description="the agent the key names, or null")] = None
+    rejected_kind: Annotated[Annotated[str, Strict(), Field(max_length=64)] | None, Field(description=(
+        "the kind the payload claimed, or null"))] = None
+    payload_size: Annotated[Count, Field(description="the payload's size, bytes")]
+    payload_sha256: Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$"), Field(description=(
+        "the payload's SHA-256, hex"))]
+    received_at: Annotated[Timestamp, Field(description="the DMO's clock on receipt, ns since the Unix epoch")]
 
 
 MODELS: dict[str, type[Envelope]] = {

@@ -13,8 +13,8 @@ from scenarios.case import load_case
 
 from ..operator.config import DayConfig, draw_islanding
 from ..operator.day import MarketDay
-from .flags import (add_bus_flags, add_day_flags, add_fault_flags, bus_config, message_faults, nonneg_float,
-                    positive_int, setup_logging, today)
+from .flags import (add_bus_flags, add_day_flags, add_fault_flags, agent_ids, bus_config, credentials_for,
+                    message_faults, nonneg_float, positive_int, setup_logging, today)
 
 HELP = "the market operator role alone (the Zenoh router by default)"
 log = logging.getLogger("dmosim")
@@ -22,6 +22,8 @@ log = logging.getLogger("dmosim")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--agents", type=positive_int, required=True, help="agents to wait for at registration")
+    p.add_argument("--fleet", help="fleet TOML file naming the agents the credentials are made for (default: "
+                                   "mg1..mgN)")
     p.add_argument("--run-id", default="day", help="key prefix shared with the agents (default: day)")
     add_day_flags(p)
     p.add_argument("--credit", type=nonneg_float, default=0.0, help="$/MWh credited below the award (default: 0)")
@@ -54,6 +56,7 @@ def day_config(args) -> DayConfig:
 def run(args) -> int:
     setup_logging("dmo", args.quiet)
     config = day_config(args)
+    credentials_for(args, args.run_id, agent_ids(args.fleet, args.agents), dmo_client=False)
     progress = lambda phase, hour: log.info("phase %s%s", phase, f" hour {hour}/24" if hour else "")  # noqa: E731
     with Bus(args.run_id, "dmo", bus_config(args, "router", "dmo", args.run_id)) as bus:
         bus.faults = message_faults(args, bus)

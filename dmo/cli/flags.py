@@ -15,13 +15,16 @@ from pathlib import Path
 
 from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import MODES, BusConfig
-from messages.transport.access import auth_settings
+from messages.transport.access import READERS, USERS_FILE, auth_settings
+from messages.transport.credentials import create_auth_dir
 from messages.transport.faults import FaultSpecError, injector
+from scenarios.fleet import FleetError, load_fleet, make_fleet
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 
 from .console import UsageError
 
 log = logging.getLogger("dmosim")
+DEFAULT_CREDENTIALS = "dmosim-credentials"  # where a router that was given none makes its run's credentials
 
 
 # --- value types: each raises ArgumentTypeError, which the parser turns into one line and exit 2 ----------------
@@ -126,6 +129,9 @@ def add_bus_flags(parser: argparse.ArgumentParser) -> None:
                            "client its bundle DIR/<its name>; without it the process joins, or serves, an open network")
     auth.add_argument("--user", metavar="NAME", help="log in as NAME (default: this process's name)")
     auth.add_argument("--password-file", metavar="FILE", help="file holding the password (instead of --auth-dir)")
+    auth.add_argument("--insecure", action="store_true",
+                      help="serve or join an open network: no credentials, no access control (trusted networks "
+                           "only). Without it a DMO or router makes the run's credentials itself")
 
 
 def bus_config(args, default_mode: str, name: str | None = None, run_id: str | None = None) -> BusConfig:
@@ -137,12 +143,48 @@ def bus_config(args, default_mode: str, name: str | None = None, run_id: str | N
         auth = auth_settings(args.auth_dir, args.user, args.password_file, name, router=mode == "router",
                              run_id=run_id, endpoints=listen if mode == "router" else connect)
         if mode == "router" and not auth:
-            log.warning("no --auth-dir: anyone who reaches %s may join and publish anything (trusted networks "
-                        "only; docs/security.md)", ", ".join(listen) or "this router")
+            log.warning("%s: anyone who reaches %s may join and publish anything (trusted networks only; "
+                        "docs/security.md)", "--insecure" if args.insecure else "no --auth-dir",
+                        ", ".join(listen) or "this router")
         return BusConfig(mode=mode, connect=connect, listen=listen, lease_s=args.lease,
                          connect_timeout_s=args.connect_timeout, config_file=args.zenoh_config, overrides=auth)
     except ValueError as exc:  # AuthError is one
         raise UsageError(str(exc)) from None
+
+
+def agent_ids(fleet: str | None, agents: int) -> list[str]:
+    """The agents of a run: those a fleet file names, else mg1..mgN."""
+    try:
+        return [m.id for m in (load_fleet(fleet) if fleet else make_fleet(agents))]
+    except FleetError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -> None:
+    """Secure by default: a router that hosts a run (the DMO, ``dmosim router``, ``replay --as-dmo``) given no
+    ``--auth-dir``, or one that does not exist yet, makes the run's credentials there itself (by default
+    ``./dmosim-credentials/<run_id>/``) and says where every process's bundle is; ``args.auth_dir`` then names
+    them. ``--insecure`` serves an open network instead. A client logs in with the bundle it is given."""
+    if args.insecure:
+        if args.auth_dir:
+            raise UsageError("--insecure and --auth-dir exclude each other: choose an open network or credentials")
+        return
+    if (args.mode or "router") != "router" or args.password_file or args.user:
+        return
+    where = Path(args.auth_dir) if args.auth_dir else Path(DEFAULT_CREDENTIALS) / run_id
+    if (where / USERS_FILE).is_file():
+        args.auth_dir = str(where)
+        return
+    try:
+        create_auth_dir(where, run_id, agents, dmo_client=dmo_client)
+    except ValueError as exc:  # AuthError is one
+        raise UsageError(f"cannot make the run's credentials in {where}: {exc}") from None
+    args.auth_dir = str(where)
+    endpoint = (tuple(args.listen) or ("ENDPOINT",))[0]
+    print(f"dmosim: made the credentials of run {run_id} in {where}: each process logs in with its bundle "
+          f"{where}/<name>/ ({', '.join([*(['dmo'] if dmo_client else []), *READERS, *agents])}), e.g. dmosim "
+          f"agent --id {agents[0]} --run-id {run_id} --connect {endpoint} --auth-dir {where}; copy to each host only "
+          "its own bundle (docs/security.md). --insecure serves an open network instead", file=sys.stderr)
 
 
 def setup_logging(role: str, quiet: bool = False) -> None:

@@ -6,7 +6,9 @@ import argparse
 import datetime as dt
 import json
 
-from messages.recording import Recording
+from messages.recording import BACKFILL_METADATA, Recording
+
+from ..replay.resettle import gaps
 
 from .console import print_json
 from .flags import load_recording
@@ -48,6 +50,8 @@ def describe(rec: Recording) -> dict:
         "start": _iso(min(times)) if times else None, "end": _iso(max(times)) if times else None,
         "duration_s": round((max(times) - min(times)) / 1e9, 3) if times else 0.0,
         "messages": len(rec.messages), "invalid_messages": invalid,
+        "backfilled_messages": _int(rec.other_metadata.get(BACKFILL_METADATA, {}).get("messages", 0)),
+        "missing": gaps(rec),
         "chunks": rec.chunks, "compression": sorted(rec.compression),
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)} for a in rec.attachments],
         "channels": [{"key": c.relative_key, "messages": c.messages, "schema": c.schema_name,
@@ -94,6 +98,13 @@ def render(info: dict) -> str:
     rows.append(f"messages:    {info['messages']} on {len(info['channels'])} channels"
                 + (f", {info['invalid_messages']} invalid" if info["invalid_messages"] else "")
                 + f"; {info['chunks']} chunks ({', '.join(info['compression']) or '-'})")
+    if info["backfilled_messages"]:
+        rows.append(f"backfilled:  {info['backfilled_messages']} messages from before the recorder joined, given by "
+                    "the DMO's history")
+    if info["missing"]:
+        rows += [f"missing:     {gap}" for gap in info["missing"]]
+    else:
+        rows.append("missing:     nothing: every registration, award, metered hour, statement and the day summary")
     if info["attachments"]:
         rows.append("attachments: " + ", ".join(f"{a['name']} ({a['bytes']:,} bytes)" for a in info["attachments"]))
     width = max([len("channel")] + [len(c["key"]) for c in info["channels"]])

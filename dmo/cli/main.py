@@ -12,7 +12,7 @@ import sys
 
 from scenarios.case import CaseError
 
-from . import agent, bench, credentials, dmo, info, record, replay, router, run, settle, solve, study
+from . import agent, bench, credentials, dmo, info, record, replay, router, run, schemas, settle, solve, study
 from .console import UsageError
 
 DESCRIPTION = ("A distribution market operator and its microgrid agents as processes over Zenoh: run market days, "
@@ -22,7 +22,8 @@ EXIT_FAILURE = 1
 
 # In the order `dmosim --help` lists them: the whole day, its roles, the scheduling model, recordings, benchmarks.
 VERBS = {"run": run, "dmo": dmo, "agent": agent, "record": record, "router": router, "credentials": credentials,
-         "solve": solve, "study": study, "info": info, "replay": replay, "settle": settle, "bench": bench}
+         "solve": solve, "study": study, "info": info, "replay": replay, "settle": settle, "schemas": schemas,
+         "bench": bench}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -54,6 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of stdout went away (dmosim info ... | head): nothing left to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except Exception as exc:  # a runtime failure: one line, unless DMOSIM_DEBUG asks for the traceback
         if os.environ.get("DMOSIM_DEBUG"):
             raise

@@ -7,10 +7,11 @@ import logging
 import mimetypes
 import signal
 import threading
+import time
 from pathlib import Path
 
 from messages.keys import check_run_id
-from messages.recording import CHUNK_MESSAGES, FLUSH_INTERVAL_S, Recorder, RecordingWriter
+from messages.recording import BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, Recorder, RecordingWriter
 from messages.transport import Bus
 
 from .console import UsageError
@@ -33,6 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--flush-interval", type=nonneg_float, default=FLUSH_INTERVAL_S, metavar="S",
                    help=f"close a chunk at least this often, seconds (default: {FLUSH_INTERVAL_S:g})")
     p.add_argument("--ready-file", metavar="PATH", help="write this file once the recorder listens")
+    p.add_argument("--no-backfill", action="store_true",
+                   help="record only what arrives from now on; by default the recorder first asks the DMO for what "
+                        "the run said before it joined (docs/recording.md, \"Late joiners\")")
     p.add_argument("--quiet", action="store_true")
     add_bus_flags(p)
 
@@ -73,7 +77,7 @@ def run(args) -> int:
         raise UsageError(str(exc)) from None
     out = recording_path(args.out, args.overwrite)
     meta, attachments = parse_meta(args.meta), read_attachments(args.attach)
-    config = bus_config(args, "client", "recorder")
+    config = bus_config(args, "client", "recorder")  # a reader of another name logs in and announces as --user
 
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
@@ -81,9 +85,11 @@ def run(args) -> int:
     writer = RecordingWriter(out, args.run_id, chunk_messages=args.chunk_messages, flush_interval_s=args.flush_interval)
     try:
         writer.start(meta, attachments)
-        with Bus(args.run_id, "recorder", config, announce=False) as bus:
+        with Bus(args.run_id, args.user or "recorder", config, announce=False) as bus:
             recorder = Recorder(bus, writer)
-            recorder.start()
+            if recorder.start(backfill=not args.no_backfill):
+                writer.add_metadata(BACKFILL_METADATA, {"messages": recorder.backfilled, "source": "dmo history",
+                                                        "joined_at_ns": time.time_ns()})
             log.info("recording %s/** to %s", bus.keys.prefix, out)
             if args.ready_file:
                 Path(args.ready_file).write_text(str(out) + "\n")

@@ -21,7 +21,8 @@ from messages.transport import Bus
 from ..replay.as_dmo import AsDmo, dmo_steps, render
 from ..replay.resettle import ResettleError, recorded_day
 from .console import UsageError, print_json, progress
-from .flags import add_bus_flags, bus_config, load_recording, nonneg_float, recording_path, setup_logging
+from .flags import (add_bus_flags, bus_config, credentials_for, load_recording, nonneg_float, recording_path,
+                    setup_logging)
 
 HELP = "republish a recording over Zenoh under a new run prefix"
 
@@ -125,11 +126,12 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     steps = dmo_steps(rec, agent)
     if rec.cut_note:
         print(f"warning: {args.path}: {rec.cut_note}; playing what was recorded before the cut", file=sys.stderr)
-    config = bus_config(args, "router")
+    credentials_for(args, run_id, [agent], dmo_client=False)
+    config = bus_config(args, "router", run_id=run_id)
     endpoint = (config.listen or config.connect or ("zenoh's default",))[0]
     _say(args, f"playing the DMO of {args.path} ({day.market_day}) under dmosim/{run_id}/ for agent {agent}; start "
                f"it with: dmosim agent --id {agent} --run-id {run_id} --market-day {day.market_day} --connect "
-               f"{endpoint}")
+               f"{endpoint}" + (f" --auth-dir {args.auth_dir}" if args.auth_dir else " --insecure"))
     writer = RecordingWriter(out, run_id) if out else None
     recorder_stop, recorder_thread = threading.Event(), None
     try:
@@ -140,7 +142,7 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
                               "source_run_id": rec.run_id, "market_day": day.market_day, "agents": agent},
                              [(a.name, a.media_type, a.data) for a in rec.attachments])
                 recorder = Recorder(bus, writer, announce=False)
-                recorder.start()
+                recorder.start(backfill=False)  # this process is the day's DMO: nothing to ask it
                 recorder_thread = threading.Thread(target=recorder.run, args=(recorder_stop,), name="recorder")
                 recorder_thread.start()
             driver = AsDmo(bus, day, agent, steps, args.timeout)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..replay.resettle import ResettleError, as_message, compare, recorded_day, resettle
+from ..replay.resettle import ResettleError, as_message, compare, gaps, recorded_day, resettle
 from .console import UsageError, print_json
 from .flags import load_recording, nonneg_float
 
@@ -33,7 +33,9 @@ def run(args) -> int:
         day = recorded_day(rec)
         statements = resettle(day)
     except (ResettleError, ValueError) as exc:
-        raise UsageError(str(exc) if isinstance(exc, ResettleError) else f"{rec.path}: cannot re-settle: {exc}") from None
+        reason = str(exc) if isinstance(exc, ResettleError) else f"{rec.path}: cannot re-settle: {exc}"
+        lacking = gaps(rec)
+        raise UsageError(reason + (f"; the recording lacks: {'; '.join(lacking)}" if lacking else "")) from None
     if not day.statements and not rates:
         raise UsageError(f"{rec.path}: no settlement statements recorded to compare with"
                          + (f" ({rec.cut_note})" if rec.cut_note else ""))
@@ -42,15 +44,18 @@ def run(args) -> int:
     if rates:
         return _compare_rates(args, day)
     diffs = compare(day, statements)
+    lacking = gaps(rec) if diffs else []
     lines = sum(len(st.lines) for st in statements.values())
     if args.json:
         print_json({"path": rec.path, "complete": rec.complete, "identical": not diffs, "agents": sorted(statements),
                     "lines": lines, "meter_reports_left_out": day.left_out, "differences": diffs,
-                    "totals": {a: float(st.total) for a, st in statements.items()}})
+                    "recording_lacks": lacking, "totals": {a: float(st.total) for a, st in statements.items()}})
     elif diffs:
         print(f"{rec.path}: {len(diffs)} difference(s) between the recorded and the recomputed statements:")
         for d in diffs:
             print(f"  {d}")
+        for gap in lacking:
+            print(f"  the recording lacks: {gap}")
     else:
         print(f"{rec.path}: {len(statements)} statements ({lines} hour lines) re-settled from the recorded awards "
               f"and meter reports: identical to the recorded ones"

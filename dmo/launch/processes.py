@@ -72,6 +72,7 @@ class Role:
     killed_on_purpose: bool = False
     argv: tuple[str, ...] = ()
     env: dict | None = None
+    cwd: Path | None = None
     restarts: int = 0
 
 
@@ -87,14 +88,17 @@ class Roles:
         self.exits: queue.Queue = queue.Queue()
         self._replaced: set[int] = set()  # pids of processes restarted on purpose: their exits are not reported
 
-    def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None) -> Role:
-        role = self.roles[name] = Role(name, self._spawn(name, argv, log, env, "w"), log, argv=tuple(argv), env=env)
+    def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None,
+              cwd: Path | None = None) -> Role:
+        role = Role(name, self._spawn(name, argv, log, env, cwd, "w"), log, argv=tuple(argv), env=env, cwd=cwd)
+        self.roles[name] = role
         return role
 
-    def _spawn(self, name: str, argv, log: Path | None, env: dict | None, mode: str) -> subprocess.Popen:
+    def _spawn(self, name: str, argv, log: Path | None, env: dict | None, cwd: Path | None,
+               mode: str) -> subprocess.Popen:
         out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
         process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
-                                   stderr=out or None, start_new_session=True, env=env)
+                                   stderr=out or None, start_new_session=True, env=env, cwd=cwd)
 
         def waiter():
             code = process.wait()
@@ -114,7 +118,7 @@ class Roles:
         _signal_group(old, signal.SIGKILL)
         old.wait()
         role.restarts += 1
-        role.process = self._spawn(name, role.argv, role.log, role.env, "a")
+        role.process = self._spawn(name, role.argv, role.log, role.env, role.cwd, "a")
 
     def kill(self, name: str) -> None:
         """SIGKILL one role (fault injection)."""

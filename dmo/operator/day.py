@@ -29,7 +29,8 @@ from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_award
 from ..market.settlement import DayTotals, Statement, settle
 from . import outbox, rejoin
 from .config import DayConfig
-from .journal import Journal, restore
+from .history import DayHistory
+from .journal import Journal, restore, traffic
 from .state import DayState
 
 log = logging.getLogger("dmosim.dmo")
@@ -85,8 +86,10 @@ class MarketDay:
         self._grid: GridState | None = None  # the current hour's, re-sent to an agent that rejoins
         self._bids_due = 0.0
         self.journal: Journal | None = None
+        self.history = DayHistory()
         self._resumed: tuple[str, int | None] | None = None
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
+        bus.tap = self._traffic
 
     # --- the phases --------------------------------------------------------------------------------------------
 
@@ -96,6 +99,7 @@ class MarketDay:
         if self.config.journal:
             self.journal = Journal(self.config.journal, self.bus.keys.run_id, self.config.market_day)
             self._resumed = restore(self.state, self.journal.entries)
+            self.history = DayHistory(traffic(self.journal.entries))
             if self._resumed is not None:
                 log.warning("resuming the day from %s: %s, %d accepted messages", self.journal.path,
                             _when(*self._resumed), sum(self.state.accepted.values()))
@@ -287,6 +291,13 @@ class MarketDay:
         self.bus.subscribe(f"{self.bus.keys.prefix}/agent/**", lambda k, m, t: self.events.put(("msg", k, m, t)))
         self.bus.watch_presence(lambda name: self.events.put(("join", name)),
                                 lambda name: self.events.put(("leave", name)))
+        self.bus.serve(self.bus.keys.everything(), self.history.answer)
+
+    def _traffic(self, key: str, payload: bytes, at: int) -> None:
+        """Every payload sent or received (the bus's tap, on Zenoh's threads too): kept for late joiners."""
+        self.history.record(key, payload, at)
+        if self.journal is not None:
+            self.journal.traffic(key, payload, at)
 
     def _publish(self, msg) -> None:
         self.bus.publish(msg)

@@ -1,14 +1,17 @@
 """The DMO's journal of its day, and how a restarted DMO rebuilds the day from it (docs/faults.md).
 
 One JSON object a line, written as it goes: every clock step, every message the DMO accepted, every incident and
-rejection. Each line reaches the OS at once, so a DMO killed with SIGKILL loses nothing it had acted on. A DMO
-restarted on the same journal, run and market day reads it back (``restore``) and runs again the phase, or the
-real-time hour, it had reached; a journal of another run or day is started afresh.
+rejection, and its traffic (every payload sent or received, for late joiners: history.py). Each line reaches the
+OS at once, so a DMO killed with SIGKILL loses nothing it had acted on. A DMO restarted on the same journal, run
+and market day reads it back (``restore``, ``traffic``) and runs again the phase, or the real-time hour, it had
+reached; a journal of another run or day is started afresh.
 """
 
 from __future__ import annotations
 
+import base64
 import json
+import threading
 from pathlib import Path
 
 from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, encode
@@ -34,11 +37,15 @@ class Journal:
                 except ValueError:  # a line cut by the kill: the ones before it stand
                     break
         self._file = open(self.path, "a" if self.entries else "w", buffering=1)  # noqa: SIM115  (closed by close)
+        self._lock = threading.Lock()  # traffic is written from Zenoh's threads, the rest from the DMO's
         if not self.entries:
             self.write(self.head)
 
     def write(self, entry: dict) -> None:
-        self._file.write(json.dumps(entry, separators=(",", ":")) + "\n")
+        line = json.dumps(entry, separators=(",", ":")) + "\n"
+        with self._lock:
+            if not self._file.closed:
+                self._file.write(line)
 
     def clock(self, phase: str, hour: int | None) -> None:
         self.write({"clock": phase, "hour": hour})
@@ -52,8 +59,12 @@ class Journal:
     def rejected(self, code: str) -> None:
         self.write({"rejected": code})
 
+    def traffic(self, key: str, payload: bytes, at: int) -> None:
+        self.write({"traffic": key, "at": at, "payload": base64.b64encode(payload).decode("ascii")})
+
     def close(self) -> None:
-        self._file.close()
+        with self._lock:
+            self._file.close()
 
 
 def restore(state: DayState, entries: list[dict]) -> tuple[str, int | None] | None:
@@ -84,3 +95,8 @@ def restore(state: DayState, entries: list[dict]) -> tuple[str, int | None] | No
     if clock is not None:
         state.phase, state.hour = clock
     return clock
+
+
+def traffic(entries: list[dict]) -> list[tuple[str, bytes, int]]:
+    """The traffic a journal holds, as (key, payload, ns) in the order it happened."""
+    return [(e["traffic"], base64.b64decode(e["payload"]), e["at"]) for e in entries if "traffic" in e]

@@ -55,20 +55,67 @@ def market_day_of(rec: Recording) -> str | None:
     return clocks[0][1].market_day if clocks else None
 
 
+def _decoded(rec: Recording, day: str | None, kind: str) -> list:
+    """The valid messages of one kind as the receivers read them: of this day, and from the key's owner to the
+    key's addressee."""
+    return [(m, msg) for m, msg in rec.decoded(kind)
+            if (day is None or msg.market_day == day) and sender_matches_key(m.key, msg)]
+
+
+def gaps(rec: Recording) -> list[str]:
+    """What re-settling the day needs that the recording lacks, one line each; empty when nothing is missing.
+
+    A meter report is missing when the agent's recorded statement settled that hour as metered, yet no report
+    for it is recorded; an hour the statement settled as missing was not reported at all, which is no gap."""
+    day = market_day_of(rec)
+    awarded = {msg.agent for _, msg in _decoded(rec, day, "award")}
+    registered = {msg.sender for _, msg in _decoded(rec, day, "registration")}
+    statements = {}
+    for _, msg in _decoded(rec, day, "settlement_statement"):
+        statements.setdefault(msg.agent, msg)
+    metered: dict[str, set[int]] = {}
+    for _, msg in _decoded(rec, day, "meter_report"):
+        metered.setdefault(msg.sender, set()).add(msg.hour)
+    named = {a for a in rec.metadata.get("agents", "").split(",") if a}
+    out = [] if awarded else ["no award recorded"]
+    for agent in sorted(named | awarded | registered | set(statements)):
+        lacks = [what for what, present in (("registration", registered), ("award", awarded),
+                                            ("statement", statements)) if agent not in present]
+        if lacks:
+            out.append(f"{agent}: no {', no '.join(lacks)} recorded")
+        if agent in statements:
+            hours = [line.hour for line in statements[agent].lines
+                     if not line.missing and line.hour not in metered.get(agent, ())]
+            if hours:
+                out.append(f"{agent}: no meter report recorded for hour(s) {_ranges(hours)}, which its statement "
+                           "settled as metered")
+    if not _decoded(rec, day, "day_summary"):
+        out.append("no day summary recorded")
+    return out
+
+
+def _ranges(hours: list[int]) -> str:
+    """1, 2, 3, 5 -> "1-3, 5"."""
+    runs: list[list[int]] = []
+    for h in sorted(hours):
+        if runs and h == runs[-1][-1] + 1:
+            runs[-1].append(h)
+        else:
+            runs.append([h])
+    return ", ".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else str(r[0]) for r in runs)
+
+
 def recorded_day(rec: Recording) -> RecordedDay:
     day = market_day_of(rec)
 
     def decoded(kind: str) -> list:
-        # as the receivers read them: of this day, and from the key's owner to the key's addressee
-        return [(m, msg) for m, msg in rec.decoded(kind)
-                if (day is None or msg.market_day == day) and sender_matches_key(m.key, msg)]
+        return _decoded(rec, day, kind)
 
     awards: dict[str, Award] = {}
     for _, msg in decoded("award"):
         awards.setdefault(msg.agent, msg)  # the DMO awards each agent once
     if not awards:
-        raise ResettleError(f"{rec.path}: no awards recorded" + (f" ({rec.cut_note})" if rec.cut_note else
-                                                                 ": not a recorded market day"))
+        raise ResettleError(f"{rec.path}: no awards recorded" + (f" ({rec.cut_note})" if rec.cut_note else ""))
     first = next(iter(awards.values()))
     for a in awards.values():
         for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", "clearing_price_per_mwh"):

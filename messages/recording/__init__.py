@@ -2,12 +2,12 @@
 reading a possibly cut file (reader.py), comparing contents (compare.py) and replaying them over Zenoh (player.py)."""
 
 from .compare import content_signature
-from .layout import CHUNK_MESSAGES, FLUSH_INTERVAL_S, INVALID_KEY, METADATA_NAME, versions
+from .layout import BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, INVALID_KEY, METADATA_NAME, versions
 from .player import Player, PlayStats, select
 from .reader import ChannelInfo, RecordedMessage, Recording, RecordingError, read_recording
 from .recorder import Recorder
 from .writer import RecordingWriter
 
-__all__ = ["CHUNK_MESSAGES", "FLUSH_INTERVAL_S", "INVALID_KEY", "METADATA_NAME", "ChannelInfo", "PlayStats", "Player",
+__all__ = ["BACKFILL_METADATA", "CHUNK_MESSAGES", "FLUSH_INTERVAL_S", "INVALID_KEY", "METADATA_NAME", "ChannelInfo", "PlayStats", "Player",
            "RecordedMessage", "Recorder", "Recording", "RecordingError", "RecordingWriter", "content_signature",
            "read_recording", "select", "versions"]

@@ -29,6 +29,7 @@ MAGIC = b"\x89MCAP0\r\n"
 MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
 METADATA_NAME = "dmosim"
+BACKFILL_METADATA = "dmosim.backfill"  # a late recorder's record of what the DMO's history gave it
 INVALID_KEY = "recorder/invalid"        # relative to the run prefix; not a key anyone publishes on
 INVALID_SCHEMA_NAME = "dmosim.invalid_payload"
 ANY_SCHEMA_NAME = "dmosim.any"

@@ -1,13 +1,16 @@
-"""The recorder's loop: every payload under one run prefix, as it arrived, valid or not, into a RecordingWriter."""
+"""The recorder's loop: every payload under one run prefix, as it arrived, valid or not, into a RecordingWriter;
+and, for a recorder that joins late, what the run said before it joined, asked of the DMO (``backfill``)."""
 
 from __future__ import annotations
 
+import collections
 import logging
 import queue
 import threading
 import time
 from typing import Callable
 
+from ..keys import HISTORY
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
@@ -17,8 +20,9 @@ class Recorder:
     """Records every payload under one run prefix, as it arrived, valid or not: Zenoh's threads only enqueue,
     and ``run`` writes on the calling thread until ``stop`` is set, then drains the queue and closes the file.
 
-    The liveliness token ``alive/recorder`` is declared after the subscription, so whoever sees the recorder
-    present (the DMO waits for it) knows that it is already listening.
+    The liveliness token ``alive/<name>`` (``alive/recorder`` for ``dmosim record``) is declared after the
+    subscription and the backfill, so whoever sees the recorder present (the DMO waits for it) knows that it is
+    already listening.
     """
 
     def __init__(self, bus, writer: RecordingWriter, announce: bool = True):
@@ -26,14 +30,46 @@ class Recorder:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._subscription = None
         self._token = None
+        self._live: collections.Counter | None = None  # (key, payload) received live while backfilling
+        self._live_lock = threading.Lock()
+        self.backfilled = 0
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
         self.last_written_ns = 0     # recorder kept up with (its sustained rate is messages / span)
 
-    def start(self) -> None:
-        self._subscription = self.bus.subscribe_raw(self.bus.keys.everything(),
-                                                    lambda key, payload, at: self._queue.put((key, payload, at)))
+    def start(self, backfill: bool = True, timeout_s: float = 10.0) -> int:
+        """Subscribe to the whole run; then, with ``backfill``, ask the DMO for the run's traffic so far and queue
+        what the subscription did not get (``backfilled``, which this returns). Each backfilled payload keeps the
+        time the DMO saw it as its log time."""
+        self._live = collections.Counter() if backfill else None
+        self._subscription = self.bus.subscribe_raw(self.bus.keys.everything(), self._received)
+        if backfill:
+            self.backfilled = self._backfill(timeout_s)
         if self.announce:
-            self._token = self.bus.session.liveliness().declare_token(self.bus.keys.alive("recorder"))
+            self._token = self.bus.session.liveliness().declare_token(self.bus.keys.alive(self.bus.name))
+        return self.backfilled
+
+    def _received(self, key: str, payload: bytes, at: int) -> None:
+        with self._live_lock:
+            if self._live is not None:
+                self._live[key, payload] += 1
+        self._queue.put((key, payload, at, True))
+
+    def _backfill(self, timeout_s: float) -> int:
+        """The DMO's history of the run (dmo/operator/history.py) minus what arrived live meanwhile: a payload the
+        subscription already delivered is in both, once for each time it arrived."""
+        entries = self.bus.fetch(f"{self.bus.keys.everything()}?{HISTORY}", timeout_s)
+        with self._live_lock:
+            live, self._live = self._live, None
+        added = 0
+        for key, payload, at in entries:
+            if live[key, payload] > 0:
+                live[key, payload] -= 1
+                continue
+            self._queue.put((key, payload, at or time.time_ns(), False))
+            added += 1
+        if added:
+            log.info("backfilled %d messages from the DMO's history of run %s", added, self.bus.keys.run_id)
+        return added
 
     def run(self, stop: threading.Event, on_write: Callable[[str, bool], None] | None = None) -> None:
         writer, q = self.writer, self._queue
@@ -62,9 +98,10 @@ class Recorder:
                 self._write(*item, on_write)
             writer.close()
 
-    def _write(self, key: str, payload: bytes, at: int, on_write) -> None:
+    def _write(self, key: str, payload: bytes, at: int, live: bool, on_write) -> None:
         valid = self.writer.write(key, payload, at)
-        self.first_received_ns = self.first_received_ns or at
+        if live:  # a backfilled payload's time is the DMO's, long before this recorder's work
+            self.first_received_ns = self.first_received_ns or at
         self.last_written_ns = time.time_ns()
         if on_write is not None:
             on_write(key, valid)

@@ -68,6 +68,10 @@ class RecordingWriter:
             self._mcap.add_attachment(create_time=now, log_time=now, name=name, media_type=media_type, data=data)
         self._mcap.flush()
 
+    def add_metadata(self, name: str, record: Mapping[str, str]) -> None:
+        """Another metadata record (e.g. ``BACKFILL_METADATA``: what a late recorder was given by the DMO)."""
+        self._mcap.add_metadata(name, {str(k): str(v) for k, v in record.items()})
+
     def write(self, key: str, payload: bytes, log_time: int) -> bool:
         """File one received payload; returns whether it was valid for its key."""
         channel = self._channels.get(key)

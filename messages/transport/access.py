@@ -55,9 +55,11 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
 
     - ``dmo``, with ``dmo_client`` (for a DMO that is a client of a separate router): everything under the run
       prefix. A DMO that is the router itself is not a remote session, and no rule applies to it.
-    - a reader (the recorder): subscribe to everything of the run, publish nothing, announce only itself.
-    - agent X: publish only its own ``agent/X/{register,bid,schedule,meter}``; subscribe to and receive only the
-      public DMO topics and ``dmo/award/X``, ``dmo/statement/X``; announce ``alive/X``; see the DMO's presence.
+    - a reader (the recorder): subscribe to everything of the run and query it (the DMO's history of the day),
+      publish nothing, announce only itself.
+    - agent X: publish only its own ``agent/X/{register,bid,schedule,meter}``; subscribe to, receive and query
+      only the public DMO topics and ``dmo/award/X``, ``dmo/statement/X``; announce ``alive/X``; see the DMO's
+      presence.
 
     Subjects are usernames (``transport/auth/usrpwd``); with ``tls`` a subject must also present a client
     certificate with its name as common name. Zenoh matches a rule only when the rule's key expression includes the
@@ -88,6 +90,9 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
         grant(reader,
               ("subscribe", ("ingress",), ("declare_subscriber",), (f"{prefix}/**",)),
               ("receive", ("egress",), ("put",), (f"{prefix}/**",)),
+              # a late reader asks the DMO for the traffic it missed (dmo/operator/history.py)
+              ("ask", ("ingress",), ("query",), (f"{prefix}/**",)),
+              ("answers", ("egress",), ("reply",), (f"{prefix}/**",)),
               ("announce", ("ingress",), ("liveliness_token",), (f"{alive}/{reader}",)),
               ("watch", ("ingress",), ("declare_liveliness_subscriber", "liveliness_query"), (f"{alive}/*",)),
               ("see", ("egress",), ("liveliness_token",), (f"{alive}/*",)))
@@ -98,6 +103,9 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
               ("publish", ("ingress",), ("put",), [f"{prefix}/agent/{agent}/{topic}" for topic in AGENT_TOPICS]),
               ("subscribe", ("ingress",), ("declare_subscriber",), hears),
               ("receive", ("egress",), ("put",), hears),
+              # ... and may ask the DMO for the latest of what it hears (e.g. the clock, when it joins late)
+              ("ask", ("ingress",), ("query",), hears),
+              ("answers", ("egress",), ("reply",), hears),
               # A client sends a put only where it knows a subscriber: it must learn of the DMO's agent/**.
               ("route", ("egress",), ("declare_subscriber",), (f"{prefix}/agent/**",)),
               ("announce", ("ingress",), ("liveliness_token",), (f"{alive}/{agent}",)),

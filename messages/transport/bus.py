@@ -17,7 +17,7 @@ import threading
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Iterable
 
 import zenoh
 
@@ -34,6 +34,9 @@ MODES = ("peer", "client", "router")
 Handler = Callable[[str, Message, int], None]             # (key, message, received_at ns)
 RawHandler = Callable[[str, bytes, int], None]            # (key, payload, received_at ns)
 RejectHook = Callable[[str, bytes, MessageError], None]   # (key, payload, error: str(error) is the reason)
+Tap = Callable[[str, bytes, int], None]                   # (key, payload, ns): each payload sent or received
+Entry = tuple[str, bytes, int]                            # (key, payload, ns): one reply to a query
+Answer = Callable[[str, str], Iterable[Entry]]            # (key expression asked, parameters) -> replies
 
 
 @dataclass(frozen=True)
@@ -143,6 +146,9 @@ class Bus:
         self._rejected: collections.Counter[str] = collections.Counter()
         # messages/transport/faults.py: a FaultInjector that drops, delays, duplicates or corrupts what this bus publishes
         self.faults = None
+        # called with every payload this bus puts on the wire (after faults) and every one it receives (before it
+        # is decoded): the DMO keeps its day's traffic this way, to answer late joiners (dmo/operator/history.py)
+        self.tap: Tap | None = None
 
     # --- lifetime ----------------------------------------------------------------------------------------
 
@@ -213,9 +219,9 @@ class Bus:
             check_route(key, stamped, self.keys.run_id)
             payload = encode(stamped)
             if self.faults is None:
-                self._publisher(key).put(payload)
+                self._put(key, payload)
             else:
-                self.faults.send(key, payload, lambda k, p: self._publisher(k).put(p))
+                self.faults.send(key, payload, self._put)
             self._seq += 1
             self._published += 1
         return stamped
@@ -225,6 +231,20 @@ class Bus:
         self._own(key)
         self.session.put(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON,
                          congestion_control=zenoh.CongestionControl.BLOCK)
+        self._tapped(key, payload, time.time_ns())
+
+    def _put(self, key: str, payload: bytes) -> None:
+        self._publisher(key).put(payload)
+        self._tapped(key, payload, time.time_ns())
+
+    def _tapped(self, key: str, payload: bytes, at: int) -> None:
+        if self.tap is not None:
+            try:
+                self.tap(key, payload, at)
+            except Exception:
+                with self._state_lock:
+                    self._handler_errors += 1
+                log.exception("%s: tap failed on %s", self.name, key)
 
     def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
         """Wait until someone subscribes to ``key`` (a concrete key), so a first message is not sent into the void."""
@@ -261,6 +281,7 @@ class Bus:
             if sample.kind != zenoh.SampleKind.PUT:
                 return
             key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            self._tapped(key, payload, received_at)
             try:
                 msg = decode(payload, expected_kind=parse_key(key).kind)
                 check_route(key, msg, self.keys.run_id)
@@ -285,8 +306,10 @@ class Bus:
             received_at = time.time_ns()
             if sample.kind != zenoh.SampleKind.PUT:
                 return
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            self._tapped(key, payload, received_at)
             try:
-                handler(str(sample.key_expr), sample.payload.to_bytes(), received_at)
+                handler(key, payload, received_at)
             except Exception:
                 with self._state_lock:
                     self._handler_errors += 1
@@ -321,6 +344,46 @@ class Bus:
     def _own(self, key: str) -> None:
         if not str(key).startswith(self.keys.prefix + "/"):
             raise ValueError(f"key {key!r} is outside this run's prefix {self.keys.prefix}/")
+
+    # --- queries ---------------------------------------------------------------------------------------
+
+    def serve(self, pattern: str, answer: Answer) -> Subscription:
+        """Answer queries on keys matching ``pattern``: ``answer(key_expr, parameters)`` gives the replies, each
+        (key, payload, ns); the time travels as the reply's attachment, 8 bytes big-endian. A reply whose key
+        does not intersect the query's is skipped (Zenoh refuses it)."""
+        def on_query(query: zenoh.Query) -> None:
+            try:
+                asked = str(query.key_expr)
+                for key, payload, at in answer(asked, str(query.parameters)):
+                    if zenoh.KeyExpr(asked).intersects(zenoh.KeyExpr(key)):
+                        query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON,
+                                    attachment=int(at).to_bytes(8, "big"))
+            except Exception:
+                with self._state_lock:
+                    self._handler_errors += 1
+                log.exception("%s: answering a query on %s failed", self.name, pattern)
+            finally:
+                query.drop()
+
+        self._own(pattern)
+        subscription = Subscription(self, self.session.declare_queryable(pattern, on_query))
+        with self._state_lock:
+            self._subscriptions.append(subscription)
+        return subscription
+
+    def fetch(self, selector: str, timeout_s: float = 5.0) -> list[tuple[str, bytes, int | None]]:
+        """Query ``selector`` (a key expression of this run, with ``?parameters`` if any) and return every reply
+        as (key, payload, ns or None), in the order they came; none if nobody answers."""
+        self._own(selector.split("?", 1)[0])
+        out = []
+        for reply in self.session.get(selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE):
+            sample = reply.ok
+            if sample is None:
+                log.info("%s: an error reply to %s: %s", self.name, selector, reply.err)
+                continue
+            at = sample.attachment.to_bytes() if sample.attachment is not None else b""
+            out.append((str(sample.key_expr), sample.payload.to_bytes(), int.from_bytes(at, "big") if at else None))
+        return out
 
     # --- presence ----------------------------------------------------------------------------------------
 

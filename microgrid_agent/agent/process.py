@@ -1,8 +1,9 @@
 """A microgrid agent's market day over a Bus: register, bid, schedule against the award, operate hour by hour.
 
 Zenoh's callback threads only enqueue what arrives; the agent handles it in order on its main thread, so a long
-solve delays, but never reorders or drops, what comes next. The agent ends with the DMO's day summary, or when
-it hears nothing for ``idle_s``.
+solve delays, but never reorders or drops, what comes next. The agent ends once it has the DMO's day summary and
+its own statement (if the summary comes first, it asks the DMO for the statement and waits ``statement_s``, then
+says it gave up), or when it hears nothing for ``idle_s``.
 
 What the DMO sends is handled idempotently: a repeated call for bids or award, or the grid state of an hour
 already operated, changes nothing. A grid state after a gap (the agent restarted, or lost the DMO for a while)
@@ -22,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MeterReport, Registration,
-                      Rejection, Schedule, SettlementStatement, encode)
+from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
+                      Registration, Rejection, Schedule, SettlementStatement, check_route, decode, encode)
 from scenarios.case import Case
 from scenarios.generation import forecast_scenario, make_scenarios, sample
 from scenarios.horizon import HOURS
@@ -51,6 +52,7 @@ class AgentConfig:
     idle_s: float = 3600.0
     method: str = "auto"
     workers: int = 1
+    statement_s: float = 30.0  # after the day summary, how long to wait for the agent's own statement
 
 
 class AgentTimeout(RuntimeError):
@@ -104,10 +106,34 @@ class MicrogridAgent:
             ended = self._answering or (time.perf_counter(), time.process_time())
             self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None),
                                  "wall_s": ended[0] - started[0], "cpu_s": ended[1] - started[1]})
+        if self.statement is None:
+            self._await_statement()
         # One line, so a benchmark can split the day's wall time into the agents' computation and the rest.
         log.info("%s compute %s", self.id, json.dumps(self.compute, separators=(",", ":")))
         log.info("%s messages %s", self.id, json.dumps(self.message_counts(), separators=(",", ":")))
         return self.summary
+
+    def _await_statement(self) -> None:
+        """The summary came before the agent's own statement (messages on different keys may overtake each other,
+        or the statement was lost): ask the DMO for it, then wait up to ``statement_s``; say so if it never came."""
+        k = self.bus.keys
+        for key, payload, _ in self.bus.fetch(k.statement(self.id), timeout_s=min(5.0, self.config.statement_s)):
+            try:
+                msg = decode(payload, expected_kind="settlement_statement")
+                check_route(key, msg, k.run_id)
+            except MessageError as err:
+                log.warning("%s: the DMO's answer for my statement is refused: %s", self.id, err)
+                continue
+            self.events.put(msg)
+        deadline = time.monotonic() + self.config.statement_s
+        while self.statement is None and (left := deadline - time.monotonic()) > 0:
+            try:
+                self._handle(self.events.get(timeout=left))
+            except queue.Empty:
+                break
+        if self.statement is None:
+            log.warning("%s: gave up waiting for my settlement statement %g s after the day summary", self.id,
+                        self.config.statement_s)
 
     def message_counts(self) -> dict:
         """What the agent received and refused (transport), handled as no-ops, and injected as faults."""

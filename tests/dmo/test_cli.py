@@ -11,11 +11,13 @@ import sys
 import tomllib
 from pathlib import Path
 
+import jsonschema
 import pytest
 
+from dmo.cli import main
 from dmo.cli.console import UsageError
 from dmo.cli.flags import add_bus_flags, bus_config
-from messages import BusConfig
+from messages import KINDS, PHASES, BusConfig, MeterReport, encode
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, resolve_method
 from scenarios.case import DATA_DIR
 
@@ -182,3 +184,22 @@ def test_zenoh_flags_make_the_bus_config():
     assert config.mode == "client" and json.loads(config.to_zenoh().get_json("connect/timeout_ms")) == 2500
     with pytest.raises(UsageError, match="lease_s"):
         bus_config(parser.parse_args(["--lease", "0"]), "peer")
+
+
+def test_schemas_writes_one_json_schema_per_kind_and_an_index(tmp_path):
+    assert main(["schemas", "--out", str(tmp_path / "schemas")]) == 0
+    index = json.loads((tmp_path / "schemas" / "index.json").read_text())
+    assert set(index["kinds"]) == set(KINDS) and index["phases"] == list(PHASES)
+    report = MeterReport(sender="mg1", market_day="2026-07-01", hour=3, subperiods=2, p_m_mw=(1.0, 2.0),
+                         deviation_mw=(0.0, 1.0))
+    for kind, entry in index["kinds"].items():
+        schema = json.loads((tmp_path / "schemas" / entry["file"]).read_text())
+        jsonschema.Draft202012Validator.check_schema(schema)
+        assert schema["$id"] == f"urn:dmosim:{kind}:v{index['schema_version']}"
+    schema = json.loads((tmp_path / "schemas" / "meter_report.schema.json").read_text())
+    jsonschema.validate(json.loads(encode(report)), schema)
+    missing = {k: v for k, v in json.loads(encode(report)).items() if k != "subperiods"}
+    with pytest.raises(jsonschema.ValidationError, match="subperiods"):
+        jsonschema.validate(missing, schema)
+    (tmp_path / "file").write_text("")
+    assert main(["schemas", "--out", str(tmp_path / "file")]) == 2

@@ -12,8 +12,9 @@ from dmo.market.settlement import RULES, RULES_VERSION, settle
 from dmo.operator import incidents, outbox
 from dmo.operator.config import DayConfig, draw_islanding
 from dmo.operator.guard import SequenceGuard
+from dmo.operator.history import DayHistory
 from dmo.operator.incidents import IncidentLog
-from dmo.operator.journal import Journal, restore
+from dmo.operator.journal import Journal, restore, traffic
 from dmo.operator.rejoin import AWARD, CALL_FOR_BIDS, GRID_STATE, readmit, rejoin_refusal, resend_plan
 from dmo.operator.state import DayState
 from messages import Bid, MeterReport, Registration, decode, encode
@@ -121,6 +122,27 @@ def test_restoring_a_rejoined_agent_numbers_its_messages_from_zero():
     assert restore(state, entries) is None  # no clock: the day had not started
     assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg1", 2) is None
     assert set(state.meter["mg1"]) == {0, 1}
+
+
+def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_survives_a_restart(tmp_path):
+    p = "dmosim/run1"
+    entries = [(f"{p}/dmo/clock", b'{"phase":"registration"}', 1), (f"{p}/agent/mg1/register", b"reg", 2),
+               (f"{p}/dmo/clock", b'{"phase":"bidding"}', 3), (f"{p}/agent/mg1/bid", b"\xff not json", 4),
+               (f"{p}/dmo/award/mg1", b"award1", 5), (f"{p}/dmo/award/mg2", b"award2", 6)]
+    journal = Journal(tmp_path / "dmo.journal", "run1", DAY)
+    history = DayHistory()
+    for entry in entries:
+        history.record(*entry)
+        journal.traffic(*entry)
+    journal.close()
+    assert history.answer(f"{p}/dmo/clock", "") == [entries[2]]  # the latest clock
+    assert history.answer(f"{p}/**", "") == [entries[2], entries[4], entries[5]]  # the DMO's latest, in time order
+    assert history.answer(f"{p}/**", "history") == entries  # everything, received payloads as they came
+    assert history.answer(f"{p}/agent/*/bid", "history;since=0") == [entries[3]]
+    assert history.answer(f"{p}/dmo/award/mg1", "") == [entries[4]]
+    again = Journal(tmp_path / "dmo.journal", "run1", DAY)
+    again.close()
+    assert traffic(again.entries) == entries
 
 
 # --- agents that come back ---------------------------------------------------------------------------------------

@@ -467,7 +467,8 @@ def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path)
                                 "0.05", "--time-limit", "60"), log=log, env=ENV)
         wait_for_line(log, "connecting to", 60, lambda: roles.roles["mg2"].process.poll() is None)
         player = subprocess.Popen(argv("replay", str(day[0]), "--as-dmo", "--agent", "mg2", "--run-id", run_id,
-                                       "--listen", endpoint, "--record", str(recording), "--timeout", "120", "--json"),
+                                       "--listen", endpoint, "--record", str(recording), "--timeout", "120", "--json",
+                                       "--insecure"),
                                   stdout=out, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
                                   start_new_session=True)
         try:

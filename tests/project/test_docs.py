@@ -11,10 +11,11 @@ from pathlib import Path
 import pytest
 
 from dmo.cli.main import VERBS
+from messages.reference import BEGIN, END, reference
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
-PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo", "tests")
+PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo", "tests", "examples")
 CODE = [p for package in PACKAGES[:4] for p in sorted((ROOT / package).rglob("*.py"))]
 
 
@@ -89,3 +90,10 @@ def test_readme_lists_every_verb():
 def test_nothing_cites_the_specification(path):
     """Help texts, code and docs point to the repository's own documents; the product specification is not one."""
     assert not re.search(r"\bSPEC section|\bSPEC\.md|\bSPEC \d", text(path)), path
+
+
+def test_protocol_md_holds_the_message_reference_the_types_generate():
+    doc = text(ROOT / "docs" / "protocol.md")
+    held = doc[doc.index(BEGIN):doc.index(END) + len(END)]
+    assert held == reference(), ("docs/protocol.md's message reference differs from messages/schemas.py: "
+                                 "paste the output of `dmosim schemas --markdown` between its markers")

@@ -10,10 +10,11 @@ from __future__ import annotations
 import json
 import queue
 import stat
+import subprocess
 
 import pytest
 
-from dmo.launch.processes import Roles, free_port, wait_listening
+from dmo.launch.processes import Roles, free_port, wait_for_line, wait_listening
 from messages import HOURS, Award, Bid, BidStep, Bus, BusConfig, GridState, MeterReport, encode, new_run_id
 from messages.transport.access import (AGENT_TOPICS, AuthError, access_control, auth_settings, bundle_settings,
                                        client_settings, router_settings)
@@ -46,9 +47,11 @@ def test_rules_give_each_agent_its_own_keys_and_the_public_topics_only():
     assert _keys(mg1, "declare_subscriber", "ingress") == hears == _keys(mg1, "put", "egress")
     assert _keys(mg1, "liveliness_token", "ingress") == {"dmosim/r1/alive/mg1"}
     assert not any("mg2" in k for r in mg1 for k in r["key_exprs"])
-    assert not any(m in r["messages"] for r in mg1 for m in ("delete", "query", "reply", "declare_queryable"))
+    assert _keys(mg1, "query", "ingress") == hears == _keys(mg1, "reply", "egress")  # asking the DMO
+    assert not any(m in r["messages"] for r in mg1 for m in ("delete", "declare_queryable"))
     recorder = _grants(acl, "recorder")
     assert _keys(recorder, "declare_subscriber", "ingress") == {"dmosim/r1/**"}
+    assert _keys(recorder, "query", "ingress") == {"dmosim/r1/**"}  # the DMO's history of the day
     assert not _keys(recorder, "put", "ingress")  # hears everything, says nothing
     assert {s["id"]: s["usernames"] for s in acl["subjects"]} == {"dmo": ["dmo"], "recorder": ["recorder"],
                                                                   "mg1": ["mg1"], "mg2": ["mg2"]}
@@ -104,6 +107,29 @@ def _refused(run_id: str, endpoint: str, overrides=()) -> None:
     config = BusConfig(mode="client", connect=(endpoint,), overrides=tuple(overrides))
     with pytest.raises(ConnectionError, match="or it refused us"):
         Bus(run_id, "mg1", config, announce=False).open().close()
+
+
+def test_a_dmo_given_no_credentials_makes_them_and_admits_only_their_holders(tmp_path):
+    run_id, port = new_run_id(), free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    common = ["--run-id", run_id, "--market-day", DAY]
+    made = tmp_path / "dmosim-credentials" / run_id  # in the directory it was started in
+    with Roles() as roles:
+        roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", "1", "--subperiods", "1",
+                                  *DEADLINES), log=tmp_path / "dmo.log", env=ENV, cwd=tmp_path)
+        wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
+        said = wait_for_line(tmp_path / "dmo.log", r"made the credentials of run .* in (\S+):", 30,
+                             lambda: roles.roles["dmo"].process.poll() is None)
+        assert (tmp_path / said.group(1)).resolve() == made.resolve()
+        assert sorted(p.name for p in made.iterdir() if p.is_dir()) == ["mg1", "recorder"]
+        _refused(run_id, endpoint)                                                           # an open door no more
+        roles.start("mg1", dmosim("agent", *common, "--id", "mg1", "--connect", endpoint, "--auth-dir", str(made),
+                                  *TINY), log=tmp_path / "mg1.log", env=ENV)
+        assert roles.roles["dmo"].process.wait(timeout=300) == 0, (tmp_path / "dmo.log").read_text()[-3000:]
+        assert roles.roles["mg1"].process.wait(timeout=60) == 0
+    both = subprocess.run(dmosim("dmo", "--agents", "1", "--insecure", "--auth-dir", str(made)), capture_output=True,
+                          text=True, timeout=60, env=ENV, cwd=tmp_path)
+    assert both.returncode == 2 and both.stderr.count("\n") == 1 and "--insecure" in both.stderr, both.stderr
 
 
 def test_over_tls_only_a_certificate_of_the_run_and_the_right_password_join(tmp_path):

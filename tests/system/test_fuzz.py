@@ -354,7 +354,7 @@ def start_day(roles: Roles, tmp: Path, run_id: str, recorded: bool = False):
     endpoint = f"tcp/127.0.0.1:{port}"
     common = ["--run-id", run_id, "--market-day", DAY]
     roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", str(len(AGENTS)), "--subperiods", "1",
-                              "--result", str(tmp / "result.json"), *DEADLINES,
+                              "--result", str(tmp / "result.json"), *DEADLINES, "--insecure",  # hostile peers join
                               *(["--await-recorder", "60"] if recorded else [])), log=tmp / "dmo.log", env=ENV)
     wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
     return endpoint

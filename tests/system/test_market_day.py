@@ -18,6 +18,8 @@ import pytest
 from dmo.launch.processes import Roles, free_port, wait_listening
 from messages.keys import new_run_id
 from messages.transport import Bus, BusConfig
+from messages.transport.access import bundle_settings
+from messages.transport.credentials import create_auth_dir
 from scenarios.case import load_case
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -77,16 +79,19 @@ def run_day(tmp_path, agents=("mg1", "mg2"), extra_dmo=(), kill=None):
     endpoint = f"tcp/127.0.0.1:{port}"
     result = tmp_path / "result.json"
     common = ["--run-id", run_id, "--market-day", DAY]
+    auth = create_auth_dir(tmp_path / "auth", run_id, list(agents), readers=("tap",), dmo_client=False)
     with Roles() as roles:
         roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", str(len(agents)),
-                                  "--subperiods", "1", "--result", str(result), *DEADLINES, *extra_dmo),
-                    log=tmp_path / "dmo.log", env=ENV)
+                                  "--subperiods", "1", "--result", str(result), "--auth-dir", str(auth), *DEADLINES,
+                                  *extra_dmo), log=tmp_path / "dmo.log", env=ENV)
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
-        with Bus(run_id, "tap", BusConfig(mode="client", connect=(endpoint,)), announce=False) as bus:
+        tap_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, "tap"))
+        with Bus(run_id, "tap", tap_config, announce=False) as bus:
             tap = Tap(bus)
             for i, agent in enumerate(agents):
                 roles.start(agent, dmosim("agent", *common, "--id", agent, "--connect", endpoint, "--seed", str(i),
-                                          "--lease", "1", *TINY), log=tmp_path / f"{agent}.log", env=ENV)
+                                          "--lease", "1", "--auth-dir", str(auth), *TINY),
+                            log=tmp_path / f"{agent}.log", env=ENV)
             if kill:
                 agent, hour = kill
                 assert tap.hour_reached[hour].wait(300), "the day never reached the kill hour"
@@ -123,6 +128,16 @@ def test_an_agent_killed_mid_day_is_settled_by_the_missing_data_rule(tmp_path):
     assert st["mg1"].missing_subperiods == 0
     assert st["mg2"].missing_subperiods == 24 - len(reported)
     assert any(i["agent"] == "mg2" and "vanished" in i["reason"] for i in result["incidents"])
+
+
+def test_an_agent_leaves_only_once_it_has_its_own_statement(tmp_path):
+    """The DMO's statements are held back 2 s (a message fault), so each agent has the day summary first."""
+    tap, result = run_day(tmp_path, extra_dmo=("--fault", "delay:dmo/statement/*:2"))
+    for agent in ("mg1", "mg2"):
+        log = (tmp_path / f"{agent}.log").read_text()
+        total = result["settlement"][agent]["total"]
+        assert f"{agent} statement: total ${total:.2f}" in log, log[-2000:]
+        assert "gave up waiting" not in log
 
 
 def test_dmosim_run_prints_the_summary_and_json(tmp_path):

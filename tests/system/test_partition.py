@@ -76,7 +76,9 @@ def test_an_agent_cut_off_mid_day_comes_back_and_the_day_completes_across_hosts(
     common = ["--run-id", run_id, "--market-day", DAY]
     result_path = tmp_path / "result.json"
     with hosts(agents) as (dmo_ns, links), Roles() as roles:
+        auth = tmp_path / "auth"  # the DMO makes the run's credentials there
         roles.start("dmo", in_ns(dmo_ns, "dmo", *common, "--listen", endpoint, "--agents", str(len(agents)),
+                                 "--auth-dir", str(auth),
                                  "--subperiods", "1", "--result", str(result_path), "--lease", "2", *DEADLINES,
                                  # paces the hours (mg1 alone runs one in a fraction of a second), so the outage
                                  # spans a few hours rather than the rest of the day
@@ -86,7 +88,8 @@ def test_an_agent_cut_off_mid_day_comes_back_and_the_day_completes_across_hosts(
         wait_for_line(tmp_path / "dmo.log", r"phase registration", 60, dmo_alive)
         for i, agent in enumerate(agents):
             roles.start(agent, in_ns(links[agent][0], "agent", *common, "--id", agent, "--connect", endpoint,
-                                     "--seed", str(i), "--lease", "1", *TINY), log=tmp_path / f"{agent}.log", env=ENV)
+                                     "--seed", str(i), "--lease", "1", "--auth-dir", str(auth), *TINY),
+                        log=tmp_path / f"{agent}.log", env=ENV)
 
         ns, link = links["mg2"]
         wait_for_line(tmp_path / "dmo.log", r"phase realtime hour 4/24", 300, dmo_alive)

@@ -1,0 +1,119 @@
+"""A market agent written from docs/protocol.md alone, with nothing but zenoh and the standard library.
+
+Its strategy is naive: it bids to buy a flat FLAT_MW in every hour at any price up to the DMO's price cap, and it
+meters exactly its award in every grid-connected sub-period (0 while islanded), so it is never penalised. When the
+day is over it prints, as one JSON line, its own reckoning of its bill beside the DMO's statement.
+
+    python examples/agent.py --id mg2 --run-id RUN --connect tcp/127.0.0.1:7447 --auth-dir DIR
+"""
+
+import argparse
+import json
+import queue
+import time
+from fractions import Fraction
+
+import zenoh
+
+FLAT_MW = 4.0
+MAX_IMPORT_MW = 10.0
+
+
+def main() -> None:
+    args = parse_args()
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", json.dumps([args.connect]))
+    if args.auth_dir:  # the bundle DIR/<id>/ of the run's credentials (docs/security.md)
+        password = open(f"{args.auth_dir}/{args.id}/password").read().strip()
+        config.insert_json5("transport/auth/usrpwd/user", json.dumps(args.id))
+        config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    prefix = f"dmosim/{args.run_id}"
+    inbox: queue.Queue = queue.Queue()
+
+    with zenoh.open(config) as session:
+        session.liveliness().declare_token(f"{prefix}/alive/{args.id}")  # the DMO tracks our presence
+        for topic in ("clock", "call_for_bids", "grid", f"award/{args.id}", f"statement/{args.id}", "summary",
+                      "rejected"):
+            session.declare_subscriber(f"{prefix}/dmo/{topic}", lambda s: inbox.put(json.loads(s.payload.to_bytes())))
+
+        clock = wait_for_the_dmo(session, prefix)  # it answers once it listens; its clock tells the market day
+        day, seq = clock["market_day"], 0
+
+        def send(topic: str, kind: str, **fields) -> None:
+            nonlocal seq
+            message = {"kind": kind, "schema_version": 1, "sender": args.id, "market_day": day, "seq": seq,
+                       "sent_at": time.time_ns(), **fields}
+            session.put(f"{prefix}/agent/{args.id}/{topic}", json.dumps(message))
+            seq += 1
+
+        send("register", "registration", case="flat", max_import_mw=MAX_IMPORT_MW, max_export_mw=MAX_IMPORT_MW)
+        award = statement = summary = None
+        metered = {}  # hour -> the P_M we reported per sub-period
+        while statement is None or summary is None:
+            msg = inbox.get(timeout=args.timeout)
+            kind = msg["kind"]
+            if kind == "call_for_bids":
+                step = {"price_per_mwh": msg["price_cap_per_mwh"], "quantity_mw": FLAT_MW}
+                send("bid", "bid", hours=[[step]] * 24)
+            elif kind == "award" and award is None:
+                award = msg
+                send("schedule", "schedule", status="flat", commitment={}, expected_cost=0.0,
+                     p_m_expected_mw=award["p_sch_mw"], scenarios=1, mip_gap=None)
+            elif kind == "grid_state" and award is not None and msg["hour"] not in metered:
+                hour, award_mw = msg["hour"], award["p_sch_mw"][msg["hour"] - 1]
+                p_m = [award_mw if connected else 0.0 for connected in msg["connected"]]
+                metered[hour] = p_m
+                send("meter", "meter_report", hour=hour, subperiods=msg["subperiods"], p_m_mw=p_m,
+                     deviation_mw=[p - award_mw for p in p_m])
+            elif kind == "settlement_statement":
+                statement = msg
+            elif kind == "day_summary":
+                summary = msg
+            elif kind == "rejection" and msg["offender"] == args.id:
+                print(f"the DMO refused my message on {msg['key']}: {msg['code']}: {msg['reason']}", flush=True)
+
+    own = reckon(award, metered)
+    print(json.dumps({"agent": args.id, "statement_total": statement["total"], "own_total": float(own),
+                      "meter_reports": len(metered)}), flush=True)
+
+
+def wait_for_the_dmo(session, prefix: str) -> dict:
+    """Ask the DMO for its clock until it answers (a query, so it works whenever we start)."""
+    while True:
+        for reply in session.get(f"{prefix}/dmo/clock", timeout=2.0):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())
+        time.sleep(0.5)
+
+
+def reckon(award: dict, metered: dict) -> Fraction:
+    """Our bill by the rules of docs/market.md, in exact arithmetic on the numbers as written on the wire: per hour,
+    price x award, plus the penalty on imports above the award and minus the credit below it, each rounded half-even
+    to the cent."""
+    total = Fraction(0)
+    exact = lambda x: Fraction(repr(float(x)))  # noqa: E731
+    cents = lambda amount: Fraction(round(amount * 100), 100)  # noqa: E731  (round() of a Fraction is half-even)
+    for h, (award_mw, price) in enumerate(zip(award["p_sch_mw"], award["clearing_price_per_mwh"]), start=1):
+        p_m = metered.get(h)
+        if p_m is None:
+            raise RuntimeError(f"hour {h} was not metered: the DMO settles it by its missing-data rule")
+        over = sum(max(exact(p) - exact(award_mw), 0) for p in p_m) / len(p_m)  # MWh: MW x dt, dt = 1/K h
+        under = sum(max(exact(award_mw) - exact(p), 0) for p in p_m) / len(p_m)
+        total += (cents(exact(price) * exact(award_mw)) + cents(exact(award["penalty_per_mwh"]) * over)
+                  - cents(exact(award["credit_per_mwh"]) * under))
+    return total
+
+
+def parse_args() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--id", required=True, help="this agent's id, e.g. mg2")
+    parser.add_argument("--run-id", required=True, help="the run to join (the DMO's --run-id)")
+    parser.add_argument("--connect", required=True, help="the DMO's endpoint, e.g. tcp/127.0.0.1:7447")
+    parser.add_argument("--auth-dir", help="the run's credentials (this agent uses DIR/<id>/password)")
+    parser.add_argument("--timeout", type=float, default=600.0, help="give up after this long without news (s)")
+    return parser.parse_args()
+
+
+if __name__ == "__main__":
+    main()
