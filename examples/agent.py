@@ -1,8 +1,9 @@
 """A market agent written from docs/protocol.md alone, with nothing but zenoh and the standard library.
 
 Its strategy is naive: it bids to buy a flat FLAT_MW in every hour at any price up to the DMO's price cap, and it
-meters exactly its award in every grid-connected sub-period (0 while islanded), so it is never penalised. When the
-day is over it prints, as one JSON line, its own reckoning of its bill beside the DMO's statement.
+meters exactly its award in every grid-connected sub-period (0 while islanded), so it is never penalised. As each
+market day is settled it prints, as one JSON line, its own reckoning of that day's bill beside the DMO's
+statement; it stays for as many days as the DMO's clock says the run has.
 
     python examples/agent.py --id mg2 --run-id RUN --connect tcp/127.0.0.1:7447 --auth-dir DIR
 """
@@ -38,44 +39,49 @@ def main() -> None:
             session.declare_subscriber(f"{prefix}/dmo/{topic}", lambda s: inbox.put(json.loads(s.payload.to_bytes())))
 
         clock = wait_for_the_dmo(session, prefix)  # it answers once it listens; its clock tells the market day
-        day, seq = clock["market_day"], 0
+        seq = 0
 
-        def send(topic: str, kind: str, **fields) -> None:
+        def send(topic: str, kind: str, day: str, **fields) -> None:
             nonlocal seq
-            message = {"kind": kind, "schema_version": 1, "sender": args.id, "market_day": day, "seq": seq,
+            message = {"kind": kind, "schema_version": 2, "sender": args.id, "market_day": day, "seq": seq,
                        "sent_at": time.time_ns(), **fields}
             session.put(f"{prefix}/agent/{args.id}/{topic}", json.dumps(message))
             seq += 1
 
-        send("register", "registration", case="flat", max_import_mw=MAX_IMPORT_MW, max_export_mw=MAX_IMPORT_MW)
-        award = statement = summary = None
-        metered = {}  # hour -> the P_M we reported per sub-period
-        while statement is None or summary is None:
+        send("register", "registration", clock["market_day"], case="flat", max_import_mw=MAX_IMPORT_MW,
+             max_export_mw=MAX_IMPORT_MW)
+        # per market day: the award, what we metered, the statement and the summary (a run may have several days)
+        awards, metered, statements, summaries = {}, {}, {}, {}
+        last_day = None  # the market day the clock says is the run's last
+        while last_day is None or last_day not in statements or last_day not in summaries:
             msg = inbox.get(timeout=args.timeout)
-            kind = msg["kind"]
-            if kind == "call_for_bids":
+            kind, day = msg["kind"], msg["market_day"]
+            if kind == "clock" and msg["day"] == msg["days"]:
+                last_day = day
+            elif kind == "call_for_bids":
                 step = {"price_per_mwh": msg["price_cap_per_mwh"], "quantity_mw": FLAT_MW}
-                send("bid", "bid", hours=[[step]] * 24)
-            elif kind == "award" and award is None:
-                award = msg
-                send("schedule", "schedule", status="flat", commitment={}, expected_cost=0.0,
-                     p_m_expected_mw=award["p_sch_mw"], scenarios=1, mip_gap=None)
-            elif kind == "grid_state" and award is not None and msg["hour"] not in metered:
-                hour, award_mw = msg["hour"], award["p_sch_mw"][msg["hour"] - 1]
+                send("bid", "bid", day, hours=[[step]] * 24)
+            elif kind == "award" and day not in awards:
+                awards[day] = msg
+                send("schedule", "schedule", day, status="flat", commitment={}, expected_cost=0.0,
+                     p_m_expected_mw=msg["p_sch_mw"], scenarios=1, mip_gap=None)
+            elif kind == "grid_state" and day in awards and msg["hour"] not in metered.get(day, {}):
+                hour, award_mw = msg["hour"], awards[day]["p_sch_mw"][msg["hour"] - 1]
                 p_m = [award_mw if connected else 0.0 for connected in msg["connected"]]
-                metered[hour] = p_m
-                send("meter", "meter_report", hour=hour, subperiods=msg["subperiods"], p_m_mw=p_m,
+                metered.setdefault(day, {})[hour] = p_m
+                send("meter", "meter_report", day, hour=hour, subperiods=msg["subperiods"], p_m_mw=p_m,
                      deviation_mw=[p - award_mw for p in p_m])
             elif kind == "settlement_statement":
-                statement = msg
+                statements[day] = msg
             elif kind == "day_summary":
-                summary = msg
+                summaries[day] = msg
             elif kind == "rejection" and msg["offender"] == args.id:
                 print(f"the DMO refused my message on {msg['key']}: {msg['code']}: {msg['reason']}", flush=True)
 
-    own = reckon(award, metered)
-    print(json.dumps({"agent": args.id, "statement_total": statement["total"], "own_total": float(own),
-                      "meter_reports": len(metered)}), flush=True)
+    for day in sorted(statements):  # one line per day: the DMO's statement beside our own reckoning
+        print(json.dumps({"agent": args.id, "market_day": day, "statement_total": statements[day]["total"],
+                          "own_total": float(reckon(awards[day], metered.get(day, {}))),
+                          "meter_reports": len(metered.get(day, {}))}), flush=True)
 
 
 def wait_for_the_dmo(session, prefix: str) -> dict:

@@ -44,10 +44,30 @@ def decode(payload: bytes, expected_kind: str | None = None) -> Message:
     try:
         msg = MESSAGE_ADAPTER.validate_json(payload)
     except ValidationError as err:
-        raise _diagnose(bytes(payload), err) from None
+        upgraded = _upgrade(bytes(payload))
+        if upgraded is None:
+            raise _diagnose(bytes(payload), err) from None
+        try:
+            msg = MESSAGE_ADAPTER.validate_json(upgraded)
+        except ValidationError:
+            raise _diagnose(bytes(payload), err) from None
     if expected_kind is not None and msg.kind != expected_kind:
         raise MessageError(f"expected kind {expected_kind!r}, got {msg.kind!r}", "wrong_key")
     return msg
+
+
+def _upgrade(payload: bytes) -> bytes | None:
+    """A message of an older schema version as this version reads it, or None if there is nothing to upgrade.
+    Version 1 -> 2: a clock, which had no day, is day 1 of a one-day run; no other kind changed."""
+    try:
+        data = json.loads(payload)
+    except (ValueError, RecursionError):
+        return None
+    if not isinstance(data, dict) or data.get("schema_version") != 1 or data.get("kind") != "clock":
+        return None
+    if "day" in data or "days" in data:
+        return None
+    return json.dumps({**data, "day": 1, "days": 1}).encode()
 
 
 def _oversize(size: int) -> str:

@@ -14,13 +14,13 @@ import datetime as _dt
 import math
 from typing import Annotated, Any, Literal, Union, get_args
 
-from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, Strict, TypeAdapter, ValidationInfo,
-                      model_validator)
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, TypeAdapter, ValidationInfo, model_validator
 
 from scenarios.horizon import HOURS
 from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: the clock says which day of how many (a run of several market days)
+MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
 MAX_UNITS = 64
@@ -73,7 +73,8 @@ class Envelope(_WireModel):
 
     kind: str  # each message type narrows it to its literal tag; declared here so it comes first on the wire
     schema_version: Annotated[int, Strict(), Field(ge=1, le=SCHEMA_VERSION), Field(description=(
-        "version of the message schemas the sender wrote; this protocol is version 1"))] = SCHEMA_VERSION
+        f"version of the message schemas the sender wrote; this protocol is version {SCHEMA_VERSION} (a version 1 "
+        "clock, which has no day and days, is read as day 1 of 1)"))] = SCHEMA_VERSION
     sender: Annotated[Name, Field(description=(
         "\"dmo\" or the agent id; must be the owner of the key the message travels on"))]
     market_day: Annotated[MarketDay, Field(description="the market day the message belongs to, an ISO date YYYY-MM-DD")]
@@ -240,11 +241,17 @@ class Clock(_FromDmo):
         "the real-time hour starting now, 1..24 (hour 1 is midnight to 1:00); null outside realtime"))] = None
     deadline_s: Annotated[float, Strict(), Field(gt=0, le=86_400), Field(description=(
         "seconds until the phase (or hour) ends: answers after it are late"))]
+    day: Annotated[int, Strict(), Field(ge=1, le=MAX_DAYS, description=(
+        "which market day of the run this is, 1 first; registration happens once, on day 1"))]
+    days: Annotated[int, Strict(), Field(ge=1, le=MAX_DAYS, description=(
+        "how many market days the run has: after the settlement of the last one the run is over"))]
 
     @model_validator(mode="after")
     def _hour_in_realtime(self):
         if (self.phase == "realtime") != (self.hour is not None):
             raise ValueError("hour is required in phase realtime and only there")
+        if self.day > self.days:
+            raise ValueError(f"day {self.day} is past the run's {self.days} days")
         return self
 
 

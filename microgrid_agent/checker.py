@@ -25,6 +25,7 @@ from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
 from .schedule import CostBreakdown, StochasticSchedule, energy_weight, start_indicators
+
 MAX_MESSAGES = 50
 PER_CHECK = 8  # so one badly broken family cannot hide the others from the first lines of the report
 OBJECTIVE_RTOL = 1e-6
@@ -216,6 +217,12 @@ def _check_units(f: _Findings, case: Case, a: dict, k: int, dt: float) -> tuple[
 
     f.flag("6", "minimum up time", _recent(up, case.unit_array("min_up")) - commit, ug)
     f.flag("7", "minimum down time", _recent(down, case.unit_array("min_down")) - (1.0 - commit), ug)
+    # across midnight: min_up (on) or min_down (off) minus the hours already spent in the initial state
+    keep = case.unit_array("min_up") * initial + case.unit_array("min_down") * (1.0 - initial)
+    spent = np.array([u.initial_hours or HOURS for u in case.units], dtype=float)
+    owed = (np.arange(HOURS)[None, :] < (keep - spent)[:, None])
+    f.flag("6", "unit left its initial state before its minimum time since", owed * np.abs(commit - initial[:, None]),
+           ug)
     return up, down
 
 

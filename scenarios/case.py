@@ -45,6 +45,9 @@ class Unit(_CaseModel):
     shutdown_cost: NonNeg = 0.0
     initial_on: bool = False
     p_initial: NonNeg | None = None
+    # Hours the unit has been in its initial state at midnight (the day before ended so); None: long enough for
+    # its minimum up and down times. A multi-day run carries it across midnight.
+    initial_hours: Annotated[int, Field(ge=1)] | None = None
     provenance: dict[str, str] = {}
 
     @model_validator(mode="after")
@@ -56,6 +59,14 @@ class Unit(_CaseModel):
         if self.p_initial and not self.initial_on:
             raise ValueError(f"p_initial ({self.p_initial}) of a unit that is initially off must be 0")
         return self
+
+    @property
+    def keep_initial_hours(self) -> int:
+        """Hours at the start of the day the unit must stay in its initial state: what its minimum up time (on) or
+        down time (off) still asks after ``initial_hours`` in that state, 0 if nothing (6)-(7)."""
+        if self.initial_hours is None:
+            return 0
+        return max(0, (self.min_up if self.initial_on else self.min_down) - self.initial_hours)
 
     @property
     def initial_output(self) -> float:
@@ -257,17 +268,21 @@ def case_path(name_or_path: str | Path) -> Path:
 def load_case(name_or_path: str | Path) -> Case:
     """Read and validate a case file; raises CaseError with one line naming the file and the field."""
     path = case_path(name_or_path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise CaseError(f"case file not found: {path} (built-in cases: {', '.join(builtin_cases())})") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CaseError(f"cannot read case file {path}: {exc}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise CaseError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "case", CaseError, f" (built-in cases: {', '.join(builtin_cases())})")
     return parse_case(data, str(path))
+
+
+def read_toml(path: Path, what: str, error: type[Exception], missing_hint: str = "") -> dict:
+    """A TOML file (case, fleet, experiment...) as a dict; a file that is missing, unreadable or not TOML raises
+    ``error`` with one line naming it."""
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise error(f"{what} file not found: {path}{missing_hint}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"cannot read {what} file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML: {exc}") from None
 
 
 def builtin_cases() -> list[str]:

@@ -13,13 +13,12 @@ A fleet file (TOML) lists its agents::
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from scenarios.case import Case, CaseError, builtin_cases, load_case, parse_case
+from scenarios.case import Case, CaseError, builtin_cases, load_case, parse_case, read_toml
 from scenarios.names import check_agent_id
 
 SCALE_RANGE = (0.6, 1.4)
@@ -157,14 +156,7 @@ def load_fleet(path: str | Path) -> list[FleetMember]:
     """Read and validate a fleet file; any problem raises FleetError with one line naming the file and the field.
     Each member's case is loaded and derived once here, so a bad case or scale fails now, not mid-run."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise FleetError(f"fleet file not found: {path}") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FleetError(f"cannot read fleet file {path}: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise FleetError(f"{path}: not valid TOML: {exc}") from None
+    data = read_toml(path, "fleet", FleetError)
     extra = sorted(set(data) - {"agents"})
     if extra:
         _fail(path, extra[0], "unknown table or key (a fleet file holds [[agents]] only)")

@@ -42,10 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> dict:
     cores = os.cpu_count() or 1
-    recording = recording_option()
     rows, phases, notes = [], [], []
     for n in args.agents:
-        day = run_day(n, args, recording)
+        day = run_and_read(["--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods",
+                            str(args.subperiods), "--gap", repr(args.gap), "--time-limit", repr(args.time_limit),
+                            "--no-record"], args.timeout)
         split = split_day(day["result"]["phase_s"], day["compute"], cores)
         incidents = day["result"].get("incidents", [])
         rows.append({"agents": n, "process_s": day["process_s"], **split["totals"], "incidents": len(incidents)})
@@ -57,8 +58,7 @@ def run(args) -> dict:
     return {
         "setup": {"agents": "paper case, fleet of dmosim run (scaled and shifted copies)",
                   "scenarios": args.scenarios, "subperiods": args.subperiods, "gap": args.gap,
-                  "recording": {None: "none (dmosim run has no recorder yet)", "--no-record": "off (--no-record)",
-                                "--record": "on, to a scratch file"}[recording],
+                  "recording": "off (--no-record)",
                   "machine": f"{cores} cores shared with other work: one run per N, noisy; with N > {cores} "
                              f"the agents share {cores} cores, so their compute times include waiting for a core"},
         "days": rows,
@@ -122,27 +122,19 @@ def read_compute(log: Path) -> list[dict]:
     return found
 
 
-def recording_option() -> str | None:
-    """``--no-record`` if ``dmosim run`` offers it, else ``--record`` (then sent to a scratch file) if it has that."""
-    text = subprocess.run(dmosim_command("run", "--help"), capture_output=True, text=True, env=role_env(), check=True).stdout
-    return next((flag for flag in ("--no-record", "--record") if re.search(rf"{flag}\b", text)), None)
-
-
-def run_day(n: int, args, recording: str | None) -> dict:
-    """One ``dmosim run`` of N agents; its result, each agent's compute entries and the command's wall time.
-    Its logs (and recording) go to a scratch directory, removed unless the day fails."""
-    logs = Path(tempfile.mkdtemp(prefix=f"dmosim-bench-day-{n}-"))
-    record = {None: [], "--no-record": ["--no-record"], "--record": ["--record", str(logs / "day.mcap")]}[recording]
-    argv = dmosim_command("run", "--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
-                   "--gap", repr(args.gap), "--time-limit", repr(args.time_limit),
-                   "--registration-timeout", "300", "--bid-timeout", "600", "--schedule-timeout", "600",
-                   "--hour-timeout", "120", "--logs", str(logs), "--json", "--quiet", *record)
+def run_and_read(flags: list[str], timeout_s: float) -> dict:
+    """One ``dmosim run FLAGS --json`` into a scratch run directory (removed unless the run fails): its result,
+    each agent's ``compute`` entries and the command's wall time."""
+    rundir = Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
+    argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",
+                          "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
+                          "--json", "--quiet")
     start = time.perf_counter()
     # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started.
     process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True, env=role_env())
     try:
-        out, err = process.communicate(timeout=args.timeout)
+        out, err = process.communicate(timeout=timeout_s)
     except BaseException:
         process.terminate()
         try:
@@ -153,10 +145,9 @@ def run_day(n: int, args, recording: str | None) -> dict:
         raise
     process_s = time.perf_counter() - start
     if process.returncode != 0:
-        raise RuntimeError(f"dmosim run --agents {n} exited {process.returncode}: {err.strip()[-500:]} (logs: {logs})")
+        raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {err.strip()[-500:]} "
+                           f"(run directory: {rundir})")
     result = json.loads(out)
-    compute = {agent: read_compute(logs / f"{agent}.log") for agent in result["agents"]}
-    shutil.rmtree(logs, ignore_errors=True)
+    compute = {agent: read_compute(rundir / "logs" / f"{agent}.log") for agent in result["agents"]}
+    shutil.rmtree(rundir, ignore_errors=True)
     return {"result": result, "compute": compute, "process_s": process_s}
-
-

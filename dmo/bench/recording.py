@@ -25,19 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from messages import (
-    DMO,
-    Award,
-    Bid,
-    BidStep,
-    CallForBids,
-    Clock,
-    GridState,
-    MeterReport,
-    Registration,
-    Schedule,
-    encode,
-)
+from messages import (DMO, Award, Bid, BidStep, CallForBids, Clock, GridState, MeterReport, Registration, Schedule,
+                      encode)
 from messages.keys import Keys, new_run_id
 from messages.recording import CHUNK_MESSAGES, RecordingWriter, read_recording
 
@@ -112,10 +101,10 @@ def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str
 
     prices, k = hourly(20, 90), subperiods
     penalty, cap = 150.0, 10.0
-    put(Clock(sender=DMO, market_day=market_day, phase="registration", deadline_s=60.0))
+    put(Clock(sender=DMO, market_day=market_day, phase="registration", deadline_s=60.0, day=1, days=1))
     for a in names:
         put(Registration(sender=a, market_day=market_day, case="paper", max_import_mw=cap, max_export_mw=cap))
-    put(Clock(sender=DMO, market_day=market_day, phase="bidding", deadline_s=600.0))
+    put(Clock(sender=DMO, market_day=market_day, phase="bidding", deadline_s=600.0, day=1, days=1))
     put(CallForBids(sender=DMO, market_day=market_day, iso_price_per_mwh=prices, price_floor_per_mwh=-1000.0,
                     price_cap_per_mwh=10_000.0, import_limit_mw=8.0 * agents, export_limit_mw=5.0 * agents,
                     penalty_per_mwh=penalty, subperiods=k, deadline_s=600.0))
@@ -123,13 +112,13 @@ def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str
         put(Bid(sender=a, market_day=market_day, hours=tuple(
             tuple(BidStep(price_per_mwh=round(float(p), 3), quantity_mw=round(float(q), 4))
                   for p, q in zip(np.sort(rng.uniform(10, 120, 4))[::-1], rng.uniform(-2, 4, 4))) for _ in range(24))))
-    put(Clock(sender=DMO, market_day=market_day, phase="clearing", deadline_s=600.0))
+    put(Clock(sender=DMO, market_day=market_day, phase="clearing", deadline_s=600.0, day=1, days=1))
     awards = {a: hourly(-2, 6) for a in names}
     for a in names:
         put(Award(sender=DMO, market_day=market_day, agent=a, p_sch_mw=awards[a], clearing_price_per_mwh=prices,
                   penalty_per_mwh=penalty, subperiods=k, rules_version=1,
                   rules="energy charge = clearing price x award per hour; penalty = c x max(P_M - P_sch, 0) x dt"))
-    put(Clock(sender=DMO, market_day=market_day, phase="scheduling", deadline_s=1800.0))
+    put(Clock(sender=DMO, market_day=market_day, phase="scheduling", deadline_s=1800.0, day=1, days=1))
     for a in names:
         put(Schedule(sender=a, market_day=market_day, status="optimal",
                      commitment={f"G{i}": tuple(int(x) for x in rng.integers(0, 2, 24)) for i in range(1, 5)},
@@ -137,14 +126,14 @@ def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str
                      scenarios=10, mip_gap=0.004))
     meter: dict[str, dict[int, tuple[float, ...]]] = {a: {} for a in names}
     for hour in range(1, 25):
-        put(Clock(sender=DMO, market_day=market_day, phase="realtime", hour=hour, deadline_s=300.0))
+        put(Clock(sender=DMO, market_day=market_day, phase="realtime", hour=hour, deadline_s=300.0, day=1, days=1))
         put(GridState(sender=DMO, market_day=market_day, hour=hour, subperiods=k, connected=(hour != 12,) * k))
         for a in names:
             p_m = tuple(round(float(x), 6) for x in awards[a][hour - 1] + rng.normal(0, 0.3, k))
             meter[a][hour - 1] = p_m
             put(MeterReport(sender=a, market_day=market_day, hour=hour, subperiods=k, p_m_mw=p_m,
                             deviation_mw=tuple(round(p - awards[a][hour - 1], 6) for p in p_m)))
-    put(Clock(sender=DMO, market_day=market_day, phase="settlement", deadline_s=300.0))
+    put(Clock(sender=DMO, market_day=market_day, phase="settlement", deadline_s=300.0, day=1, days=1))
     statements, _ = settle(awards, prices, meter, subperiods=k, penalty=penalty, p_m_max=cap)
     for st in statements.values():
         put(statement_message(st, market_day, penalty, 0.0))

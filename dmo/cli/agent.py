@@ -8,10 +8,23 @@ from messages.transport import Bus
 from scenarios.case import load_case
 from scenarios.fleet import derive_case
 
-from .flags import (add_agent_flags, add_bus_flags, add_fault_flags, bus_config, hours, market_day, message_faults,
-                    nonneg_float, setup_logging, today)
+from .flags import (add_bus_flags, add_fault_flags, add_method_flags, bus_config, gap, hours, market_day,
+                    message_faults, nonneg_float, positive_int, scales, setup_logging, today)
 
 HELP = "one microgrid agent role"
+
+
+def add_schedule_flags(p: argparse.ArgumentParser) -> None:
+    """How the agent schedules its days."""
+    p.add_argument("--scenarios", type=positive_int, default=5, help="scenarios of each agent's schedule (default: 5)")
+    p.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of each agent's schedule (default: 0.01)")
+    p.add_argument("--time-limit", type=nonneg_float, default=600.0, help="seconds per agent solve (default: 600)")
+    p.add_argument("--load-scale", type=scales, default=(), metavar="X,Y,...",
+                   help="each day's fixed-load forecast times these, day after day, repeated (e.g. a week: "
+                        "1,1,1,1,1,0.8,0.8; default: 1)")
+    p.add_argument("--renewable-scale", type=scales, default=(), metavar="X,Y,...",
+                   help="each day's renewable forecasts times these, as --load-scale (default: 1)")
+    add_method_flags(p, workers=1)  # the agents of one machine share its cores
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--market-day", type=market_day, default=None, help="the market day (default: today)")
     p.add_argument("--idle-timeout", type=nonneg_float, default=3600.0, help="give up after this long without news")
     p.add_argument("--quiet", action="store_true")
-    add_agent_flags(p)
+    add_schedule_flags(p)
     add_fault_flags(p)
     add_bus_flags(p)
 
@@ -38,7 +51,7 @@ def run(args) -> int:
     case = derive_case(load_case(args.case), args.scale, args.shift_hours, name)
     config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,
                          time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout, method=args.method,
-                         workers=args.workers)
+                         workers=args.workers, load_scale=args.load_scale, renewable_scale=args.renewable_scale)
     with Bus(args.run_id, args.id, bus_config(args, "client", args.id)) as bus:
         bus.faults = message_faults(args, bus)
         MicrogridAgent(bus, case, config, args.market_day or today()).run()

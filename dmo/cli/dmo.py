@@ -11,13 +11,36 @@ from pathlib import Path
 from messages.transport import Bus
 from scenarios.case import load_case
 
-from ..operator.config import DayConfig, draw_islanding
+from ..operator.config import DayConfig, islanding_by_day
 from ..operator.day import MarketDay
-from .flags import (add_bus_flags, add_day_flags, add_fault_flags, agent_ids, bus_config, credentials_for,
+from .flags import (add_bus_flags, add_fault_flags, agent_ids, bus_config, credentials_for, hours, market_day,
                     message_faults, nonneg_float, positive_int, setup_logging, today)
 
 HELP = "the market operator role alone (the Zenoh router by default)"
 log = logging.getLogger("dmosim")
+
+
+def add_day_flags(p: argparse.ArgumentParser) -> None:
+    """Settings of the days the DMO runs."""
+    p.add_argument("--case", default="paper",
+                   help="case giving the ISO price, penalty and Table I awards (default: paper)")
+    p.add_argument("--market", choices=("bids", "fixed"), default="bids",
+                   help="bids: clear the agents' bids; fixed: award the case's Table I to every agent")
+    p.add_argument("--island-hours", type=hours, default=1,
+                   help="hours the feeder is islanded during the day (default: 1)")
+    p.add_argument("--penalty", type=nonneg_float, default=None, help="$/MWh above the award (default: the case's)")
+    p.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the day (islanding, fleet) (default: 0)")
+    p.add_argument("--market-day", type=market_day, default=None,
+                   help="the (first) market day, YYYY-MM-DD (default: today)")
+    p.add_argument("--days", type=positive_int, default=1,
+                   help="consecutive market days in the run, each from the call for bids to settlement; agents "
+                        "register once and carry their state across midnight (default: 1)")
+    for name, default, what in (("registration", 60.0, "registration"), ("bid", 600.0, "bids"),
+                                ("schedule", 1800.0, "schedules"), ("hour", 300.0, "each hour's meter reports")):
+        p.add_argument(f"--{name}-timeout", type=nonneg_float, default=default, metavar="S",
+                       help=f"deadline for {what}, seconds (default: {default:g})")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +70,8 @@ def day_config(args) -> DayConfig:
         import_limit=args.import_limit if args.import_limit is not None else 8.0 * args.agents,
         export_limit=args.export_limit if args.export_limit is not None else 5.0 * args.agents,
         penalty=case.grid.penalty if args.penalty is None else args.penalty, credit=args.credit,
-        subperiods=args.subperiods, islanded_hours=draw_islanding(args.island_hours, args.seed),
+        subperiods=args.subperiods, islanded_hours=(), days=args.days,
+        islanding_by_day=islanding_by_day(args.island_hours, args.seed, args.days),
         fixed_awards=tuple(case.grid.p_sch) if args.market == "fixed" else None,
         registration_s=args.registration_timeout, bids_s=args.bid_timeout, schedule_s=args.schedule_timeout,
         hour_s=args.hour_timeout, journal=args.journal)
@@ -63,7 +87,7 @@ def run(args) -> int:
         before_start = (lambda: await_recorder(bus, args.await_recorder)) if args.await_recorder else None
         result = MarketDay(bus, config, progress).run(before_start)
         transport = bus.stats() | ({"faults_injected": bus.faults.summary()} if bus.faults else {})
-    text = json.dumps(result.report(args.run_id, config, transport), indent=2)
+    text = json.dumps(result.report(args.run_id, transport), indent=2)
     if args.result:
         Path(args.result).write_text(text + "\n")
     else:

@@ -18,8 +18,8 @@ from messages.transport import MODES, BusConfig
 from messages.transport.access import READERS, USERS_FILE, auth_settings
 from messages.transport.credentials import create_auth_dir
 from messages.transport.faults import FaultSpecError, injector
-from scenarios.fleet import FleetError, load_fleet, make_fleet
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
+from scenarios.fleet import FleetError, load_fleet, make_fleet
 
 from .console import UsageError
 
@@ -70,6 +70,17 @@ def gap(text: str) -> float:
     return value
 
 
+def scales(text: str) -> tuple[float, ...]:
+    """Comma-separated positive numbers, e.g. a week's profile scales 1,1,1,1,1,0.8,0.8."""
+    try:
+        values = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise argparse.ArgumentTypeError(f"expected positive numbers separated by commas, got {text!r}")
+    return values
+
+
 def market_day(text: str) -> str:
     try:
         return dt.date.fromisoformat(text).isoformat()
@@ -90,14 +101,6 @@ def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
                         f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
     p.add_argument("--workers", type=positive_int, default=workers,
                    help=f"processes for the Benders subproblems (default: {workers})")
-
-
-def add_agent_flags(p: argparse.ArgumentParser) -> None:
-    """How each agent schedules its day: ``run``, ``agent``."""
-    p.add_argument("--scenarios", type=positive_int, default=5, help="scenarios of each agent's schedule (default: 5)")
-    p.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of each agent's schedule (default: 0.01)")
-    p.add_argument("--time-limit", type=nonneg_float, default=600.0, help="seconds per agent solve (default: 600)")
-    add_method_flags(p, workers=1)  # the agents of one machine share its cores
 
 
 def add_fault_flags(p: argparse.ArgumentParser) -> None:
@@ -212,23 +215,14 @@ def load_recording(path: str) -> Recording:
         raise UsageError(str(exc)) from None
 
 
-def add_day_flags(p: argparse.ArgumentParser) -> None:
-    """Settings of the day the DMO runs: ``run``, ``dmo``."""
-    p.add_argument("--case", default="paper",
-                   help="case giving the ISO price, penalty and Table I awards (default: paper)")
-    p.add_argument("--market", choices=("bids", "fixed"), default="bids",
-                   help="bids: clear the agents' bids; fixed: award the case's Table I to every agent")
-    p.add_argument("--island-hours", type=hours, default=1,
-                   help="hours the feeder is islanded during the day (default: 1)")
-    p.add_argument("--penalty", type=nonneg_float, default=None, help="$/MWh above the award (default: the case's)")
-    p.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the day (islanding, fleet) (default: 0)")
-    p.add_argument("--market-day", type=market_day, default=None, help="the market day, YYYY-MM-DD (default: today)")
-    for name, default, what in (("registration", 60.0, "registration"), ("bid", 600.0, "bids"),
-                                ("schedule", 1800.0, "schedules"), ("hour", 300.0, "each hour's meter reports")):
-        p.add_argument(f"--{name}-timeout", type=nonneg_float, default=default, metavar="S",
-                       help=f"deadline for {what}, seconds (default: {default:g})")
-    p.add_argument("--quiet", action="store_true", help="log warnings only")
+def recorded_day_flag(rec: Recording, day: str | None) -> str | None:
+    """``--day``: a market day the recording is of, else the one-line UsageError saying which days it is of."""
+    from ..replay.resettle import recording_days  # noqa: PLC0415  (only for verbs that read recordings)
+
+    days = recording_days(rec)
+    if day is not None and day not in days:
+        raise UsageError(f"--day {day}: {rec.path} is of {', '.join(days) or 'no market day'}")
+    return day
 
 
 def message_faults(args, bus):

@@ -9,11 +9,10 @@ import json
 from messages.recording import BACKFILL_METADATA, Recording
 
 from ..replay.resettle import gaps
-
 from .console import print_json
 from .flags import load_recording
 
-HELP = "summary of a recording: run, market day, agents, channels, counts"
+HELP = "summary of a recording: run, market days, agents, channels, counts, what it lacks"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -84,7 +83,7 @@ def render(info: dict) -> str:
     state = "complete" if info["complete"] else f"INCOMPLETE: {info['cut']}"
     rows = [f"file:        {info['path']} ({info['bytes']:,} bytes, {state})",
             f"run:         {info['run_id'] or '-'} (keys under {info['key_prefix'] or '-'}/)",
-            f"market day:  {', '.join(info['market_days']) or '-'}",
+            f"market day{'s:' if len(info['market_days']) > 1 else ': '} {', '.join(info['market_days']) or '-'}",
             f"agents:      {', '.join(info['agents']) or '-'}",
             f"seed:        {info['seed'] if info['seed'] is not None else '-'}"]
     if isinstance(info["config"], dict):

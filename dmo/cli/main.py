@@ -12,7 +12,8 @@ import sys
 
 from scenarios.case import CaseError
 
-from . import agent, bench, credentials, dmo, info, record, replay, router, run, schemas, settle, solve, study
+from . import (agent, bench, cat, credentials, dmo, export, info, plot, record, replay, router, run, schemas, settle,
+               solve, study, sweep)
 from .console import UsageError
 
 DESCRIPTION = ("A distribution market operator and its microgrid agents as processes over Zenoh: run market days, "
@@ -21,9 +22,25 @@ EXIT_USAGE = 2
 EXIT_FAILURE = 1
 
 # In the order `dmosim --help` lists them: the whole day, its roles, the scheduling model, recordings, benchmarks.
-VERBS = {"run": run, "dmo": dmo, "agent": agent, "record": record, "router": router, "credentials": credentials,
-         "solve": solve, "study": study, "info": info, "replay": replay, "settle": settle, "schemas": schemas,
-         "bench": bench}
+VERBS = {"run": run, "sweep": sweep, "dmo": dmo, "agent": agent, "record": record, "router": router,
+         "credentials": credentials, "solve": solve, "study": study, "info": info, "replay": replay, "settle": settle, "cat": cat,
+         "export": export, "plot": plot, "schemas": schemas, "bench": bench}
+
+
+class _Version(argparse.Action):
+    """``dmosim --version``: this package's version and the protocol's, the two a bug report needs."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, help="print the version of dmosim and its protocol, and exit")
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from messages import SCHEMA_VERSION  # noqa: PLC0415  (only when asked)
+        from messages.recording.layout import versions  # noqa: PLC0415
+
+        v = versions()
+        print(f"dmosim {v['dmosim']} (message schemas v{SCHEMA_VERSION}; Python {v['python']}, eclipse-zenoh "
+              f"{v['eclipse-zenoh']}, highspy {v['highspy']})")
+        parser.exit()
 
 
 class _Parser(argparse.ArgumentParser):
@@ -35,6 +52,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser of every verb, with the flags of ``command`` only (none if None: ``dmosim --help`` lists the
     verbs; ``dmosim VERB --help`` shows the verb's flags)."""
     parser = _Parser(prog="dmosim", description=DESCRIPTION)
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name, verb in VERBS.items():
         p = sub.add_parser(name, help=verb.HELP, description=verb.HELP)

@@ -21,8 +21,8 @@ from messages.transport import Bus
 from ..replay.as_dmo import AsDmo, dmo_steps, render
 from ..replay.resettle import ResettleError, recorded_day
 from .console import UsageError, print_json, progress
-from .flags import (add_bus_flags, bus_config, credentials_for, load_recording, nonneg_float, recording_path,
-                    setup_logging)
+from .flags import (add_bus_flags, bus_config, credentials_for, load_recording, market_day, nonneg_float,
+                    recorded_day_flag, recording_path, setup_logging)
 
 HELP = "republish a recording over Zenoh under a new run prefix"
 
@@ -52,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="play only the DMO's side, paced by a live agent's answers, and settle that agent")
     p.add_argument("--agent", help="with --as-dmo: the recorded agent the live agent stands in for "
                                    "(default: the first awarded one)")
+    p.add_argument("--day", type=market_day, metavar="YYYY-MM-DD",
+                   help="only this market day of a recording of several (with --as-dmo: played as a run of one "
+                        "day; default: its first)")
     p.add_argument("--timeout", type=nonneg_float, default=600.0, metavar="S",
                    help="with --as-dmo: how long to wait for each answer of the live agent (default: 600)")
     p.add_argument("--record", metavar="PATH", help="with --as-dmo: record the replayed day to this MCAP file")
@@ -71,13 +74,14 @@ def run(args) -> int:
     if not args.as_dmo and (args.agent or args.record):
         raise UsageError("--agent and --record go with --as-dmo")
     rec = load_recording(args.path)
+    recorded_day_flag(rec, args.day)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     if args.as_dmo:
         return _as_dmo(args, rec, run_id, stop)
 
-    messages = select(rec, args.topics, args.start_offset)
+    messages = select(rec, args.topics, args.start_offset, args.day)
     if not messages:
         raise UsageError(f"{args.path}: nothing to replay" + (f" on keys matching {', '.join(args.topics)}"
                                                               if args.topics else "")
@@ -112,7 +116,7 @@ def _say(args, text: str) -> None:
 def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     """``--as-dmo``: the DMO's side of the recorded day, played to a live agent (replay/as_dmo.py)."""
     try:
-        day = recorded_day(rec)
+        day = recorded_day(rec, args.day)
     except ResettleError as exc:
         raise UsageError(str(exc)) from None
     agent = args.agent or sorted(day.awards)[0]
@@ -123,7 +127,7 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     if agent not in day.awards:
         raise UsageError(f"{args.path}: no award recorded for {agent} (awarded: {', '.join(sorted(day.awards))})")
     out = recording_path(args.record, args.overwrite) if args.record else None
-    steps = dmo_steps(rec, agent)
+    steps = dmo_steps(rec, agent, day.market_day)
     if rec.cut_note:
         print(f"warning: {args.path}: {rec.cut_note}; playing what was recorded before the cut", file=sys.stderr)
     credentials_for(args, run_id, [agent], dmo_client=False)

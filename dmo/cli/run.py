@@ -1,156 +1,181 @@
-"""``dmosim run``: a whole market day as separate OS processes (the DMO, one per agent, the recorder) over Zenoh,
-on this machine: credentials made for the run, the roles started and watched (launch/), faults injected, and the
-day's settlement printed with its recording."""
+"""``dmosim run [EXPERIMENT]``: market days as separate OS processes (the DMO, one per agent, the recorder) over
+Zenoh on this machine, from an experiment file and flags (docs/experiments.md), into a run directory.
+
+Every flag overrides the experiment file's setting of the same name; with neither, the experiment's default holds.
+The run directory (``./runs/<run_id>/`` unless ``--out``) receives the resolved experiment, the recording, the
+DMO's result, the recording as tables and a figure, and the roles' logs (dmo/experiment/rundir.py).
+"""
 
 from __future__ import annotations
 
 import argparse
-import json
-import queue
 import signal
-import subprocess
 import sys
-import tempfile
-import threading
-import time
+import tomllib
 from pathlib import Path
 
-from messages import Clock
 from messages.keys import new_run_id
-from messages.recording import RecordingError, read_recording
-from messages.transport import Bus, BusConfig
-from messages.transport.access import AuthError, bundle_settings
-from messages.transport.credentials import create_auth_dir
-from messages.transport.faults import FaultSpecError, MessageFault
-from scenarios.case import case_path, load_case
-from scenarios.fleet import FleetError, load_fleet, make_fleet
+from messages.transport.faults import FaultSpecError
+from scenarios.case import load_case
+from scenarios.fleet import FleetError
 
+from ..experiment.rundir import RunDir, RunDirError
+from ..experiment.spec import FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, with_settings
 from ..launch.faults import Fault, parse_fault
-from ..launch.processes import Roles, dmosim_command, free_port, wait_listening
+from ..launch.local import RoleFailed, fleet_of, resolved, run_locally
+from ..replay.reproduce import differences
 from .console import UsageError, print_json, progress
-from .flags import add_agent_flags, add_day_flags, positive_int, recording_path, today
+from .flags import gap, hours, load_recording, market_day, nonneg_float, positive_int, recording_path, scales
 
-HELP = "a whole market day: the DMO and one process per agent over Zenoh"
-FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR (SIGKILL the agent when the clock "
-              "reaches HOUR), restart:AGENT:HOUR (SIGKILL it, then start it again: it rejoins; AGENT may be dmo: it "
-              "resumes the day from its journal), and on the messages "
+HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
+FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
+              "clock reaches HOUR of DAY, default 1), restart:AGENT:HOUR[:DAY] (SIGKILL it, then start it again: it "
+              "rejoins; AGENT may be dmo: it resumes the run from its journal), and on the messages "
               "whose key, relative to the run prefix, matches PATTERN (* one level, ** any, e.g. agent/*/meter): "
               "drop:PATTERN:P, duplicate:PATTERN:P, corrupt:PATTERN:P (each with probability P) and "
               "delay:PATTERN:SECONDS[:P]; seeded by --seed")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--agents", type=positive_int, default=3, help="number of agents mg1..mgN (default: 3)")
-    p.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (overrides --agents)")
-    add_day_flags(p)
-    add_agent_flags(p)
-    p.add_argument("--fault", action="append", default=[], metavar="SPEC", help=FAULT_HELP)
-    p.add_argument("--check", action="store_true",
-                   help="check the inputs (case, fleet, faults, recording path) and exit without running")
-    p.add_argument("--logs", help="directory for the roles' logs and result (default: a new temporary one)")
-    record = p.add_mutually_exclusive_group()
-    record.add_argument("--record", metavar="PATH", help="the day's MCAP recording (default: LOGS/day.mcap)")
+    default = Experiment()
+    p.add_argument("experiment", nargs="?", metavar="EXPERIMENT",
+                   help="an experiment file (TOML, docs/experiments.md); the flags below override it")
+    p.add_argument("--from", dest="source", metavar="RECORDING",
+                   help="run again the experiment a recording of dmosim run holds (flags override it)")
+    setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
+    setting.add_argument("--agents", type=positive_int, help=f"agents mg1..mgN (default: {default.agents.count})")
+    setting.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (instead of --agents)")
+    setting.add_argument("--days", type=positive_int,
+                         help="consecutive market days; agents register once and carry their state across midnight "
+                              f"(default: {default.days})")
+    setting.add_argument("--market-day", type=market_day, help="the first market day, YYYY-MM-DD (default: today)")
+    setting.add_argument("--seed", type=int, help=f"seed of the run: fleet, forecast errors, islanding, faults "
+                                                  f"(default: {default.seed})")
+    setting.add_argument("--case", help=f"case giving the ISO price, penalty and Table I awards "
+                                        f"(default: {default.market.case})")
+    setting.add_argument("--market", choices=("bids", "fixed"),
+                         help="bids: clear the agents' bids; fixed: award the case's Table I to every agent "
+                              f"(default: {default.market.mode})")
+    setting.add_argument("--penalty", type=nonneg_float, help="$/MWh above the award (default: the case's)")
+    setting.add_argument("--credit", type=nonneg_float,
+                         help=f"$/MWh below the award (default: {default.market.credit:g})")
+    setting.add_argument("--import-limit", type=nonneg_float, help="feeder import limit, MW (default: 8 x agents)")
+    setting.add_argument("--export-limit", type=nonneg_float, help="feeder export limit, MW (default: 5 x agents)")
+    setting.add_argument("--island-hours", type=hours,
+                         help=f"hours each day is islanded (default: {default.market.island_hours})")
+    setting.add_argument("--subperiods", type=positive_int,
+                         help=f"metering sub-periods per hour (default: {default.market.subperiods})")
+    setting.add_argument("--scenarios", type=positive_int,
+                         help=f"scenarios of each agent's schedule (default: {default.schedule.scenarios})")
+    setting.add_argument("--gap", type=gap,
+                         help=f"relative MIP gap of each schedule (default: {default.schedule.gap:g})")
+    setting.add_argument("--time-limit", type=nonneg_float,
+                         help=f"seconds per agent solve (default: {default.schedule.time_limit:g})")
+    setting.add_argument("--method", choices=("auto", "extensive", "benders"),
+                         help=f"route of the agents' solves (docs/solver.md; default: {default.schedule.method})")
+    setting.add_argument("--workers", type=positive_int,
+                         help=f"processes per agent for Benders subproblems (default: {default.schedule.workers})")
+    setting.add_argument("--load-scale", type=scales, metavar="X,Y,...",
+                         help="each day's fixed-load forecast times these, repeated over the days (default: 1)")
+    setting.add_argument("--renewable-scale", type=scales, metavar="X,Y,...",
+                         help="each day's renewable forecasts times these, as --load-scale (default: 1)")
+    for name, what in (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
+                       ("hour", "each hour's meter reports")):
+        setting.add_argument(f"--{name}-timeout", type=nonneg_float, metavar="S",
+                             help=f"deadline for {what}, s (default: {getattr(default.deadlines, name):g})")
+    setting.add_argument("--fault", action="append", metavar="SPEC", help=FAULT_HELP)
+    out = p.add_argument_group("output")
+    out.add_argument("--out", metavar="DIR", help="the run directory (default: runs/<run_id>)")
+    out.add_argument("--overwrite", action="store_true", help="use --out DIR even if it holds a run")
+    record = out.add_mutually_exclusive_group()
+    record.add_argument("--record", metavar="PATH", help="the recording (default: DIR/recording.mcap)")
     record.add_argument("--no-record", action="store_true", help="run without a recorder")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing recording at --record PATH")
-    p.add_argument("--json", action="store_true", help="print one JSON object (README, \"Commands\")")
+    out.add_argument("--json", action="store_true", help="print one JSON object (docs/experiments.md, \"The result\")")
+    out.add_argument("--quiet", action="store_true", help="no progress lines")
+    out.add_argument("--check", action="store_true",
+                     help="check the inputs (experiment, cases, fleet, faults, paths) and exit without running")
     p.add_argument("--tls", action="store_true",
                    help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
                         "passwords and access control are always on; docs/security.md)")
 
 
+def experiment_of(args) -> Experiment:
+    """The experiment the arguments describe: a file (or a recording's), then every flag given."""
+    if args.experiment and args.source:
+        raise UsageError("give an experiment file or --from RECORDING, not both")
+    try:
+        if args.experiment:
+            base = load_experiment(args.experiment)
+        elif args.source:
+            base = experiment_in_recording(args.source)
+        else:
+            base = Experiment()
+        flags = {key: getattr(args, dest) for key, dest in FLAGS.items() if getattr(args, dest) is not None}
+        flags = {k: list(v) if isinstance(v, tuple) else v for k, v in flags.items()}
+        if args.fault is not None:
+            flags["faults"] = list(args.fault)
+        experiment = with_settings(base, flags, "flags") if flags else base
+        _check_faults(experiment)
+        return experiment
+    except (ExperimentError, FleetError) as exc:
+        raise UsageError(str(exc)) from None
+
+
+def experiment_in_recording(path: str) -> Experiment:
+    """The resolved experiment a recording of ``dmosim run`` holds (its attachment experiment.toml)."""
+    rec = load_recording(path)
+    for attachment in rec.attachments:
+        if attachment.name == "experiment.toml":
+            try:
+                return parse_experiment(tomllib.loads(attachment.data.decode()), f"{path}: experiment.toml")
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise UsageError(f"{path}: its experiment.toml cannot be read: {exc}") from None
+    raise UsageError(f"{path}: holds no experiment.toml (it was not recorded by dmosim run)")
+
+
+def _check_faults(experiment: Experiment) -> None:
+    fleet = fleet_of(experiment)
+    try:
+        faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault)]
+    except FaultSpecError as exc:
+        raise ExperimentError(f"--fault: {exc}") from None
+    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo"})
+    if any(f.agent == "dmo" and f.kind != "restart" for f in faults):
+        raise ExperimentError("--fault: the DMO can only be restarted (restart:dmo:HOUR), not killed")
+    if unknown:
+        raise ExperimentError(f"--fault names unknown agent {unknown[0]} (agents: {', '.join(m.id for m in fleet)})")
+    late = [f for f in faults if f.day > experiment.days]
+    if late:
+        raise ExperimentError(f"--fault {late[0]}: day {late[0].day} is past the run's {experiment.days} day(s)")
 
 
 def run(args) -> int:
-    try:
-        fleet = load_fleet(args.fleet) if args.fleet else make_fleet(args.agents, seed=args.seed)
-    except FleetError as exc:
-        raise UsageError(str(exc)) from None
-    try:
-        parsed = [parse_fault(f) for f in args.fault]
-    except FaultSpecError as exc:
-        raise UsageError(f"--fault: {exc}") from None
-    faults = [f for f in parsed if isinstance(f, Fault)]
-    # every role gets the message faults and applies those that match what it publishes
-    message_faults = [flag for f in parsed if isinstance(f, MessageFault) for flag in ("--fault", str(f))]
-    message_faults += ["--fault-seed", str(args.seed)] if message_faults else []
-    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo"})
-    if any(f.agent == "dmo" and f.kind != "restart" for f in faults):
-        raise UsageError("--fault: the DMO can only be restarted (restart:dmo:HOUR), not killed")
-    if unknown:
-        raise UsageError(f"--fault names unknown agent {unknown[0]} (agents: {', '.join(m.id for m in fleet)})")
+    experiment = resolved(experiment_of(args))
+    fleet = fleet_of(experiment)
+    for name in sorted({experiment.market.case, *(m.case for m in fleet)}):
+        load_case(name)  # a bad case is a CaseError: one line, exit 2
+    record_to = recording_path(args.record, args.overwrite) if args.record else None
     if args.check:
-        for name in sorted({args.case, *(m.case for m in fleet)}):
-            load_case(name)  # a bad case is a CaseError: one line, exit 2
-        if args.record:
-            recording_path(args.record, args.overwrite)
-        print(f"dmosim run: inputs are valid: {len(fleet)} agents ({', '.join(m.id for m in fleet)}), case "
-              f"{args.case}, {len(parsed)} fault(s)")
+        print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
+              f"agents ({', '.join(m.id for m in fleet)}), case {experiment.market.case}, "
+              f"{len(experiment.faults)} fault(s)")
         return 0
-
     run_id = new_run_id()
-    port = free_port()
-    endpoint = f"{'tls' if args.tls else 'tcp'}/127.0.0.1:{port}"
-    if args.record:
-        recording = recording_path(args.record, args.overwrite)  # before anything starts: a bad path is exit 2
-    logs = Path(args.logs) if args.logs else Path(tempfile.mkdtemp(prefix=f"dmosim-{run_id}-"))
-    logs.mkdir(parents=True, exist_ok=True)
-    if not args.record:
-        recording = None if args.no_record else recording_path(str(logs / "day.mcap"), True)
-    result_path = logs / "result.json"
-    auth = _credentials(logs / "auth", run_id, fleet, args.tls)
-    market_day = args.market_day or today()
-    day = ["--run-id", run_id, "--market-day", market_day]
-    _say(args, f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}; logs in {logs}"
-               + (f"; recording to {recording}" if recording else "; not recording"))
-
+    try:
+        rundir = RunDir.make(args.out, run_id, args.overwrite)
+    except RunDirError as exc:
+        raise UsageError(str(exc)) from None
+    record = None if args.no_record else (record_to or rundir.recording)
+    say = (lambda text: None) if args.quiet else progress
     signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
-    with Roles() as roles:
-        roles.start("dmo", dmosim_command("dmo", *day, "--listen", endpoint, "--agents", str(len(fleet)),
-                                   "--case", args.case, "--market", args.market, "--seed", str(args.seed),
-                                   "--island-hours", str(args.island_hours), "--result", str(result_path),
-                                   "--journal", str(logs / "dmo.journal"),
-                                   "--subperiods", str(args.subperiods),
-                                   *(["--await-recorder", "60"] if recording else []),
-                                   *_opt("--penalty", args.penalty), *_deadlines(args), "--auth-dir", str(auth),
-                                   *message_faults),
-                    log=logs / "dmo.log")
-        wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
-        observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
-        with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
-            started = threading.Event()
-            observer.subscribe(observer.keys.clock(), _watch_clock(args, roles, faults, started))
-            if recording:
-                # The DMO waits for the recorder before its first message; the agents start once that message
-                # is out, so the recording has the day from its first message.
-                roles.start("recorder", dmosim_command("record", "--out", str(recording), "--run-id", run_id, "--overwrite",
-                                                "--connect", endpoint, "--auth-dir", str(auth),
-                                                *_recording_metadata(args, fleet, market_day, logs)),
-                            log=logs / "recorder.log")
-                _wait_until(started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
-            for m in fleet:
-                roles.start(m.id, dmosim_command("agent", *day, "--id", m.id, "--connect", endpoint, "--case", m.case,
-                                          "--scale", repr(m.scale), "--shift-hours", str(m.shift_hours),
-                                          "--seed", str(m.seed), "--scenarios", str(args.scenarios),
-                                          "--island-hours", str(args.island_hours), "--gap", repr(args.gap),
-                                          "--time-limit", repr(args.time_limit), "--method", args.method,
-                                          "--workers", str(args.workers), "--lease", "1",
-                                          "--auth-dir", str(auth), *message_faults),
-                            log=logs / f"{m.id}.log")
-            failed = _wait_for_day(roles)
-        if recording and not failed:
-            failed = _stop_recorder(roles)
-        if failed:
-            for name in failed:
-                _say(args, f"{name} failed; its log: {roles.roles[name].log}")
-                _tail(roles.roles[name].log)
-            return 1
-    result = json.loads(result_path.read_text())
-    result["recording"] = str(recording.resolve()) if recording else None
-    if recording:
-        result["recorded"] = _recorded(recording)
-    result["logs"] = str(logs)
-    result["faults"] = [str(f) for f in parsed]
-    result["restarts"] = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
+    try:
+        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, say=say)
+    except RoleFailed as exc:
+        for name in exc.names:
+            _tail(rundir.logs / f"{name}.log")
+        raise
+    if args.source and record is not None:
+        result["reproduced"] = _reproduced(args.source, record, say)
     if args.json:
         print_json(result)
     else:
@@ -158,140 +183,25 @@ def run(args) -> int:
     return 0
 
 
-OBSERVER = "run"  # the name this process watches the day's clock under
-
-
-def _credentials(out: Path, run_id: str, fleet, tls: bool) -> Path:
-    """Fresh credentials for every role of this run (messages/security.py), so the default day authenticates each
-    process and the DMO's router enforces its access control with no configuration at all."""
-    try:
-        return create_auth_dir(out, run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
-                               valid_days=2, dmo_client=False, overwrite=True)  # the DMO is the router
-    except AuthError as exc:
-        raise UsageError(f"cannot make the run's credentials: {exc}") from None
-
-
-def _recording_metadata(args, fleet, market_day: str, logs: Path) -> list[str]:
-    """The recorder's --meta and --attach flags: the run's configuration, seed, market day, agents and versions
-    (the recorder adds its own), the case files and the fleet (a fleet file, or the generated fleet as one)."""
-    config = {k: v for k, v in sorted(vars(args).items()) if k not in ("run", "json", "quiet")}
-    meta = {"config": json.dumps(config, sort_keys=True, default=str), "seed": str(args.seed),
-            "market_day": market_day, "agents": ",".join(m.id for m in fleet), "command": "dmosim run"}
-    if args.fleet:
-        fleet_file = Path(args.fleet)
+def _reproduced(source: str, record: Path, say) -> dict:
+    """Whether the run settled every agent as the recording it was repeated from; where not, which agent, day and
+    hour differ (a fault, a missed deadline or a solve cut by its time limit can make a run differ)."""
+    diffs = differences(load_recording(source), load_recording(str(record)))
+    if diffs:
+        say(f"{len(diffs)} statement line(s) differ from {source}:")
+        for line in diffs:
+            say(f"  {line}")
     else:
-        fleet_file = logs / "fleet.toml"
-        fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
-                                      f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n\n"
-                                      for m in fleet))
-    cases = sorted({str(p) for p in map(case_path, [args.case, *(m.case for m in fleet)]) if p.is_file()})
-    flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
-    return flags + [flag for path in [*cases, str(fleet_file)] for flag in ("--attach", path)]
-
-
-def _wait_until(event: threading.Event, roles: Roles, watched: tuple[str, ...], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not event.wait(0.1):
-        for name in watched:
-            if roles.roles[name].process.poll() is not None:
-                raise RuntimeError(f"{name} exited before {what}; its log: {roles.roles[name].log}")
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"no sign of {what} within {timeout_s:g} s")
-
-
-def _stop_recorder(roles: Roles) -> list[str]:
-    """SIGTERM the recorder once the day is over: it writes its last chunk, the summary and the footer."""
-    process = roles.roles["recorder"].process
-    time.sleep(0.2)  # what the DMO sent last is still on its way to the recorder
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
-    try:
-        code = process.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        return ["recorder"]
-    return [] if code == 0 else ["recorder"]
-
-
-def _recorded(path: Path) -> dict:
-    try:
-        rec = read_recording(path)
-    except RecordingError as exc:
-        return {"error": str(exc)}
-    return {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
-            "complete": rec.complete}
+        say(f"every statement is the same as in {source}, to the cent")
+    return {"source": source, "identical": not diffs, "differences": diffs}
 
 
 def _interrupt(*_):
     raise KeyboardInterrupt
 
 
-def _wait_for_day(roles: Roles) -> list[str]:
-    """Block on process exits until the DMO is done and the agents have left; return the names that failed.
-
-    An agent that exits non-zero on its own stops the run. One killed on purpose is the DMO's problem: the day
-    goes on and settles it by the missing-data rule. The recorder runs until it is stopped: any exit of its own
-    is a failure.
-    """
-    pending = set(roles.roles) - {"recorder"}
-    failed = []
-    while pending:
-        timeout = 60.0 if "dmo" not in pending else None  # once the day is settled, agents get a minute to leave
-        try:
-            name, code = roles.exits.get(timeout=timeout)
-        except queue.Empty:
-            return failed + sorted(pending)
-        pending.discard(name)
-        if name == "recorder" or (code != 0 and not roles.roles[name].killed_on_purpose):
-            return failed + [name]
-    return failed
-
-
-def _watch_clock(args, roles: Roles, faults: list[Fault], started: threading.Event):
-    lock = threading.Lock()
-    fired: set[Fault] = set()
-
-    def on_clock(key, msg: Clock, received_at):
-        started.set()
-        with lock:
-            _say(args, f"phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
-            for f in faults:
-                if msg.phase != "realtime" or msg.hour != f.hour or f in fired:
-                    continue
-                fired.add(f)
-                if f.kind == "restart" and f.agent == "dmo":
-                    # mid-hour: the agents' answers are on their way when it dies, and must not be lost
-                    _say(args, f"fault: restarting the DMO (SIGKILL, then start again) {DMO_KILL_AFTER_S:g} s into "
-                               f"hour {f.hour}")
-                    threading.Timer(DMO_KILL_AFTER_S, roles.restart, ("dmo",)).start()
-                elif f.kind == "restart":
-                    _say(args, f"fault: restarting {f.agent} (SIGKILL, then start again) at hour {f.hour}")
-                    roles.restart(f.agent)
-                else:
-                    _say(args, f"fault: killing {f.agent} (SIGKILL) at hour {f.hour}")
-                    roles.kill(f.agent)
-
-    return on_clock
-
-
-DMO_KILL_AFTER_S = 0.5
-
-
-def _opt(flag: str, value) -> list[str]:
-    return [] if value is None else [flag, repr(value) if isinstance(value, float) else str(value)]
-
-
-def _deadlines(args) -> list[str]:
-    return ["--registration-timeout", repr(args.registration_timeout), "--bid-timeout", repr(args.bid_timeout),
-            "--schedule-timeout", repr(args.schedule_timeout), "--hour-timeout", repr(args.hour_timeout)]
-
-
-def _say(args, text: str) -> None:
-    if not args.quiet:
-        progress(text)
-
-
-def _tail(path: Path | None, lines: int = 15) -> None:
-    if path and path.exists():
+def _tail(path: Path, lines: int = 15) -> None:
+    if path.exists():
         for line in path.read_text(errors="replace").splitlines()[-lines:]:
             print(f"    {line}", file=sys.stderr)
 
@@ -299,11 +209,15 @@ def _tail(path: Path | None, lines: int = 15) -> None:
 def summary_table(result: dict) -> str:
     """Per agent: award energy, realised import, deviation energy, energy charge, penalty and total."""
     head = f"{'agent':<8}{'award MWh':>11}{'import MWh':>12}{'dev. MWh':>10}{'energy $':>12}{'penalty $':>11}{'total $':>12}"
-    rows = [f"market day {result['market_day']}, run {result['run_id']}", head, "-" * len(head)]
+    days = result["days"]
+    when = (f"market day {days[0]['market_day']}" if len(days) == 1 else
+            f"{len(days)} market days, {days[0]['market_day']} to {days[-1]['market_day']} (totals)")
+    rows = [f"{when}, run {result['run_id']}", head, "-" * len(head)]
     for agent, s in sorted(result["settlement"].items()):
         rows.append(f"{agent:<8}{s['award_mwh']:>11.2f}{s['import_mwh']:>12.2f}{s['deviation_mwh']:>10.3f}"
                     f"{s['energy_charge']:>12,.2f}{s['deviation_penalty']:>11,.2f}{s['total']:>12,.2f}")
-    rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {result['islanded_hours'] or 'none'}")
+    islanded = "; ".join(f"{d['market_day']}: {', '.join(map(str, d['islanded_hours'])) or 'none'}" for d in days)
+    rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {islanded}")
     recorded = result.get("recorded") or {}
     if result.get("recording"):
         rows.append(f"recording: {result['recording']}" + (
@@ -312,7 +226,10 @@ def summary_table(result: dict) -> str:
             f" ({recorded.get('error', 'unreadable')})"))
     else:
         rows.append("recording: none (--no-record)")
+    rows.append(f"run directory: {result['run_dir']}" + (" (experiment.toml, result.json, tables/, run.png, logs/)"
+                                                         if result.get("figure") else ""))
     for incident in result["incidents"]:
         where = incident["phase"] + (f" hour {incident['hour']}" if incident["hour"] else "")
+        where = f"{incident['market_day']} {where}" if "market_day" in incident else where
         rows.append(f"incident [{where}] {incident['agent'] or '-'}: {incident['reason']}")
     return "\n".join(rows)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from scenarios.case import load_case
 
+from ..experiment.rundir import RunDirError, claim_directory
 from .console import UsageError, progress
 from .solve import add_instance_flags, instance_from_args, solve_verified
 
@@ -24,14 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def output_dir(text: str) -> Path:
     """--out as a directory, created if missing; anything else there is a usage error (before any solve)."""
-    out = Path(text)
-    if out.exists() and not out.is_dir():
-        raise UsageError(f"--out {text}: exists and is not a directory")
     try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UsageError(f"--out {text}: cannot create the directory ({exc.strerror})") from None
-    return out
+        return claim_directory(Path(text), overwrite=True)  # a study's files replace the same study's
+    except RunDirError as exc:
+        raise UsageError(f"--out: {exc}") from None
 
 
 def run(args) -> int:

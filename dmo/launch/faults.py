@@ -14,15 +14,17 @@ PROCESS_FAULTS = ("kill", "restart")
 
 @dataclass(frozen=True)
 class Fault:
-    """``kill:AGENT:HOUR``: SIGKILL the agent's process when the DMO's clock reaches that hour; ``restart:AGENT:HOUR``
-    also starts it again at once, with the same command line (it registers again and rejoins the day)."""
+    """``kill:AGENT:HOUR[:DAY]``: SIGKILL the agent's process when the DMO's clock reaches that hour of that day (of
+    day 1 if none is given); ``restart:AGENT:HOUR[:DAY]`` also starts it again at once, with the same command line
+    (it registers again and rejoins the day)."""
 
     agent: str
     hour: int
     kind: str = "kill"
+    day: int = 1
 
     def __str__(self) -> str:
-        return f"{self.kind}:{self.agent}:{self.hour}"
+        return f"{self.kind}:{self.agent}:{self.hour}" + (f":{self.day}" if self.day != 1 else "")
 
 
 def parse_fault(text: str) -> Fault | MessageFault:
@@ -32,9 +34,11 @@ def parse_fault(text: str) -> Fault | MessageFault:
     if kind in MESSAGE_FAULTS:
         return parse_message_fault(text)
     if kind not in PROCESS_FAULTS:
-        raise FaultSpecError(f"fault {text!r}: unknown kind {kind!r} (supported: kill:AGENT:HOUR, restart:AGENT:HOUR, "
-                             "drop|duplicate|corrupt:PATTERN:P, delay:PATTERN:SECONDS[:P])")
-    agent, _, hour = rest.partition(":")
-    if not agent or not hour.isdigit() or not 1 <= int(hour) <= HOURS:
-        raise FaultSpecError(f"fault {text!r}: expected {kind}:AGENT:HOUR with HOUR in 1..{HOURS}")
-    return Fault(agent, int(hour), kind)
+        raise FaultSpecError(f"fault {text!r}: unknown kind {kind!r} (supported: kill:AGENT:HOUR[:DAY], "
+                             "restart:AGENT:HOUR[:DAY], drop|duplicate|corrupt:PATTERN:P, delay:PATTERN:SECONDS[:P])")
+    agent, _, when = rest.partition(":")
+    hour, _, day = when.partition(":")
+    if not agent or not hour.isdigit() or not 1 <= int(hour) <= HOURS or not (day == "" or day.isdigit() and
+                                                                              int(day) >= 1):
+        raise FaultSpecError(f"fault {text!r}: expected {kind}:AGENT:HOUR[:DAY] with HOUR in 1..{HOURS} and DAY >= 1")
+    return Fault(agent, int(hour), kind, int(day or 1))

@@ -64,6 +64,20 @@ def wait_for_line(path: Path, pattern: str, timeout_s: float, alive) -> re.Match
     raise RuntimeError(f"no {pattern!r} in {path} within {timeout_s:g} s:\n{text[-3000:]}")
 
 
+def memory_mib(pid: int) -> dict[str, float] | None:
+    """A live process's resident memory now and its peak so far (VmRSS, VmHWM of /proc/PID/status), MiB; None
+    where there is no /proc or the process is gone. Its own children (Benders workers) are not counted."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in status.splitlines() if line.startswith(("VmRSS", "VmHWM")))
+    if len(fields) < 2:
+        return None
+    return {"rss_mib": round(int(fields["VmRSS"].split()[0]) / 1024, 1),
+            "peak_mib": round(int(fields["VmHWM"].split()[0]) / 1024, 1)}
+
+
 @dataclass
 class Role:
     name: str

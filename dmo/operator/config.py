@@ -1,4 +1,4 @@
-"""What the DMO needs to run one day: its terms, deadlines and where it journals; and the day's islanding."""
+"""What the DMO needs to run its days: their terms, deadlines and where it journals; and each day's islanding."""
 
 from __future__ import annotations
 
@@ -6,13 +6,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scenarios.days import day_seed, market_days
 from scenarios.horizon import HOURS
 
 
 @dataclass(frozen=True)
 class DayConfig:
-    """Everything the DMO needs to run one day. Deadlines are wall-clock seconds per phase (per hour in real
-    time). ``fixed_awards`` (24 MW) replaces clearing by those awards for every agent (the paper's Table I)."""
+    """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. Deadlines are
+    wall-clock seconds per phase (per hour in real time). ``fixed_awards`` (24 MW) replaces clearing by those
+    awards for every agent (the paper's Table I). ``islanded_hours`` holds for every day unless
+    ``islanding_by_day`` gives each day its own."""
 
     market_day: str
     agents: int
@@ -33,6 +36,22 @@ class DayConfig:
     linger_s: float = 5.0  # after the summary, how long to wait for the agents to leave before closing
     journal: str | None = None  # where the DMO journals its day, to resume it if it is restarted
     resume_wait_s: float = 30.0  # a resumed DMO waits this long for its agents to reconnect
+    days: int = 1
+    islanding_by_day: tuple[tuple[int, ...], ...] | None = None
+
+    def __post_init__(self):
+        if self.days < 1:
+            raise ValueError(f"a run has at least one day, not {self.days}")
+        if self.islanding_by_day is not None and len(self.islanding_by_day) != self.days:
+            raise ValueError(f"islanding_by_day gives {len(self.islanding_by_day)} days, the run has {self.days}")
+
+    def market_day_of(self, day: int) -> str:
+        """The date of day ``day`` (1-based) of the run."""
+        return market_days(self.market_day, day)[-1]
+
+    def islanded(self, day: int) -> tuple[int, ...]:
+        """The hours day ``day`` is islanded in."""
+        return self.islanded_hours if self.islanding_by_day is None else self.islanding_by_day[day - 1]
 
 
 def island_hours(start: int, hours: int) -> tuple[int, ...]:
@@ -46,3 +65,8 @@ def draw_islanding(hours: int, seed: int) -> tuple[int, ...]:
         return ()
     start = 1 + int(np.random.default_rng([seed, 7]).integers(0, HOURS + 1 - hours))
     return island_hours(start, hours)
+
+
+def islanding_by_day(hours: int, seed: int, days: int) -> tuple[tuple[int, ...], ...]:
+    """Each day's islanding event, drawn from that day's seed (``scenarios.days.day_seed``)."""
+    return tuple(draw_islanding(hours, day_seed(seed, d)) for d in range(1, days + 1))

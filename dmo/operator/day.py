@@ -11,9 +11,11 @@ message is published on ``dmo/rejected`` with its reason, counted, and never cha
 
 from __future__ import annotations
 
+import copy
 import logging
 import queue
 import time
+from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
@@ -37,18 +39,22 @@ log = logging.getLogger("dmosim.dmo")
 
 @dataclass(frozen=True)
 class DayResult:
+    """One settled market day: its clearing, statements and totals, and the DMO's state as the day closed."""
+
+    day: int
+    market_day: str
+    islanded_hours: tuple[int, ...]
     clearing: ClearingResult
     statements: dict[str, Statement]
     totals: DayTotals
     state: DayState
     phase_s: dict[str, float]
 
-    def report(self, run_id: str, config: DayConfig, transport: dict) -> dict:
-        """The ``dmosim run --json`` object (README, "Commands"), from the DMO's view of the day."""
+    def report(self) -> dict:
+        """The day as JSON: prices, awards, each agent's settlement, incidents and counts."""
         s = self.state
         return {
-            "run_id": run_id, "market_day": config.market_day, "agents": sorted(s.registered),
-            "islanded_hours": list(config.islanded_hours),
+            "day": self.day, "market_day": self.market_day, "islanded_hours": list(self.islanded_hours),
             "clearing_prices": list(self.clearing.price), "congestion": list(self.clearing.congested),
             "awards": {a: list(v) for a, v in self.clearing.awards.items()},
             "settlement": {a: {"energy_charge": float(st.energy_charge),
@@ -62,10 +68,42 @@ class DayResult:
             "day_summary": self.totals.as_dict(),
             "expected_cost": {a: m.expected_cost for a, m in s.schedules.items()},
             "rejected_messages": s.rejected, "rejected_by_code": dict(s.rejected_by_code),
-            "accepted_messages": dict(s.accepted), "transport": transport,
+            "accepted_messages": dict(s.accepted),
             "incidents": [i.model_dump() for i in s.incidents],
             "phase_s": self.phase_s,
         }
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Every day of a run, in order."""
+
+    days: list[DayResult]
+
+    def report(self, run_id: str, transport: dict) -> dict:
+        """The DMO's part of the ``dmosim run --json`` object (docs/experiments.md, "The result"). A one-day run
+        gives that day's fields at the top; a longer one gives the run's: hourly values concatenated day after day,
+        each agent's settlement summed, incidents of every day (each with its market day), and ``islanded_hours``
+        per day. ``days`` holds each day's own object either way."""
+        days = [d.report() for d in self.days]
+        agents = sorted(self.days[-1].state.registered)
+        out = {"run_id": run_id, "agents": agents, "days": days, "transport": transport}
+        if len(days) == 1:
+            return {**out, **days[0], "days": days}
+        money = ("energy_charge", "deviation_penalty", "credit", "total")
+        settlement = {a: {k: (round(sum(d["settlement"][a][k] for d in days), 2) if k in money
+                              else sum(d["settlement"][a][k] for d in days)) for k in days[0]["settlement"][a]}
+                      for a in days[0]["settlement"]}
+        return {**out, "market_day": days[0]["market_day"], "market_days": [d["market_day"] for d in days],
+                "islanded_hours": [d["islanded_hours"] for d in days],
+                "clearing_prices": [p for d in days for p in d["clearing_prices"]],
+                "congestion": [c for d in days for c in d["congestion"]],
+                "awards": {a: [x for d in days for x in d["awards"].get(a, [0.0] * HOURS)] for a in agents},
+                "settlement": settlement,
+                "rejected_messages": sum(d["rejected_messages"] for d in days),
+                "rejected_by_code": dict(sum((Counter(d["rejected_by_code"]) for d in days), Counter())),
+                "accepted_messages": dict(sum((Counter(d["accepted_messages"]) for d in days), Counter())),
+                "incidents": [{**i, "market_day": d["market_day"]} for d in days for i in d["incidents"]]}
 
 
 def bid_curve(bid: Bid) -> BidCurve:
@@ -74,12 +112,29 @@ def bid_curve(bid: Bid) -> BidCurve:
                                       for hour in bid.hours))
 
 
+def clearing_of(config: DayConfig, state: DayState) -> ClearingResult:
+    """The day's clearing, a pure function of the bids it accepted (a resumed DMO gets the same awards again)."""
+    agents = sorted(state.registered)
+    if config.fixed_awards is not None:
+        return fixed_awards({a: config.fixed_awards for a in agents}, config.iso_price)
+    bids = [bid_curve(state.bids[a]) for a in sorted(state.bids)]
+    return clear(bids, config.iso_price, config.import_limit, config.export_limit, agents=agents)
+
+
+def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult) -> tuple[dict[str, Statement],
+                                                                                           DayTotals]:
+    """The day's statements, a pure function of its awards and the meter reports it accepted."""
+    return settle(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods, penalty=config.penalty,
+                  credit=config.credit, p_m_max={a: r.max_import_mw for a, r in state.registered.items()})
+
+
 class MarketDay:
-    """Runs one day on an open bus. ``on_progress(phase, hour)`` is called as the clock advances."""
+    """Runs the market days of one run on an open bus: registration once, then each day from the call for bids
+    to settlement. ``on_progress(phase, hour)`` is called as the clock advances."""
 
     def __init__(self, bus: Bus, config: DayConfig, on_progress: Callable[[str, int | None], None] | None = None):
         self.bus, self.config = bus, config
-        self.state = DayState()
+        self.state = DayState(market_day=config.market_day)
         self.events: queue.Queue = queue.Queue()
         self.on_progress = on_progress or (lambda phase, hour: None)
         self.clearing: ClearingResult | None = None
@@ -91,29 +146,44 @@ class MarketDay:
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
         bus.tap = self._traffic
 
-    # --- the phases --------------------------------------------------------------------------------------------
+    # --- the days and their phases -----------------------------------------------------------------------------
 
-    def run(self, before_start: Callable[[], None] | None = None) -> DayResult:
-        """Run the day. ``before_start`` is called once the DMO listens and before its first message (to wait
-        for a recorder, so that the recording misses nothing)."""
-        if self.config.journal:
-            self.journal = Journal(self.config.journal, self.bus.keys.run_id, self.config.market_day)
-            self._resumed = restore(self.state, self.journal.entries)
+    def run(self, before_start: Callable[[], None] | None = None) -> RunResult:
+        """Run the days. ``before_start`` is called once the DMO listens and before its first message (to wait
+        for a recorder, so that the recording misses nothing). A DMO restarted on its journal gives the days it
+        had finished from the journal and runs again the phase, or hour, it had reached."""
+        s, c = self.state, self.config
+        finished: list[DayState] = []
+        if c.journal:
+            self.journal = Journal(c.journal, self.bus.keys.run_id, c.market_day)
+            self._resumed, finished = restore(s, self.journal.entries)
             self.history = DayHistory(traffic(self.journal.entries))
             if self._resumed is not None:
-                log.warning("resuming the day from %s: %s, %d accepted messages", self.journal.path,
-                            _when(*self._resumed), sum(self.state.accepted.values()))
+                log.warning("resuming the run from %s: day %d %s, %d accepted messages", self.journal.path, s.day,
+                            _when(*self._resumed), sum(s.accepted.values()))
         self._listen()
         if before_start is not None:
             before_start()
+        results = [self._settled_again(closed) for closed in finished]
+        for day in range(s.day, c.days + 1):
+            if day > s.day:
+                s.start_day(day, c.market_day_of(day))
+            results.append(self._run_day(day))
+        self._linger()
+        if self.journal is not None:
+            self.journal.close()
+        return RunResult(results)
+
+    def _run_day(self, day: int) -> DayResult:
+        s, c = self.state, self.config
         steps = dict(zip(PHASES, (self._registration, self._bidding, self._clearing, self._scheduling,
                                   self._realtime, self._settlement)))
-        first = 0
+        first = PHASE_ORDER["registration" if day == 1 else "bidding"]
         if self._resumed is not None:
             first = PHASE_ORDER[self._resumed[0]]
             self._await_agents()
             if first > PHASE_ORDER["clearing"]:
-                self._clear()
+                self.clearing = clearing_of(c, s)
                 if first == PHASE_ORDER["scheduling"]:  # some awards may not have gone out; agents ignore a repeat
                     self._publish_awards()
         timings = {}
@@ -121,11 +191,16 @@ class MarketDay:
             start = time.monotonic()
             out = steps[phase]()
             timings[phase] = time.monotonic() - start
+        self._resumed = None
         statements, totals = out
-        self._linger()
-        if self.journal is not None:
-            self.journal.close()
-        return DayResult(self.clearing, statements, totals, self.state, timings)
+        return DayResult(day, s.market_day, c.islanded(day), self.clearing, statements, totals, copy.copy(s), timings)
+
+    def _settled_again(self, closed: DayState) -> DayResult:
+        """A day finished before the DMO restarted, settled again from its journal (nothing is published)."""
+        clearing = clearing_of(self.config, closed)
+        statements, totals = settlement_of(self.config, closed, clearing)
+        return DayResult(closed.day, closed.market_day, self.config.islanded(closed.day), clearing, statements,
+                         totals, closed, {})
 
     def _registration(self) -> None:
         s, c = self.state, self.config
@@ -151,28 +226,18 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("bidding", c.bids_s)
         self._bids_due = time.monotonic() + c.bids_s
-        self._publish(outbox.call_for_bids(c, c.bids_s))
+        self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
         self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid",
                    self._first_of_each(Bid, s.bids, "bid"))
 
     def _clearing(self) -> None:
         self._clock("clearing", self.config.bids_s)
-        self._clear()
+        self.clearing = clearing_of(self.config, self.state)
         self._publish_awards()
-
-    def _clear(self) -> None:
-        """Clear the accepted bids (a pure function of them: a resumed DMO gets the same awards again)."""
-        s, c = self.state, self.config
-        agents = sorted(s.registered)
-        if c.fixed_awards is not None:
-            self.clearing = fixed_awards({a: c.fixed_awards for a in agents}, c.iso_price)
-        else:
-            bids = [bid_curve(s.bids[a]) for a in sorted(s.bids)]
-            self.clearing = clear(bids, c.iso_price, c.import_limit, c.export_limit, agents=agents)
 
     def _publish_awards(self) -> None:
         for agent in sorted(self.state.registered):
-            self._publish(outbox.award(self.config, self.clearing, agent))
+            self._publish(outbox.award(self.config, self.state.day, self.clearing, agent))
 
     def _scheduling(self) -> None:
         s, c = self.state, self.config
@@ -185,7 +250,7 @@ class MarketDay:
         first = self._resumed[1] if self._resumed and self._resumed[0] == "realtime" else 1
         for hour in range(first, HOURS + 1):
             self._clock("realtime", c.hour_s, hour)
-            self._grid = outbox.grid_state(c, hour)
+            self._grid = outbox.grid_state(c, s.day, hour)
             self._publish(self._grid)
 
             def accept(key, msg, hour=hour):
@@ -208,12 +273,10 @@ class MarketDay:
                          lambda key, msg: self._refuse(key, msg, acceptance.out_of_phase(msg, s.phase)))
         for incident in s.log.close(s.phase, s.hour):
             log.warning("settlement: %s", incident.reason)
-        statements, totals = settle(self.clearing.awards, self.clearing.price, s.meter, subperiods=c.subperiods,
-                                    penalty=c.penalty, credit=c.credit,
-                                    p_m_max={a: r.max_import_mw for a, r in s.registered.items()})
+        statements, totals = settlement_of(c, s, self.clearing)
         for st in statements.values():
-            self._publish(outbox.statement_message(st, c.market_day, c.penalty, c.credit))
-        self._publish(outbox.day_summary(c.market_day, s.registered, self.clearing.price, statements, s.rejected,
+            self._publish(outbox.statement_message(st, s.market_day, c.penalty, c.credit))
+        self._publish(outbox.day_summary(s.market_day, s.registered, self.clearing.price, statements, s.rejected,
                                          s.incidents))
         return statements, totals
 
@@ -245,7 +308,7 @@ class MarketDay:
         for agent in sorted(waiting):
             s.gone.add(agent)
             s.vanished[agent] = (s.phase, s.hour)
-        self._incident(None, f"the DMO restarted and resumed the day {_when(*self._resumed)} from its journal "
+        self._incident(None, f"the DMO restarted and resumed day {s.day} {_when(*self._resumed)} from its journal "
                              f"({sum(s.accepted.values())} accepted messages recovered)"
                              + (f"; not back: {', '.join(sorted(waiting))}" if waiting else ""))
 
@@ -278,9 +341,10 @@ class MarketDay:
         kinds, said = rejoin.resend_plan(self.state, agent, self.clearing is not None, self._grid is not None)
         for kind in kinds:
             if kind == rejoin.CALL_FOR_BIDS:
-                self._publish(outbox.call_for_bids(self.config, round(max(0.1, self._bids_due - time.monotonic()), 1)))
+                due = round(max(0.1, self._bids_due - time.monotonic()), 1)
+                self._publish(outbox.call_for_bids(self.config, self.state.day, due))
             elif kind == rejoin.AWARD:
-                self._publish(outbox.award(self.config, self.clearing, agent))
+                self._publish(outbox.award(self.config, self.state.day, self.clearing, agent))
             else:
                 self._publish(self._grid)
         return said
@@ -303,11 +367,12 @@ class MarketDay:
         self.bus.publish(msg)
 
     def _clock(self, phase: str, deadline_s: float, hour: int | None = None) -> None:
-        self.state.phase, self.state.hour = phase, hour
+        s = self.state
+        s.phase, s.hour = phase, hour
         if self.journal is not None:
-            self.journal.clock(phase, hour)
+            self.journal.clock(phase, hour, s.day, s.market_day)
         self.on_progress(phase, hour)
-        self._publish(outbox.clock(self.config, phase, hour, deadline_s))
+        self._publish(outbox.clock(self.config, s.day, phase, hour, deadline_s))
 
     def _incident(self, agent: str | None, reason: str) -> None:
         s = self.state
@@ -325,7 +390,7 @@ class MarketDay:
             self._incident(offender, f"rejected message on {key.split('/', 2)[-1]}: {err.code}: {err.reason}")
         else:
             log.info("rejected message on %s: %s: %s", key, err.code, err.reason)
-        self._publish(make_rejection(key, payload, err, market_day=self.config.market_day, offender=offender))
+        self._publish(make_rejection(key, payload, err, market_day=self.state.market_day, offender=offender))
 
     def _refuse(self, key: str, msg, refusal: Refusal) -> None:
         code, reason = refusal
@@ -388,7 +453,7 @@ class MarketDay:
 
     def _admission(self, msg) -> Refusal | None:
         s = self.state
-        refusal = acceptance.check_day(msg, self.config.market_day) or acceptance.check_registered(msg, s.registered)
+        refusal = acceptance.check_day(msg, s.market_day) or acceptance.check_registered(msg, s.registered)
         if refusal:
             return refusal
         # A restarted agent numbers its messages from 0 again: its re-registration after vanishing is let through.

@@ -47,8 +47,8 @@ class Journal:
             if not self._file.closed:
                 self._file.write(line)
 
-    def clock(self, phase: str, hour: int | None) -> None:
-        self.write({"clock": phase, "hour": hour})
+    def clock(self, phase: str, hour: int | None, day: int = 1, market_day: str | None = None) -> None:
+        self.write({"clock": phase, "hour": hour, "day": day, "market_day": market_day})
 
     def accepted(self, key: str, msg) -> None:
         self.write({"accepted": key, "message": encode(msg).decode()})
@@ -67,12 +67,17 @@ class Journal:
             self._file.close()
 
 
-def restore(state: DayState, entries: list[dict]) -> tuple[str, int | None] | None:
-    """Rebuild ``state`` from journal entries: what the DMO accepted, its incidents and rejections. Returns the
-    last clock step, (phase, hour), which the DMO then runs again from its start; None if it had not started."""
-    clock = None
+def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None] | None, list[DayState]]:
+    """Rebuild ``state`` from journal entries: what the DMO accepted, its incidents and rejections, day by day.
+    Returns the last clock step, (phase, hour) of ``state.day``, which the DMO then runs again from its start (None
+    if it had not started), and the states of the days it had finished, to give their results again."""
+    clock, finished = None, []
     for entry in entries:
         if "clock" in entry:
+            day, market_day = entry.get("day", 1), entry.get("market_day") or state.market_day
+            if day > state.day:
+                finished.append(state.start_day(day, market_day))
+            state.market_day = market_day
             clock = (entry["clock"], entry["hour"])
         elif "incident" in entry:
             state.log.incidents.append(Incident(**entry["incident"]))
@@ -94,7 +99,7 @@ def restore(state: DayState, entries: list[dict]) -> tuple[str, int | None] | No
             state.count_accepted(msg)
     if clock is not None:
         state.phase, state.hour = clock
-    return clock
+    return clock, finished
 
 
 def traffic(entries: list[dict]) -> list[tuple[str, bytes, int]]:

@@ -5,39 +5,40 @@ Hours are 0..23 inside the DMO (settlement lines, meter hour indices) and 1..24 
 
 from __future__ import annotations
 
-from messages import (DMO, AgentTotals, Award, CallForBids, Clock, DaySummary, GridState, Incident,
-                      SettlementStatement, StatementLine)
+from messages import (DMO, AgentTotals, Award, CallForBids, Clock, DaySummary, GridState, Incident, SettlementStatement,
+                      StatementLine)
 
 from ..market.clearing import ClearingResult
 from ..market.settlement import RULES, RULES_VERSION, Statement
 from .config import DayConfig
 
 
-def clock(config: DayConfig, phase: str, hour: int | None, deadline_s: float) -> Clock:
-    return Clock(sender=DMO, market_day=config.market_day, phase=phase, hour=hour, deadline_s=deadline_s)
+def clock(config: DayConfig, day: int, phase: str, hour: int | None, deadline_s: float) -> Clock:
+    return Clock(sender=DMO, market_day=config.market_day_of(day), phase=phase, hour=hour, deadline_s=deadline_s,
+                 day=day, days=config.days)
 
 
-def call_for_bids(config: DayConfig, deadline_s: float) -> CallForBids:
-    """The day's terms; bids are due ``deadline_s`` after it is sent."""
+def call_for_bids(config: DayConfig, day: int, deadline_s: float) -> CallForBids:
+    """Day ``day``'s terms; bids are due ``deadline_s`` after it is sent."""
     c = config
-    return CallForBids(sender=DMO, market_day=c.market_day, iso_price_per_mwh=c.iso_price,
+    return CallForBids(sender=DMO, market_day=c.market_day_of(day), iso_price_per_mwh=c.iso_price,
                        price_floor_per_mwh=c.price_floor, price_cap_per_mwh=c.price_cap,
                        import_limit_mw=c.import_limit, export_limit_mw=c.export_limit, penalty_per_mwh=c.penalty,
                        credit_per_mwh=c.credit, subperiods=c.subperiods, deadline_s=deadline_s)
 
 
-def award(config: DayConfig, clearing: ClearingResult, agent: str) -> Award:
-    """One agent's award: its P_sch, the clearing prices and the settlement terms and rules."""
+def award(config: DayConfig, day: int, clearing: ClearingResult, agent: str) -> Award:
+    """One agent's award of day ``day``: its P_sch, the clearing prices and the settlement terms and rules."""
     c = config
-    return Award(sender=DMO, market_day=c.market_day, agent=agent, p_sch_mw=clearing.awards[agent],
+    return Award(sender=DMO, market_day=c.market_day_of(day), agent=agent, p_sch_mw=clearing.awards[agent],
                  clearing_price_per_mwh=clearing.price, penalty_per_mwh=c.penalty, credit_per_mwh=c.credit,
                  subperiods=c.subperiods, rules_version=RULES_VERSION, rules=RULES)
 
 
-def grid_state(config: DayConfig, hour: int) -> GridState:
-    """Hour ``hour`` (1..24) as realised: islanded in every sub-period of an islanded hour, else connected."""
-    connected = hour not in config.islanded_hours
-    return GridState(sender=DMO, market_day=config.market_day, hour=hour, subperiods=config.subperiods,
+def grid_state(config: DayConfig, day: int, hour: int) -> GridState:
+    """Hour ``hour`` (1..24) of day ``day`` as realised: islanded in every sub-period of an islanded hour."""
+    connected = hour not in config.islanded(day)
+    return GridState(sender=DMO, market_day=config.market_day_of(day), hour=hour, subperiods=config.subperiods,
                      connected=(connected,) * config.subperiods)
 
 

@@ -1,8 +1,9 @@
-"""What the DMO has accepted so far in its day, and where the day stands; only the DMO's main thread touches it."""
+"""What the DMO has accepted so far in its day, and where the run stands; only the DMO's main thread touches it."""
 
 from __future__ import annotations
 
 import collections
+import copy
 from dataclasses import dataclass, field
 
 from messages import Bid, Incident, Registration, Schedule
@@ -17,6 +18,8 @@ class DayState:
 
     ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``vanished`` maps an agent whose liveliness
     was lost to the (phase, hour) it vanished in (it may come back); ``gone`` holds the agents not live now.
+    Registrations, presence and the replay guard belong to the run; the answers, incidents and counts to the
+    day ``day`` (1-based), whose date is ``market_day``: ``start_day`` closes one day and opens the next.
     """
 
     registered: dict[str, Registration] = field(default_factory=dict)
@@ -31,6 +34,18 @@ class DayState:
     rescheduling: set[str] = field(default_factory=set)  # rejoined agents whose new schedule is awaited
     phase: str = "registration"
     hour: int | None = None
+    day: int = 1
+    market_day: str = ""
+
+    def start_day(self, day: int, market_day: str) -> DayState:
+        """Close the current day and open ``day``: returns the closed day's state (its answers, incidents and
+        counts, for its result); registrations, presence and the replay guard carry over."""
+        closed = copy.copy(self)
+        self.day, self.market_day, self.phase, self.hour = day, market_day, "bidding", None
+        self.bids, self.schedules, self.rescheduling = {}, {}, set()
+        self.meter = {agent: {} for agent in self.registered}
+        self.log, self.accepted = IncidentLog(), collections.Counter()
+        return closed
 
     def live(self) -> list[str]:
         return sorted(a for a in self.registered if a not in self.gone)

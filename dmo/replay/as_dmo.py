@@ -11,6 +11,7 @@ sent to it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import queue
@@ -19,7 +20,7 @@ import time
 
 from messages import Bid, MeterReport, Registration, Schedule, decode, encode, make_rejection
 from messages.codec import MessageError
-from messages.recording import Player, Recording
+from messages.recording import Player, RecordedMessage, Recording
 from messages.transport import Bus
 
 from ..market import acceptance
@@ -167,21 +168,35 @@ class AsDmo:
                 "meter_reports": len(self.meter), "rejected_messages": self.rejected, "incidents": self.incidents}
 
 
-def dmo_steps(rec: Recording, agent: str) -> list[tuple]:
-    """The recorded DMO messages the agent would see, grouped by the clock message that opens each step:
-    [(Clock, [RecordedMessage...])], the clock itself first in each list."""
+def dmo_steps(rec: Recording, agent: str, market_day: str) -> list[tuple]:
+    """The recorded DMO messages of ``market_day`` the agent would see, grouped by the clock message that opens
+    each step: [(Clock, [RecordedMessage...])], the clock itself first in each list.
+
+    The day is played as a run of one day: its clocks say day 1 of 1, and a day after the first of its run, which
+    has no registration phase of its own, opens with one."""
     steps: list[tuple] = []
     for m in rec.in_log_order():
         if m.invalid or not m.relative_key.startswith("dmo/"):
             continue
         if m.kind == "clock":
             try:
-                steps.append((decode(m.payload, expected_kind="clock"), [m]))
+                clock = decode(m.payload, expected_kind="clock")
             except MessageError:
                 continue
+            if clock.market_day == market_day:
+                steps.append(_one_day(clock, m))
         elif steps and (m.kind in ("call_for_bids", "grid_state") or m.relative_key == f"dmo/award/{agent}"):
             steps[-1][1].append(m)
+    if steps and steps[0][0].phase != "registration":
+        clock, m = steps[0][0], steps[0][1][0]
+        steps.insert(0, _one_day(clock.model_copy(update={"phase": "registration", "hour": None}), m))
     return steps
+
+
+def _one_day(clock, m: RecordedMessage) -> tuple:
+    """A step opened by ``clock`` as a run of one day says it: day 1 of 1; ``m`` re-encoded unless it says so."""
+    one = clock.model_copy(update={"day": 1, "days": 1})
+    return one, [m if one == decode(m.payload) else dataclasses.replace(m, payload=encode(one))]
 
 
 def render(result: dict) -> str:

@@ -14,8 +14,9 @@ import collections
 import hashlib
 from dataclasses import dataclass, field
 
-from messages import Award, SettlementStatement, encode, relative_key, sender_matches_key
-from messages.recording import Recording
+from messages import Award, MeterReport, SettlementStatement, encode, relative_key, sender_matches_key
+from messages.recording import RecordedMessage, Recording
+from scenarios.days import market_days as scenario_days
 
 from ..market.settlement import RULES_VERSION, Statement, settle
 from ..operator.outbox import statement_message
@@ -46,16 +47,31 @@ class RecordedDay:
         return next(iter(self.awards.values()))
 
 
-def market_day_of(rec: Recording) -> str | None:
-    """The day the recording is of: as its metadata says (``dmosim run`` writes it), else as the DMO's first clock
-    message says. Messages of other days (anyone on the network may publish them) take no part in its settlement."""
-    if rec.metadata.get("market_day"):
-        return rec.metadata["market_day"]
-    clocks = rec.decoded("clock")
-    return clocks[0][1].market_day if clocks else None
+def recording_days(rec: Recording) -> list[str]:
+    """The market days the recording is of, in order: as its metadata says (``dmosim run`` writes the first day and
+    how many), else as the DMO's clock messages say. Messages of other days (anyone on the network may publish
+    them) take no part in its settlement."""
+    first, days = rec.metadata.get("market_day"), rec.metadata.get("days", "1")
+    if first:
+        try:
+            return list(scenario_days(first, int(days)))
+        except ValueError:
+            pass  # metadata not written by dmosim: the clock messages say
+    seen: dict[str, None] = {}
+    for _, msg in day_messages(rec, None, "clock"):
+        seen.setdefault(msg.market_day)
+    return list(seen)
 
 
-def _decoded(rec: Recording, day: str | None, kind: str) -> list:
+def held_days(rec: Recording) -> list[str]:
+    """Of ``recording_days``, those the DMO's messages in the recording reach (a recording cut mid-run holds the
+    first days only)."""
+    held = {msg.market_day for kind in ("clock", "award", "settlement_statement")
+            for _, msg in day_messages(rec, None, kind)}
+    return [day for day in recording_days(rec) if day in held]
+
+
+def day_messages(rec: Recording, day: str | None, kind: str) -> list:
     """The valid messages of one kind as the receivers read them: of this day, and from the key's owner to the
     key's addressee."""
     return [(m, msg) for m, msg in rec.decoded(kind)
@@ -63,18 +79,25 @@ def _decoded(rec: Recording, day: str | None, kind: str) -> list:
 
 
 def gaps(rec: Recording) -> list[str]:
-    """What re-settling the day needs that the recording lacks, one line each; empty when nothing is missing.
+    """What re-settling the recording's days needs that it lacks, one line each (each starting with its market day
+    when the recording is of several); empty when nothing is missing."""
+    days = recording_days(rec)
+    if len(days) <= 1:
+        return day_gaps(rec, days[0] if days else None)
+    return [f"{day}: {gap}" for day in days for gap in day_gaps(rec, day)]
 
-    A meter report is missing when the agent's recorded statement settled that hour as metered, yet no report
-    for it is recorded; an hour the statement settled as missing was not reported at all, which is no gap."""
-    day = market_day_of(rec)
-    awarded = {msg.agent for _, msg in _decoded(rec, day, "award")}
-    registered = {msg.sender for _, msg in _decoded(rec, day, "registration")}
+
+def day_gaps(rec: Recording, day: str | None) -> list[str]:
+    """What re-settling ``day`` needs that the recording lacks. A meter report is missing when the agent's recorded
+    statement settled that hour as metered, yet no report for it is recorded; an hour the statement settled as
+    missing was not reported at all, which is no gap. Agents register once a run, on its first day."""
+    awarded = {msg.agent for _, msg in day_messages(rec, day, "award")}
+    registered = {msg.sender for _, msg in day_messages(rec, None, "registration")}
     statements = {}
-    for _, msg in _decoded(rec, day, "settlement_statement"):
+    for _, msg in day_messages(rec, day, "settlement_statement"):
         statements.setdefault(msg.agent, msg)
     metered: dict[str, set[int]] = {}
-    for _, msg in _decoded(rec, day, "meter_report"):
+    for _, msg in day_messages(rec, day, "meter_report"):
         metered.setdefault(msg.sender, set()).add(msg.hour)
     named = {a for a in rec.metadata.get("agents", "").split(",") if a}
     out = [] if awarded else ["no award recorded"]
@@ -89,7 +112,7 @@ def gaps(rec: Recording) -> list[str]:
             if hours:
                 out.append(f"{agent}: no meter report recorded for hour(s) {_ranges(hours)}, which its statement "
                            "settled as metered")
-    if not _decoded(rec, day, "day_summary"):
+    if not day_messages(rec, day, "day_summary"):
         out.append("no day summary recorded")
     return out
 
@@ -105,17 +128,19 @@ def _ranges(hours: list[int]) -> str:
     return ", ".join(f"{r[0]}-{r[-1]}" if len(r) > 1 else str(r[0]) for r in runs)
 
 
-def recorded_day(rec: Recording) -> RecordedDay:
-    day = market_day_of(rec)
+def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
+    """What settling ``day`` (default: the recording's first market day) needs, as recorded."""
+    day = day or next(iter(recording_days(rec)), None)
 
     def decoded(kind: str) -> list:
-        return _decoded(rec, day, kind)
+        return day_messages(rec, day, kind)
 
     awards: dict[str, Award] = {}
     for _, msg in decoded("award"):
         awards.setdefault(msg.agent, msg)  # the DMO awards each agent once
     if not awards:
-        raise ResettleError(f"{rec.path}: no awards recorded" + (f" ({rec.cut_note})" if rec.cut_note else ""))
+        raise ResettleError(f"{rec.path}: no awards recorded" + (f" for {day}" if day else "")
+                            + (f" ({rec.cut_note})" if rec.cut_note else ""))
     first = next(iter(awards.values()))
     for a in awards.values():
         for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", "clearing_price_per_mwh"):
@@ -127,16 +152,13 @@ def recorded_day(rec: Recording) -> RecordedDay:
 
     refused = _refused(rec)
     caps: dict[str, float] = {}
-    for m, msg in decoded("registration"):
+    for m, msg in day_messages(rec, None, "registration"):  # registered on the run's first day
         if not _take(refused, m.relative_key, m.payload, msg):
             caps.setdefault(msg.sender, msg.max_import_mw)
     meter: dict[str, dict[int, tuple[float, ...]]] = {a: {} for a in awards}
-    left_out = 0
-    for m, msg in decoded("meter_report"):
-        if _take(refused, m.relative_key, m.payload, msg):
-            left_out += 1
-        elif msg.sender in meter and msg.subperiods == first.subperiods and msg.market_day == first.market_day:
-            meter[msg.sender].setdefault(msg.hour - 1, msg.p_m_mw)
+    reports, left_out = accepted_meter_reports(rec, first.market_day, agents=set(awards), subperiods=first.subperiods)
+    for _, msg in reports:
+        meter[msg.sender][msg.hour - 1] = msg.p_m_mw
     missing = sorted(set(awards) - set(caps))
     if missing:
         raise ResettleError(f"{rec.path}: no registration recorded for {', '.join(missing)}, so no max import to "
@@ -147,6 +169,34 @@ def recorded_day(rec: Recording) -> RecordedDay:
     summaries = decoded("day_summary")
     totals = {a: t.model_dump() for a, t in summaries[-1][1].totals.items()} if summaries else None
     return RecordedDay(first.market_day, awards, caps, meter, statements, totals, left_out)
+
+
+def accepted_messages(rec: Recording, kind: str,
+                      day: str | None = None) -> tuple[list[tuple[RecordedMessage, object]], int]:
+    """The valid messages of one kind the DMO did not refuse, in log order, and how many it refused: of ``day``
+    (every day if None), from the key's owner; of the copies of one payload on one key, as many are left out as
+    there are recorded rejections of it."""
+    refused = _refused(rec)
+    kept, left_out = [], 0
+    for m, msg in day_messages(rec, day, kind):
+        if _take(refused, m.relative_key, m.payload, msg):
+            left_out += 1
+        else:
+            kept.append((m, msg))
+    return kept, left_out
+
+
+def accepted_meter_reports(rec: Recording, day: str | None = None, *, agents: set[str] | None = None,
+                           subperiods: int | None = None) -> tuple[list[tuple[RecordedMessage, MeterReport]], int]:
+    """The meter reports the DMO accepted, in log order, and how many it refused (``accepted_messages``): of what
+    it did not refuse, of ``agents`` (all if None) with ``subperiods`` readings (any if None), the first report per
+    market day, agent and hour counts, as the DMO counts it."""
+    kept, left_out = accepted_messages(rec, "meter_report", day)
+    accepted: dict[tuple[str, str, int], tuple[RecordedMessage, MeterReport]] = {}
+    for m, msg in kept:
+        if (agents is None or msg.sender in agents) and (subperiods is None or msg.subperiods == subperiods):
+            accepted.setdefault((msg.market_day, msg.sender, msg.hour), (m, msg))
+    return list(accepted.values()), left_out
 
 
 def _refused(rec: Recording) -> collections.Counter:

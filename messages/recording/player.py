@@ -8,6 +8,7 @@ arrived, on its original key, so a recorded fault replays as the same fault.
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from dataclasses import dataclass
@@ -19,15 +20,27 @@ from ..keys import key_pattern
 from .reader import RecordedMessage, Recording
 
 
-def select(rec: Recording, patterns: Sequence[str] = (), start_offset_s: float = 0.0) -> list[RecordedMessage]:
-    """The messages to replay, in log-time order: those on keys matching any pattern (all if none), from
-    ``start_offset_s`` seconds after the recording's first message."""
+def select(rec: Recording, patterns: Sequence[str] = (), start_offset_s: float = 0.0,
+           market_day: str | None = None) -> list[RecordedMessage]:
+    """The messages to replay, in log-time order: those on keys matching any pattern (all if none), of
+    ``market_day`` if given (the day a payload says it is of; one that says none is left out), from
+    ``start_offset_s`` seconds after the first of them."""
     ordered = rec.in_log_order()
+    if market_day is not None:
+        ordered = [m for m in ordered if _market_day(m.payload) == market_day]
     if not ordered:
         return []
     compiled = [key_pattern(p) for p in patterns]
     start = ordered[0].log_time + round(start_offset_s * 1e9)
     return [m for m in ordered if m.log_time >= start and (not compiled or any(p.match(m.relative_key) for p in compiled))]
+
+
+def _market_day(payload: bytes) -> str | None:
+    try:
+        data = json.loads(payload)
+    except ValueError:
+        return None
+    return data.get("market_day") if isinstance(data, dict) else None
 
 
 @dataclass

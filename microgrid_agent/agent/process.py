@@ -1,9 +1,11 @@
-"""A microgrid agent's market day over a Bus: register, bid, schedule against the award, operate hour by hour.
+"""A microgrid agent's market days over a Bus: register once, then each day bid, schedule against the award and
+operate hour by hour, carrying the microgrid's state across midnight into the next day.
 
 Zenoh's callback threads only enqueue what arrives; the agent handles it in order on its main thread, so a long
-solve delays, but never reorders or drops, what comes next. The agent ends once it has the DMO's day summary and
-its own statement (if the summary comes first, it asks the DMO for the statement and waits ``statement_s``, then
-says it gave up), or when it hears nothing for ``idle_s``.
+solve delays, but never reorders or drops, what comes next. A day ends once the agent has the DMO's day summary
+and its own statement (if the summary comes first, it asks the DMO for the statement and waits ``statement_s``,
+then says it gave up); the run ends with the last day the DMO's clock announces, or when the agent hears nothing
+for ``idle_s``.
 
 What the DMO sends is handled idempotently: a repeated call for bids or award, or the grid state of an hour
 already operated, changes nothing. A grid state after a gap (the agent restarted, or lost the DMO for a while)
@@ -19,13 +21,14 @@ import json
 import logging
 import queue
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
                       Registration, Rejection, Schedule, SettlementStatement, check_route, decode, encode)
 from scenarios.case import Case
+from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
 from scenarios.horizon import HOURS
 
@@ -41,8 +44,9 @@ log = logging.getLogger("dmosim.agent")
 class AgentConfig:
     """How the agent schedules: scenarios of its stochastic model, islanding hours it plans for, solver gap, time
     limit, route (microgrid_agent/solvers/routes.py) and Benders workers, and the seed of its own scenarios (``seed``)
-    and of
-    the day it will actually live (``seed + 1000``)."""
+    and of the day it will actually live (``seed + 1000``), each day of a run from its own (scenarios/days.py).
+    ``load_scale`` and ``renewable_scale`` scale each day's forecasts, a pattern repeated over the days (e.g. a
+    week: five weekdays, two lighter weekend days)."""
 
     scenarios: int = 5
     island_hours: int = 1
@@ -53,6 +57,8 @@ class AgentConfig:
     method: str = "auto"
     workers: int = 1
     statement_s: float = 30.0  # after the day summary, how long to wait for the agent's own statement
+    load_scale: tuple[float, ...] = ()
+    renewable_scale: tuple[float, ...] = ()
 
 
 class AgentTimeout(RuntimeError):
@@ -64,22 +70,37 @@ class AgentRefused(RuntimeError):
 
 
 class MicrogridAgent:
+    """One microgrid through the market days of a run. ``case`` is its case as the run starts; each later day starts
+    from the state the realised operation of the day before ended in (``scenarios.days.carry_over``)."""
+
     def __init__(self, bus: Bus, case: Case, config: AgentConfig, market_day: str):
-        self.bus, self.case, self.config, self.market_day = bus, case, config, market_day
+        self.bus, self.base, self.config, self.market_day = bus, case, config, market_day
+        self.day, self.days = 1, 1
+        self.case = self._day_case(case, 1)
         self.events: queue.Queue = queue.Queue()
+        self.compute: list[dict] = []  # per message handled: kind, hour, wall_s, cpu_s (read by dmosim bench day)
+        self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
+        self._sent: dict[str, tuple[str, int]] = {}  # sha256 of each payload published -> (kind, seq)
+        # (market day, phase, hour) -> (key, payload) of each answer, and the clock steps seen
+        self._answers: dict[tuple[str, str, int | None], tuple[str, bytes]] = {}
+        self._clocks: set[tuple[str, str, int | None]] = set()
+        self.resent = 0
+        self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
+        self._ahead: list = []  # messages of a later market day than the one being run, kept for it
+        self._start_day()
+
+    def _start_day(self) -> None:
+        """What the agent knows of the day being run: nothing yet."""
         self.operator: Operator | None = None
         self.award: Award | None = None
         self.statement: SettlementStatement | None = None
         self.summary: DaySummary | None = None
-        self.compute: list[dict] = []  # per message handled: kind, hour, wall_s, cpu_s (read by dmosim bench day)
-        self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
-        self._sent: dict[str, tuple[str, int]] = {}  # sha256 of each payload published -> (kind, seq)
-        self._answers: dict[tuple[str, int | None], tuple[str, bytes]] = {}  # (phase, hour) -> (key, payload)
-        self._clocks: set[tuple[str, int | None]] = set()  # clock steps seen
-        self.resent = 0
         self._bid_sent = False
         self._grid_seen: dict[int, tuple[bool, ...]] = {}  # hour -> connection, of grid states not operated
-        self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
+
+    def _day_case(self, case: Case, day: int) -> Case:
+        c = self.config
+        return scaled_profiles(case, day_scale(c.load_scale, day), day_scale(c.renewable_scale, day))
 
     @property
     def id(self) -> str:
@@ -92,10 +113,25 @@ class MicrogridAgent:
                         k.summary(), k.rejected()):
             self.bus.subscribe(pattern, put)
         self.bus.wait_for_subscribers(k.register(self.id), self.config.idle_s)
+        self._join_where_the_run_is()
         grid = self.case.grid
-        self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.case.name,
+        self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.base.name,
                                    max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max))
         log.info("%s registered", self.id)
+        while True:
+            self._run_day()
+            if self.statement is None:
+                self._await_statement()
+            if self.day >= self.days:
+                break
+            self._next_day()
+        # One line, so a benchmark can split the day's wall time into the agents' computation and the rest.
+        log.info("%s compute %s", self.id, json.dumps(self.compute, separators=(",", ":")))
+        log.info("%s messages %s", self.id, json.dumps(self.message_counts(), separators=(",", ":")))
+        return self.summary
+
+    def _run_day(self) -> None:
+        """Handle what comes until the day's summary."""
         while self.summary is None:
             try:
                 msg = self.events.get(timeout=self.config.idle_s)
@@ -104,14 +140,44 @@ class MicrogridAgent:
             started, self._answering = (time.perf_counter(), time.process_time()), None
             self._handle(msg)
             ended = self._answering or (time.perf_counter(), time.process_time())
-            self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None),
+            self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None), "day": self.day,
                                  "wall_s": ended[0] - started[0], "cpu_s": ended[1] - started[1]})
-        if self.statement is None:
-            self._await_statement()
-        # One line, so a benchmark can split the day's wall time into the agents' computation and the rest.
-        log.info("%s compute %s", self.id, json.dumps(self.compute, separators=(",", ":")))
-        log.info("%s messages %s", self.id, json.dumps(self.message_counts(), separators=(",", ":")))
-        return self.summary
+
+    def _join_where_the_run_is(self) -> None:
+        """Ask the DMO for its clock (docs/protocol.md, "Asking the DMO"): an agent started, or restarted, after
+        the run began joins its current day. A DMO not up yet answers nothing: the day is the one given."""
+        for key, payload, _ in self.bus.fetch(self.bus.keys.clock(), timeout_s=2.0):
+            try:
+                clock = decode(payload, expected_kind="clock")
+                check_route(key, clock, self.bus.keys.run_id)
+            except MessageError:
+                continue
+            self.days, self.market_day = clock.days, clock.market_day  # the DMO's day, whatever we were told
+            if clock.day > 1:
+                self.day = clock.day
+                self.case = self._day_case(self.base, clock.day)
+                log.warning("%s: the run is at day %d of %d (%s): joining it there, from the case's own initial "
+                            "state", self.id, clock.day, clock.days, clock.market_day)
+
+    def _next_day(self) -> None:
+        """Carry the microgrid across midnight: the next day's case starts where the realised operation ended."""
+        done = self.operator is not None and self.operator.next_hour > HOURS
+        case = self._day_case(self.base, self.day + 1)
+        if done:
+            midnight = self.operator.midnight()
+            log.info("%s midnight after day %d %s", self.id, self.day, json.dumps(asdict(midnight)))
+            case = carry_over(case, midnight, name=f"{self.base.name}-day{self.day + 1}")
+        else:
+            log.warning("%s: day %d was not operated to its end: day %d starts from the case's initial state",
+                        self.id, self.day, self.day + 1)
+        self.day += 1
+        self.market_day = market_days(self.market_day, 2)[1]
+        self.case = case
+        self._start_day()
+        ahead, self._ahead = self._ahead, []
+        for msg in ahead:
+            self.events.put(msg)
+        log.info("%s: day %d of %d, %s", self.id, self.day, self.days, self.market_day)
 
     def _await_statement(self) -> None:
         """The summary came before the agent's own statement (messages on different keys may overtake each other,
@@ -147,7 +213,8 @@ class MicrogridAgent:
         self._sent[hashlib.sha256(payload).hexdigest()] = (stamped.kind, stamped.seq)
         phase = _ANSWERS.get(stamped.kind)
         if phase is not None:
-            self._answers[phase, getattr(stamped, "hour", None)] = (self.bus.keys.for_message(stamped), payload)
+            step = (stamped.market_day, phase, getattr(stamped, "hour", None))
+            self._answers[step] = (self.bus.keys.for_message(stamped), payload)
 
     def _answer(self, msg) -> None:
         """Publish the answer to the message being handled. Its computation ends as it goes out: sending it is the
@@ -156,7 +223,10 @@ class MicrogridAgent:
         self._publish(msg)
 
     def _handle(self, msg) -> None:
-        if msg.market_day != self.market_day:
+        if (self.day < self.days and msg.market_day == market_days(self.market_day, 2)[1]
+                and len(self._ahead) < MAX_AHEAD):
+            self._ahead.append(msg)  # the DMO has started the next day while this one waits for its statement
+        elif msg.market_day != self.market_day:
             self.ignored["wrong_day"] += 1
             log.warning("%s: ignoring %s for market day %s", self.id, msg.kind, msg.market_day)
         elif isinstance(msg, Rejection):
@@ -184,7 +254,8 @@ class MicrogridAgent:
             self.summary = msg
 
     def _bid(self, call: CallForBids) -> None:
-        curve = bid_curve(self.case, np.asarray(call.iso_price_per_mwh), seed=self.config.seed, gap=self.config.gap)
+        curve = bid_curve(self.case, np.asarray(call.iso_price_per_mwh), seed=day_seed(self.config.seed, self.day),
+                          gap=self.config.gap)
         self._answer(Bid(sender=self.id, market_day=self.market_day, hours=curve))
         self._bid_sent = True
         log.info("%s bid sent", self.id)
@@ -193,11 +264,11 @@ class MicrogridAgent:
         """The stochastic schedule of the paper against the award (objective (1), constraints (2)-(21))."""
         self.award = award
         c, k = self.config, award.subperiods
-        scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=c.seed)
+        scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=day_seed(c.seed, self.day))
         p_sch = np.asarray(award.p_sch_mw, float)
         schedule = Instance(self.case, scen, Params(p_sch, award.penalty_per_mwh)).solve(
             method=c.method, workers=c.workers, gap=c.gap, time_limit=c.time_limit)
-        realised = sample(self.case, 1, k, island_hours=0, seed=c.seed + 1000)
+        realised = sample(self.case, 1, k, island_hours=0, seed=day_seed(c.seed, self.day) + 1000)
         self.operator = Operator(self.case, first_stage_of(schedule), p_sch, award.penalty_per_mwh, k, realised,
                                  forecast_scenario(self.case, k))
         p_m_hourly = (schedule.probability @ schedule.dispatch.p_m).reshape(HOURS, k).mean(axis=1)
@@ -217,7 +288,8 @@ class MicrogridAgent:
         """A clock step seen before, and answered, means that the DMO restarted and runs that step again: the
         answer it may have missed goes again, byte for byte (same seq), so the DMO takes it at most once. (Only a
         repeat counts: messages on different keys may overtake each other, so an answer can precede its clock.)"""
-        step = (clock.phase, clock.hour)
+        self.days = clock.days
+        step = (clock.market_day, clock.phase, clock.hour)
         answer = self._answers.get(step) if step in self._clocks else None
         self._clocks.add(step)
         if answer is not None:
@@ -259,8 +331,19 @@ class MicrogridAgent:
         self._answer(MeterReport(sender=self.id, market_day=self.market_day, hour=grid.hour,
                                  subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
                                  deviation_mw=tuple(float(x) for x in result.deviation)))
+        if self.operator.next_hour > HOURS:
+            self._log_realised()
+
+    def _log_realised(self) -> None:
+        """The operated day's own cost, split by term ($), and the load it curtailed (MWh), for the run's result:
+        what the DMO's statement does not show."""
+        day = self.operator.day_result()
+        shed_mwh = float(day.schedule.dispatch.load_shed.sum()) / day.schedule.subperiods
+        log.info("%s realised day %d %s", self.id, self.day, json.dumps(
+            {**day.cost.as_dict(), "total": day.cost.total, "curtailment_mwh": shed_mwh}, separators=(",", ":")))
 
 
+MAX_AHEAD = 1000  # messages of the next day kept while this one ends (the DMO sends a few dozen a day)
 _ANSWERS = {"bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}  # answer kind -> its phase
 
 

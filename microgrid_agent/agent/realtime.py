@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scenarios.case import Case
+from scenarios.days import Midnight, hours_in_state
 from scenarios.generation import ScenarioSet, forecast_scenario
 from scenarios.horizon import HOURS
 
@@ -218,6 +219,17 @@ class Operator:
             plan=plan,
             plan_scenario=scen,
         )
+
+    def midnight(self) -> Midnight:
+        """What the microgrid carries into the next day, as its operation ended this one (all 24 hours done): each
+        unit's state, output in the last sub-period and hours in that state, and the stored energy."""
+        if self.next_hour <= HOURS:
+            raise ValueError(f"the day is not over: hours 1..{self.next_hour - 1} of {HOURS} operated")
+        on = self.first.commitment[:, -1] > 0.5
+        return Midnight(unit_on=tuple(bool(x) for x in on),
+                        unit_output_mw=tuple(float(x) for x in self._done["P"][:, -1]),
+                        unit_hours=hours_in_state(self.first.commitment),
+                        stored_mwh=float(self._done["C"][0, -1]) if self.case.storage is not None else None)
 
     def day_result(self) -> RealisedDay:
         """The whole operated day as a one-scenario schedule with its realised cost; all 24 hours must be done."""

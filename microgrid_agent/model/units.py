@@ -16,16 +16,28 @@ def commitment(case: Case, v: dict) -> list[cp.Constraint]:
     """First stage of the units: start-up (y) and shut-down (w) indicators and minimum up/down times (6)-(7).
 
     Counters T^on/T^off are replaced by the tight linear form over y and w (states.py). Before the day each unit
-    is in its case's ``initial_on`` state and has been so long enough: a unit off at midnight may start in hour
-    1, and one on at midnight may shut down in hour 1 (docs/model.md, "Conventions the paper leaves open").
+    is in its case's ``initial_on`` state; unless its ``initial_hours`` say otherwise it has been so long enough,
+    so a unit off at midnight may start in hour 1 and one on at midnight may shut down in hour 1. With
+    ``initial_hours`` (a day that follows another), it keeps its state for the hours (6)-(7) still ask
+    (docs/model.md, "Conventions the paper leaves open").
     """
     I, y, w = v["I"], v["y"], v["w"]
     initial = case.unit_array("initial_on")
-    return [
+    cons = [
         *transitions(y, I, initial), *transitions(w, 1 - I, 1 - initial),
         *minimum_time(y, I, case.unit_array("min_up")),  # (6)
         *minimum_time(w, 1 - I, case.unit_array("min_down")),  # (7)
     ]
+    keep = kept_initial_state(case)
+    if keep.any():  # (6)-(7) across midnight: the hours the day before leaves owing
+        cons.append(cp.multiply(keep, I) == keep * initial[:, None])
+    return cons
+
+
+def kept_initial_state(case: Case) -> np.ndarray:
+    """(G, 24) 0/1: 1 where a unit must still be in its initial state, by ``Unit.keep_initial_hours``."""
+    keep = case.unit_array("keep_initial_hours")
+    return (np.arange(HOURS)[None, :] < keep[:, None]).astype(float)
 
 
 def shutdown_after_ramping_down(case: Case, v: dict, dt: float) -> list[cp.Constraint]:

@@ -13,6 +13,7 @@ import pytest
 
 import dmo.bench
 from dmo.bench.day import read_compute, split_day
+from dmo.bench.week import summarise
 from dmo.cli import main
 
 
@@ -81,6 +82,23 @@ def test_split_takes_the_slowest_agent_per_step_and_bounds_cpu_by_the_cores():
     assert t["overhead_pct"] == pytest.approx(100 * 2.9 / 13.0)
     assert t["per_hour_ms"] == pytest.approx(1000 * (4.8 - 3.6) / 24)
     assert t["agent_cpu_s"] == pytest.approx(1.0 + 2.0 + 2.0 + 1.0 + 24 * 0.15)
+
+
+def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_with_the_first():
+    phase_s = {"registration": 2.0, "bidding": 1.0, "clearing": 0.0, "scheduling": 2.0, "realtime": 2.4,
+               "settlement": 0.0}
+    day = lambda d: {"day": d, "market_day": f"2026-07-0{d}", "phase_s": phase_s, "incidents": []}  # noqa: E731
+    entry = lambda d, kind, wall: {"kind": kind, "hour": None, "day": d, "wall_s": wall, "cpu_s": wall}  # noqa: E731
+    compute = {"mg1": [entry(1, "call_for_bids", 0.5), entry(1, "award", 1.0), entry(2, "award", 1.8)]}
+    memory = {"1": {"dmo": {"rss_mib": 90.0, "peak_mib": 100.0}, "mg1": {"rss_mib": 200.0, "peak_mib": 250.0}},
+              "2": {"dmo": {"rss_mib": 91.0, "peak_mib": 110.0}, "mg1": {"rss_mib": 201.0, "peak_mib": 250.0}}}
+    result = {"agents": ["mg1"], "days": [day(1), day(2)], "memory_mib": memory, "recorded": {"bytes": 20_000}}
+    report = summarise(result, compute, cores=2)
+    assert [d["compute_s"] for d in report["days"]] == [1.5, 1.8]  # each day its own entries only
+    assert report["days"][0]["overhead_pct"] == pytest.approx(100 * (5.4 - 1.5) / 5.4, abs=0.01)
+    assert {r["role"]: r["peak_ratio"] for r in report["memory"]} == {"dmo": 1.1, "mg1": 1.0}
+    assert report["ratios"]["max peak_mib last / first day (any role)"] == 1.1
+    assert report["ratios"]["recording bytes per agent-day"] == 10_000
 
 
 def test_compute_is_read_from_the_agents_log_line(tmp_path):

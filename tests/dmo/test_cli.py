@@ -17,7 +17,7 @@ import pytest
 from dmo.cli import main
 from dmo.cli.console import UsageError
 from dmo.cli.flags import add_bus_flags, bus_config
-from messages import KINDS, PHASES, BusConfig, MeterReport, encode
+from messages import KINDS, PHASES, SCHEMA_VERSION, BusConfig, MeterReport, encode
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, resolve_method
 from scenarios.case import DATA_DIR
 
@@ -171,6 +171,15 @@ def test_auto_decomposes_from_the_documented_scenario_count():
 def test_unknown_command_exits_2():
     out = dmosim("frobnicate")
     assert out.returncode == 2 and out.stderr.count("\n") == 1
+
+
+def test_version_names_the_package_and_the_protocol(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    out = capsys.readouterr().out
+    assert re.fullmatch(r"dmosim \S+ \(message schemas v(\d+); Python [^)]+\)\n", out), out
+    assert f"message schemas v{SCHEMA_VERSION};" in out
 
 
 def test_zenoh_flags_make_the_bus_config():

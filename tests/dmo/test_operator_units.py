@@ -92,7 +92,7 @@ def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
 
     again = Journal(path, "run1", DAY)
     state = DayState()
-    assert restore(state, again.entries) == ("realtime", 3)
+    assert restore(state, again.entries) == (("realtime", 3), [])
     again.close()
     assert (state.phase, state.hour) == ("realtime", 3)
     assert sorted(state.registered) == ["mg1", "mg2"] and state.bids["mg1"] == bid
@@ -100,6 +100,26 @@ def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
     assert state.accepted == {"registration": 2, "bid": 1, "meter_report": 1}
     assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg2", 1)[0] == "late"
     assert [i.reason[:4] for i in state.incidents] == ["late"] and state.rejected_by_code == {"duplicate": 1}
+
+
+def test_a_journal_of_several_days_restores_the_finished_days_and_the_one_under_way(tmp_path):
+    journal = Journal(tmp_path / "dmo.journal", "run1", DAY)
+    journal.clock("registration", None)
+    journal.accepted("dmosim/run1/agent/mg1/register", registration("mg1"))
+    journal.clock("realtime", 24, day=1, market_day=DAY)
+    journal.accepted("dmosim/run1/agent/mg1/meter", meter("mg1", hour=24, seq=1))
+    journal.incident(IncidentLog().add("mg1", "realtime", 24, "late: day one"))
+    journal.clock("bidding", None, day=2, market_day="2026-07-02")
+    journal.accepted("dmosim/run1/agent/mg1/meter", meter("mg1", hour=1, seq=2))
+    journal.close()
+    state = DayState()
+    clock, finished = restore(state, Journal(tmp_path / "dmo.journal", "run1", DAY).entries)
+    assert clock == ("bidding", None) and (state.day, state.market_day) == (2, "2026-07-02")
+    (first,) = finished
+    assert (first.day, first.market_day) == (1, DAY) and set(first.meter["mg1"]) == {23}
+    assert [i.reason for i in first.incidents] == ["late: day one"] and state.incidents == []
+    assert set(state.meter["mg1"]) == {0} and sorted(state.registered) == ["mg1"]  # registration carried over
+    assert state.guard.check("mg1", 1)[0] == "duplicate"  # and so did the replay guard
 
 
 def test_a_journal_of_another_run_or_day_is_started_afresh(tmp_path):
@@ -119,7 +139,7 @@ def test_restoring_a_rejoined_agent_numbers_its_messages_from_zero():
     state = DayState()
     entries = [{"accepted": "k", "message": encode(m).decode()}
                for m in (registration(seq=0), meter(hour=1, seq=5), registration(seq=0), meter(hour=2, seq=1))]
-    assert restore(state, entries) is None  # no clock: the day had not started
+    assert restore(state, entries) == (None, [])  # no clock: the day had not started
     assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg1", 2) is None
     assert set(state.meter["mg1"]) == {0, 1}
 
@@ -184,13 +204,13 @@ def test_an_agent_that_comes_back_is_sent_what_it_needs_to_go_on(phase, hour, ha
 def test_the_dmos_messages_carry_its_terms_and_survive_the_wire():
     c = config(credit=5.0)
     clearing = fixed_awards({"mg1": (1.0,) * HOURS, "mg2": (2.0,) * HOURS}, c.iso_price)
-    award = outbox.award(c, clearing, "mg2")
+    award = outbox.award(c, 1, clearing, "mg2")
     assert award.p_sch_mw == (2.0,) * HOURS and award.clearing_price_per_mwh == c.iso_price
     assert (award.penalty_per_mwh, award.credit_per_mwh, award.subperiods) == (150.0, 5.0, K)
     assert (award.rules_version, award.rules) == (RULES_VERSION, RULES)
-    assert [outbox.grid_state(c, h).connected for h in (4, 5, 6, 7)] == [(True,) * K, (False,) * K,
+    assert [outbox.grid_state(c, 1, h).connected for h in (4, 5, 6, 7)] == [(True,) * K, (False,) * K,
                                                                         (False,) * K, (True,) * K]
-    call = outbox.call_for_bids(c, 12.5)
+    call = outbox.call_for_bids(c, 1, 12.5)
     assert call.deadline_s == 12.5 and call.import_limit_mw == 16.0 and call.iso_price_per_mwh == c.iso_price
     meters = {"mg1": {h: (1.5, 0.5) for h in range(HOURS)}, "mg2": {}}
     statements, _ = settle(clearing.awards, clearing.price, meters, subperiods=K, penalty=150.0, credit=5.0,
@@ -201,8 +221,21 @@ def test_the_dmos_messages_carry_its_terms_and_survive_the_wire():
     summary = outbox.day_summary(DAY, ["mg2", "mg1"], clearing.price, statements, 3, ())
     assert summary.agents == ("mg1", "mg2") and summary.rejected_messages == 3
     assert summary.totals["mg2"].total == float(statements["mg2"].total)
-    for msg in (award, call, message, summary, outbox.clock(c, "realtime", 3, 60.0)):
+    for msg in (award, call, message, summary, outbox.clock(c, 1, "realtime", 3, 60.0)):
         assert decode(encode(msg)) == msg
+
+
+def test_each_day_of_a_run_has_its_own_market_day_and_islanding():
+    c = config(days=3, islanding_by_day=((5,), (), (20, 21)))
+    assert [c.market_day_of(d) for d in (1, 2, 3)] == [DAY, "2026-07-02", "2026-07-03"]
+    clearing = fixed_awards({"mg1": (1.0,) * HOURS}, c.iso_price)
+    assert outbox.award(c, 3, clearing, "mg1").market_day == "2026-07-03"
+    tick = outbox.clock(c, 2, "bidding", None, 5.0)
+    assert (tick.day, tick.days, tick.market_day) == (2, 3, "2026-07-02")
+    islanded = {d: [h for h in range(1, HOURS + 1) if not outbox.grid_state(c, d, h).connected[0]] for d in (1, 2, 3)}
+    assert islanded == {1: [5], 2: [], 3: [20, 21]}
+    with pytest.raises(ValueError, match="gives 2 days"):
+        config(days=3, islanding_by_day=((5,), ()))
 
 
 def test_the_days_islanding_is_one_seeded_event_of_whole_hours():

@@ -49,7 +49,7 @@ SAMPLES = {
     "schedule": Schedule(sender="mg1", market_day=DAY, status="optimal",
                          commitment={"G1": [1] * HOURS, "G2": [0] * HOURS},
                          expected_cost=39566.0, p_m_expected_mw=[1.4] * HOURS, scenarios=10, mip_gap=0.004),
-    "clock": Clock(sender="dmo", market_day=DAY, phase="realtime", hour=3, deadline_s=2.0),
+    "clock": Clock(sender="dmo", market_day=DAY, phase="realtime", hour=3, deadline_s=2.0, day=1, days=1),
     "grid_state": GridState(sender="dmo", market_day=DAY, hour=3, subperiods=K, connected=[True] * 4 + [False] * 2),
     "meter_report": MeterReport(sender="mg1", market_day=DAY, hour=3, subperiods=K, p_m_mw=[1.5] * K,
                                 deviation_mw=[0.0] * K),

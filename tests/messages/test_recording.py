@@ -29,10 +29,8 @@ from mcap.writer import Writer
 from dmo.bench.recording import synthetic_day
 from dmo.launch.processes import Roles, free_port, wait_for_line
 from messages import SCHEMA_VERSION, Bus, BusConfig, decode
-from messages.keys import new_run_id
-from messages.recording import (INVALID_KEY, RecordingWriter, content_signature, read_recording)
-from messages.keys import key_pattern
-from messages.recording import select
+from messages.keys import key_pattern, new_run_id
+from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -54,7 +52,7 @@ def argv(*args: str) -> list[str]:
 
 def run_day(directory: Path) -> tuple[Path, dict]:
     (directory / "fleet.toml").write_text(FLEET)
-    out = dmosim("run", *TINY, "--fleet", str(directory / "fleet.toml"), "--logs", str(directory),
+    out = dmosim("run", *TINY, "--fleet", str(directory / "fleet.toml"), "--out", str(directory / "run"),
                  "--record", str(directory / "day.mcap"), "--json", timeout=900)
     assert out.returncode == 0, out.stderr[-3000:]
     return directory / "day.mcap", json.loads(out.stdout)
@@ -93,9 +91,10 @@ def test_dmosim_run_records_every_message_of_the_day(day):
         assert m.publish_time == json.loads(m.payload)["sent_at"] <= m.log_time
     meta = rec.metadata
     assert meta["schema_version"] == str(SCHEMA_VERSION) and meta["seed"] == "0" and meta["market_day"] == DAY
-    assert meta["agents"] == "mg1,mg2" and json.loads(meta["config"])["scenarios"] == 1
+    assert meta["days"] == "1" and meta["agents"] == "mg1,mg2"
+    assert json.loads(meta["config"])["schedule"]["scenarios"] == 1
     assert {"dmosim", "python", "mcap", "eclipse-zenoh"} <= set(json.loads(meta["versions"]))
-    assert {a.name for a in rec.attachments} == {"paper.toml", "fleet.toml"}
+    assert {a.name for a in rec.attachments} == {"experiment.toml", "paper.toml", "fleet.toml"}
     fleet = tomllib.loads(next(a for a in rec.attachments if a.name == "fleet.toml").data.decode())
     assert [a["id"] for a in fleet["agents"]] == ["mg1", "mg2"]
 
@@ -120,7 +119,7 @@ def test_a_plain_mcap_reader_opens_it_and_every_message_fits_its_channel_schema(
         assert len(validators) == 10  # one schema per kind
         [meta] = list(reader.iter_metadata())
         assert meta.name == "dmosim" and "config" in meta.metadata
-        assert {a.name for a in reader.iter_attachments()} == {"paper.toml", "fleet.toml"}
+        assert {a.name for a in reader.iter_attachments()} == {"experiment.toml", "paper.toml", "fleet.toml"}
 
 
 def summary_run_id(reader) -> str:
@@ -134,7 +133,7 @@ def test_info_shows_the_run_the_day_the_agents_and_each_channel(day):
     info = json.loads(out.stdout)
     assert info["complete"] and info["run_id"] == result["run_id"] and info["market_days"] == [DAY]
     assert info["agents"] == ["mg1", "mg2"] and info["seed"] == 0 and info["duration_s"] > 0
-    assert info["versions"]["dmosim"] and info["config"]["scenarios"] == 1
+    assert info["versions"]["dmosim"] and info["config"]["schedule"]["scenarios"] == 1
     channels = {c["key"]: c for c in info["channels"]}
     assert channels["agent/mg1/meter"]["messages"] == 24 and channels["agent/mg1/meter"]["schema"] == "dmosim.meter_report"
     text = dmosim("info", str(path)).stdout
@@ -488,7 +487,8 @@ def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path)
     mine = read_recording(recording)
     counts = collections.Counter(m.relative_key for m in mine.messages)
     assert counts["agent/mg2/meter"] == 24 and counts["dmo/grid"] == 24 and "dmo/award/mg1" not in counts
-    assert mine.run_id == run_id and {a.name for a in mine.attachments} == {"paper.toml", "fleet.toml"}
+    assert mine.run_id == run_id
+    assert {a.name for a in mine.attachments} == {"experiment.toml", "paper.toml", "fleet.toml"}
 
 
 # --- determinism -----------------------------------------------------------------------------------------------

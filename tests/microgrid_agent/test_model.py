@@ -10,9 +10,9 @@ import pytest
 
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.instance import make_instance
-from microgrid_agent.solvers.metrics import stochastic_metrics
 from microgrid_agent.model import Params
 from microgrid_agent.solvers.extensive import solve
+from microgrid_agent.solvers.metrics import stochastic_metrics
 from scenarios.case import load_case, parse_case
 from scenarios.generation import ScenarioSet
 
@@ -61,7 +61,8 @@ def merit_order_cost(case, scen, commitment, penalty):
     award at no cost, extra import at the penalty, and curtailment at VOLL.
     """
     units = case.units
-    startup = sum(u.startup_cost * np.maximum(np.diff(np.r_[0, commitment[g]]), 0).sum() for g, u in enumerate(units))
+    startup = sum(u.startup_cost * np.maximum(np.diff(np.r_[float(u.initial_on), commitment[g]]), 0).sum()
+                  for g, u in enumerate(units))
     total = 0.0
     for s, t in itertools.product(range(scen.S), range(24)):
         on = commitment[:, t] > 0
@@ -78,10 +79,22 @@ def merit_order_cost(case, scen, commitment, penalty):
     return total + startup
 
 
-def feasible_min_up(row, min_up):
+def feasible_min_up(row, min_up, initial=0.0):
     """A unit that starts stays on for min_up hours or until the end of the day."""
-    starts = np.flatnonzero(np.diff(np.r_[0, row]) > 0)
+    starts = np.flatnonzero(np.diff(np.r_[initial, row]) > 0)
     return all(row[s:s + min_up].all() for s in starts)
+
+
+def brute_force_best(case, scen, feasible) -> float:
+    """The least merit-order cost over every commitment of the two units in the active hours that ``feasible``
+    (a (2, 24) 0/1 array -> bool) admits."""
+    best = np.inf
+    for bits in itertools.product((0, 1), repeat=2 * ACTIVE):
+        commitment = np.zeros((2, 24))
+        commitment[:, :ACTIVE] = np.reshape(bits, (2, ACTIVE))
+        if feasible(commitment):
+            best = min(best, merit_order_cost(case, scen, commitment, case.grid.penalty))
+    return best
 
 
 @pytest.mark.parametrize("min_up", [(1, 1), (2, 1)])
@@ -89,15 +102,32 @@ def test_optimum_equals_brute_force_enumeration(min_up):
     case = tiny_case(min_up)
     scen = tiny_scenarios(case)
     params = Params(np.asarray(case.grid.p_sch), case.grid.penalty)
-    best = np.inf
-    for bits in itertools.product((0, 1), repeat=2 * ACTIVE):
-        commitment = np.zeros((2, 24))
-        commitment[:, :ACTIVE] = np.reshape(bits, (2, ACTIVE))
-        if all(feasible_min_up(commitment[g], min_up[g]) for g in range(2)):
-            best = min(best, merit_order_cost(case, scen, commitment, case.grid.penalty))
+    best = brute_force_best(case, scen, lambda c: all(feasible_min_up(c[g], min_up[g]) for g in range(2)))
     schedule = verified(case, scen, params)
     assert schedule.objective == pytest.approx(best, rel=1e-6)
     assert schedule.commitment.iloc[ACTIVE:].to_numpy().sum() == 0
+
+
+def test_a_unit_carried_across_midnight_keeps_the_state_its_minimum_time_still_asks_for():
+    """B (dear, and not needed: A and the award cover the load) was started an hour before midnight and must run
+    3 h: on in hours 1-2, by brute force too; free of that, it stops at midnight."""
+    data = tiny_case((1, 3)).model_dump()
+    data["fixed_load"]["forecast"] = [4.0, 5.0, 3.0] + [0.0] * 21
+    data["units"][1].update(initial_on=True, initial_hours=1)
+    case = parse_case(data)
+    assert [u.keep_initial_hours for u in case.units] == [0, 2]
+    scen = tiny_scenarios(case)
+    params = Params(np.asarray(case.grid.p_sch), case.grid.penalty)
+    best = brute_force_best(case, scen, lambda c: c[1, :2].all() and feasible_min_up(c[1], 3, initial=1.0))
+    owing = verified(case, scen, params)
+    assert owing.commitment["B"].iloc[:2].tolist() == [1, 1]
+    assert owing.objective == pytest.approx(best, rel=1e-6)
+    data["units"][1]["initial_hours"] = 3  # it has run long enough: free to stop at midnight
+    free = verified(parse_case(data), scen, params)
+    assert free.commitment["B"].iloc[0] == 0 and free.objective < owing.objective - 1.0
+    # the checker holds a schedule to the hours still owed
+    report = check_schedule(case, scen, free, p_sch=params.p_sch, penalty=params.penalty)
+    assert not report.ok and "initial state" in report.summary(3)
 
 
 def test_min_up_time_changes_the_brute_force_optimum():

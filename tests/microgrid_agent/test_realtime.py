@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from dmo.market.settlement import settle
-from microgrid_agent.checker import check_schedule
-from microgrid_agent.model import first_stage_of
-from microgrid_agent.model import Params
 from microgrid_agent.agent.realtime import Operator
+from microgrid_agent.checker import check_schedule
+from microgrid_agent.model import Params, first_stage_of
 from microgrid_agent.solvers.extensive import solve
 from scenarios.case import load_case
+from scenarios.days import carry_over, day_seed
 from scenarios.generation import make_scenarios, sample
 
 K = 1
@@ -148,3 +148,26 @@ def test_bad_inputs_are_refused(case, first_stage, p_sch):
         Operator(case, first_stage, p_sch, PENALTY, K, two)
     with pytest.raises(ValueError, match="penalty"):
         Operator(case, first_stage, p_sch, -1.0, K, two.single(0))
+
+
+def test_the_next_day_starts_where_the_operated_day_ended(case, p_sch, day):
+    """Day 2's schedule starts from day 1's midnight: the stored energy, each unit's state, output and hours in
+    that state; the checker holds it to its ramps from that output and to the minimum times still owed."""
+    op, _, result = day
+    midnight = op.midnight()
+    d = result.schedule.dispatch
+    assert midnight.stored_mwh == pytest.approx(d.soc[0, -1])
+    assert list(midnight.unit_on) == [bool(x) for x in result.schedule.first.commitment[:, -1]]
+    np.testing.assert_allclose(midnight.unit_output_mw, d.p_unit[:, 0, -1])
+    tomorrow = carry_over(case, midnight, name="paper-day2")
+    scen = make_scenarios(tomorrow, 2, K, island_hours=1, seed=day_seed(0, 2))
+    schedule = solve(tomorrow, scen, Params(p_sch, PENALTY), gap=1e-3)
+    check_schedule(tomorrow, scen, schedule, p_sch=p_sch, penalty=PENALTY).raise_if_failed()
+    first_hour = schedule.first.commitment[:, 0]
+    for unit, on in zip(tomorrow.units, first_hour):
+        if unit.keep_initial_hours:
+            assert on == unit.initial_on
+    # the day may not borrow from the next: it ends with at least the energy it started with
+    assert schedule.dispatch.soc[:, -1].min() >= tomorrow.storage.c_initial - 1e-6
+    with pytest.raises(ValueError, match="not over"):
+        operator(case, first_stage_of(schedule), p_sch, seed=3).midnight()

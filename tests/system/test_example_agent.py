@@ -1,5 +1,6 @@
 """The third-party agent of examples/agent.py, written from docs/protocol.md with only zenoh and the standard
-library, takes part in a real day beside a dmosim agent and is settled as its own reports say, to the cent."""
+library, takes part in a real run of two market days beside a dmosim agent and is settled each day as its own
+reports say, to the cent."""
 
 from __future__ import annotations
 
@@ -8,10 +9,11 @@ import json
 import subprocess
 import sys
 
+from test_market_day import DAY, DEADLINES, ENV, ROOT, TINY, dmosim
+
 from dmo.launch.processes import Roles, free_port, wait_listening
 from messages import new_run_id
 from messages.transport.credentials import create_auth_dir
-from test_market_day import DAY, DEADLINES, ENV, ROOT, TINY, dmosim
 
 EXAMPLE = ROOT / "examples" / "agent.py"
 
@@ -33,7 +35,7 @@ def test_the_example_agent_is_settled_as_its_own_reports_say(tmp_path):
     common = ["--run-id", run_id, "--market-day", DAY]
     with Roles() as roles:
         roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", "2", "--subperiods", "2",
-                                  "--auth-dir", str(auth), "--result", str(result), *DEADLINES),
+                                  "--days", "2", "--auth-dir", str(auth), "--result", str(result), *DEADLINES),
                     log=tmp_path / "dmo.log", env=ENV)
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         roles.start("mg1", dmosim("agent", *common, "--id", "mg1", "--connect", endpoint, "--auth-dir", str(auth),
@@ -43,12 +45,14 @@ def test_the_example_agent_is_settled_as_its_own_reports_say(tmp_path):
                                  capture_output=True, text=True, timeout=900, env=ENV)
         assert example.returncode == 0, example.stderr[-3000:]
         assert roles.roles["dmo"].process.wait(timeout=120) == 0, (tmp_path / "dmo.log").read_text()[-3000:]
-    said = json.loads(example.stdout.strip().splitlines()[-1])
-    assert said["meter_reports"] == 24
-    assert said["statement_total"] == said["own_total"]  # to the cent: both are whole cents
-    day = json.loads(result.read_text())
-    mine = day["settlement"]["mg2"]
-    assert mine["total"] == said["own_total"] and mine["missing_subperiods"] == 0
-    assert mine["deviation_penalty"] == 0 and mine["award_mwh"] > 0
-    assert day["rejected_messages"] == 0, day["incidents"]
-    assert not [i for i in day["incidents"] if i["agent"] == "mg2"], day["incidents"]
+    said = [json.loads(line) for line in example.stdout.strip().splitlines() if line.startswith("{")]
+    run = json.loads(result.read_text())
+    assert [s["market_day"] for s in said] == [d["market_day"] for d in run["days"]] and len(said) == 2
+    for own, day in zip(said, run["days"]):
+        assert own["meter_reports"] == 24
+        assert own["statement_total"] == own["own_total"]  # to the cent: both are whole cents
+        mine = day["settlement"]["mg2"]
+        assert mine["total"] == own["own_total"] and mine["missing_subperiods"] == 0
+        assert mine["deviation_penalty"] == 0 and mine["award_mwh"] > 0
+    assert run["rejected_messages"] == 0, run["incidents"]
+    assert not [i for i in run["incidents"] if i["agent"] == "mg2"], run["incidents"]

@@ -22,17 +22,17 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
 
 from dmo.cli import main as cli_main
+from dmo.launch.processes import free_port
 from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
-from dmo.launch.processes import free_port
 from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Registration,
                       Rejection, Schedule, decode, encode)
-from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
 from messages.keys import new_run_id
 from messages.transport import Bus, BusConfig
-from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
+from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
 
 DAY = "2026-07-01"
 K = 2
@@ -213,7 +213,7 @@ def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=No
 
         def run():
             try:
-                outcome["result"] = day.run()
+                outcome["result"] = day.run().days[0]
             except Exception as exc:  # noqa: BLE001  (reported by the test)
                 outcome["error"] = exc
             done.set()
@@ -367,10 +367,12 @@ def test_an_agent_that_may_not_join_is_told_why_and_exits_1(tmp_path):
 # --- the agent: a gap in the hours, repeated DMO messages ----------------------------------------------------
 
 def test_the_operator_catches_up_missed_hours_in_one_lp_and_the_day_stays_valid():
-    from microgrid_agent.checker import check_schedule  # noqa: PLC0415
-    from microgrid_agent.model import first_stage_of  # noqa: PLC0415
-    from microgrid_agent.model import Params  # noqa: PLC0415
     from microgrid_agent.agent.realtime import Operator  # noqa: PLC0415
+    from microgrid_agent.checker import check_schedule  # noqa: PLC0415
+    from microgrid_agent.model import (
+        Params,  # noqa: PLC0415
+        first_stage_of,  # noqa: PLC0415
+    )
     from microgrid_agent.solvers.extensive import solve  # noqa: PLC0415
     from scenarios.case import load_case  # noqa: PLC0415
     from scenarios.generation import make_scenarios, sample  # noqa: PLC0415
@@ -400,7 +402,7 @@ def test_dmosim_run_survives_message_faults_and_a_restart_and_settles_what_it_ac
               "drop:agent/mg1/meter:0.1", "delay:agent/*/bid:0.3", "restart:mg1:2"]
     deadlines = [*DEADLINES[:-1], "2.5"]
     assert DEADLINES[-2] == "--hour-timeout"
-    argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *deadlines, "--logs", str(tmp_path), "--json",
+    argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *deadlines, "--out", str(tmp_path), "--json",
                   "--seed", "3", *[flag for f in faults for flag in ("--fault", f)])
     out = subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -423,13 +425,13 @@ def test_dmosim_run_survives_message_faults_and_a_restart_and_settles_what_it_ac
     # the recording alone re-settles to the same statements, the refused reports left out
     assert cli_main(["settle", result["recording"]]) == 0
     assert result["recorded"]["complete"]
-    log = (tmp_path / "mg1.log").read_text()
+    log = (tmp_path / "logs" / "mg1.log").read_text()
     assert "no grid state for hour(s) 1.." in log  # the restarted agent caught up on the hours it missed
     counts = [json.loads(line.split(" messages ", 1)[1]) for line in log.splitlines() if " messages {" in line]
     assert counts and counts[-1]["ignored"].get("grid_state_of_an_operated_hour", 0) >= 1  # duplicated grid states
     injected = collections.Counter(result["transport"].get("faults_injected", {}))
     for agent in ("mg1", "mg2"):  # mg1's log holds both of its lives
-        for line in (tmp_path / f"{agent}.log").read_text().splitlines():
+        for line in (tmp_path / "logs" / f"{agent}.log").read_text().splitlines():
             if f"{agent} messages {{" in line:
                 injected.update(json.loads(line.split(" messages ", 1)[1])["faults_injected"])
     missing = {a: s["missing_subperiods"] for a, s in result["settlement"].items()}
@@ -444,8 +446,7 @@ def test_the_dmo_killed_mid_day_resumes_from_its_journal_and_settles_as_if_undis
     common = ["run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--json", "--quiet", "--seed", "5"]
     runs = {}
     for name, faults in (("restarted", ["restart:dmo:8", "delay:agent/*/meter:0.6"]), ("undisturbed", [])):
-        (tmp_path / name).mkdir()
-        argv = dmosim(*common, "--logs", str(tmp_path / name), *[x for f in faults for x in ("--fault", f)])
+        argv = dmosim(*common, "--out", str(tmp_path / name), *[x for f in faults for x in ("--fault", f)])
         runs[name] = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
                                       env=ENV, start_new_session=True)
     try:
@@ -461,10 +462,11 @@ def test_the_dmo_killed_mid_day_resumes_from_its_journal_and_settles_as_if_undis
     assert restarted["restarts"] == {"dmo": 1}
     assert restarted["settlement"] == undisturbed["settlement"] and restarted["awards"] == undisturbed["awards"]
     assert restarted["accepted_messages"] == undisturbed["accepted_messages"]  # nothing lost, nothing twice
-    (resumed,) = [i for i in restarted["incidents"] if "resumed the day" in i["reason"]]
+    (resumed,) = [i for i in restarted["incidents"] if "resumed day 1" in i["reason"]]
     assert resumed["hour"] == 8 and "not back" not in resumed["reason"]
     resent = sum(json.loads(line.split(" messages ", 1)[1])["answers_sent_again"]
-                 for a in ("mg1", "mg2") for line in (tmp_path / "restarted" / f"{a}.log").read_text().splitlines()
+                 for a in ("mg1", "mg2")
+                 for line in (tmp_path / "restarted" / "logs" / f"{a}.log").read_text().splitlines()
                  if f"{a} messages {{" in line)
     assert resent >= 1  # hour 8's reports, lost with the DMO, went again
     assert cli_main(["settle", restarted["recording"]]) == 0

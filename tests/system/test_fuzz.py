@@ -28,17 +28,17 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
+from test_market_day import DAY, DEADLINES, ENV, TINY, dmosim
 
 from dmo.cli import main as cli_main
 from dmo.launch.processes import Roles, free_port, wait_listening
-from messages import (HOURS, KINDS, SCHEMAS, AgentTotals, Award, Bid, BidStep, CallForBids, Clock, DaySummary,
-                      GridState, Incident, MessageError, MeterReport, Registration, Rejection, Schedule, check_route,
-                      decode, encode, parse_key)
+from messages import (HOURS, KINDS, SCHEMA_VERSION, SCHEMAS, AgentTotals, Award, Bid, BidStep, CallForBids, Clock,
+                      DaySummary, GridState, Incident, MessageError, MeterReport, Registration, Rejection, Schedule,
+                      check_route, decode, encode, parse_key)
 from messages.keys import new_run_id
 from messages.recording import RecordingWriter
 from messages.transport import Bus, BusConfig
 from scenarios.case import DATA_DIR
-from test_market_day import DAY, DEADLINES, ENV, TINY, dmosim
 
 AGENTS = ("mg1", "mg2")
 WRONG_DAYS = ("2026-06-30", "2026-07-02", "1999-12-31")
@@ -110,7 +110,7 @@ def templates() -> dict[str, list[dict]]:
         Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=hourly, clearing_price_per_mwh=hourly,
               penalty_per_mwh=150.0, subperiods=1, rules_version=1, rules="rules", seq=9),
         GridState(sender="dmo", market_day=DAY, hour=4, subperiods=1, connected=(True,), seq=20),
-        Clock(sender="dmo", market_day=DAY, phase="realtime", hour=4, deadline_s=60.0, seq=19),
+        Clock(sender="dmo", market_day=DAY, phase="realtime", hour=4, deadline_s=60.0, day=1, days=1, seq=19),
         DaySummary(sender="dmo", market_day=DAY, agents=AGENTS, clearing_price_per_mwh=hourly,
                    totals={"mg1": AgentTotals(energy_charge=1.0, deviation_penalty=0.0, deviation_credit=0.0,
                                               total=1.0)},
@@ -204,7 +204,7 @@ def mutated(draw, kind: str) -> dict | list | str | int | None:
             elif how == "kind":
                 data["kind"] = draw(st.one_of(st.sampled_from(KINDS), st.text(max_size=12), HOSTILE_VALUES))
             elif how == "version":
-                data["schema_version"] = draw(st.sampled_from([0, 2, 7, 10**6, -1, "1", 1.0, True]))
+                data["schema_version"] = draw(st.sampled_from([0, SCHEMA_VERSION + 1, 7, 10**6, -1, "1", 1.0, True]))
             elif how == "day":
                 data["market_day"] = draw(st.sampled_from([*WRONG_DAYS, "2026-02-30", "26-07-01", "", "today"]))
             elif how == "seq":

@@ -13,6 +13,7 @@ import sys
 import threading
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from dmo.launch.processes import Roles, free_port, wait_listening
@@ -141,7 +142,7 @@ def test_an_agent_leaves_only_once_it_has_its_own_statement(tmp_path):
 
 
 def test_dmosim_run_prints_the_summary_and_json(tmp_path):
-    argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--logs", str(tmp_path), "--json")
+    argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--out", str(tmp_path), "--json")
     out = subprocess.run(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
@@ -151,7 +152,17 @@ def test_dmosim_run_prints_the_summary_and_json(tmp_path):
     assert result["agents"] == ["mg1", "mg2"] and len(result["clearing_prices"]) == 24
     assert set(result["settlement"]["mg1"]) >= {"energy_charge", "deviation_penalty", "total"}
     assert "phase realtime, hour 24/24" in out.stderr
-    assert Path(result["recording"]).samefile(tmp_path / "day.mcap")  # recording is on by default, beside the logs
+    # the run directory holds what the run made: the experiment, recording, result, tables and figure
+    assert Path(result["recording"]).samefile(tmp_path / "recording.mcap")  # recording is on by default
+    assert json.loads((tmp_path / "result.json").read_text())["settlement"] == result["settlement"]
+    assert "[agents]\ncount = 2" in (tmp_path / "experiment.toml").read_text()
+    hours = pd.read_csv(tmp_path / "tables" / "hours.csv")
+    for agent, total in hours.groupby("agent")["total"].sum().items():
+        assert total == pytest.approx(result["settlement"][agent]["total"], abs=0.01)
+    per_hour = hours.drop_duplicates("hour").set_index("hour")["congestion"]
+    assert [per_hour[h] for h in range(1, 25)] == result["congestion"]  # as the DMO's clearing says
+    assert (tmp_path / "run.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and result["figure"].endswith("run.png")
+    assert (tmp_path / "logs" / "mg1.log").is_file()
 
 
 def test_bad_fault_and_fleet_exit_2(tmp_path):

@@ -1,0 +1,83 @@
+"""A sweep's results (``dmosim sweep``): one tidy table, a row per run and agent, and its figure.
+
+The table has the swept settings as columns (named by their dotted keys), then the run's ``label``, ``status``
+(``ok`` or ``failed``), ``run_dir``, ``wall_s``, ``agent``, the agent's settlement summed over the run's days
+(``SETTLED``), and what only the agent knows, from its realised days: its own operating cost and the load it
+curtailed (``REALISED``).
+A failed run keeps one row with its error and empty money, so a sweep that lost a run still says which.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+SETTLED = ("energy_charge", "deviation_penalty", "credit", "total", "award_mwh", "import_mwh", "deviation_mwh",
+           "missing_subperiods")
+REALISED = {"operating_cost": "total", "curtailment_mwh": "curtailment_mwh"}  # column -> field of a realised day
+
+
+def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: float, result: dict | None,
+               error: str | None = None) -> list[dict]:
+    """The rows of one run: one per agent of its result (``dmosim run --json``), or one saying why it failed."""
+    head = {**{key: _cell(value) for key, value in settings.items()}, "label": label,
+            "status": "failed" if result is None else "ok", "run_dir": run_dir, "wall_s": round(wall_s, 1)}
+    if result is None:
+        return [{**head, "agent": None, **dict.fromkeys([*SETTLED, *REALISED]), "error": error}]
+    realised = result.get("realised", {})
+    return [{**head, "agent": agent, **{k: s.get(k) for k in SETTLED},
+             **{column: _realised_sum(realised.get(agent), field) for column, field in REALISED.items()},
+             "error": None}
+            for agent, s in sorted(result["settlement"].items())]
+
+
+def _realised_sum(days: list[dict] | None, field: str) -> float | None:
+    """A realised quantity summed over the agent's days; None if it logged none (it did not finish a day)."""
+    return round(sum(d[field] for d in days), 6) if days else None
+
+
+def _cell(value):
+    """A swept value as one table cell: lists (a load pattern) as text."""
+    return ",".join(map(str, value)) if isinstance(value, list) else value
+
+
+def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figure:
+    """Each agent's total bill against the first swept setting, one panel per combination of the others; a
+    numeric setting on a line, any other as grouped bars."""
+    ok = table[table["status"] == "ok"]
+    if ok.empty:
+        raise ValueError("no run of the sweep finished: nothing to plot")
+    x_key, others = keys[0], keys[1:]
+    groups = list(ok.groupby(others, sort=False)) if others else [((), ok)]
+    fig, axes = plt.subplots(1, len(groups), figsize=(max(6.0, 4.5 * len(groups)), 4.2), squeeze=False,
+                             sharey=True, layout="constrained")
+    numeric = pd.api.types.is_numeric_dtype(ok[x_key]) and not pd.api.types.is_bool_dtype(ok[x_key])
+    agents = sorted(ok["agent"].unique())
+    for ax, (key, frame) in zip(axes[0], groups):
+        values = list(dict.fromkeys(frame[x_key]))
+        for i, agent in enumerate(agents):
+            own = frame[frame["agent"] == agent].set_index(x_key).reindex(values)
+            if numeric:
+                ax.plot(values, own["total"].to_numpy(dtype=float), "o-", label=agent)
+            else:
+                width = 0.8 / len(agents)
+                ax.bar(np.arange(len(values)) + (i - (len(agents) - 1) / 2) * width,
+                       own["total"].to_numpy(dtype=float), width=width, label=agent)
+        if not numeric:
+            ax.set_xticks(np.arange(len(values)), [str(v) for v in values])
+        ax.axhline(0, color="0.5", lw=0.6)
+        ax.set_xlabel(x_key)
+        ax.grid(alpha=0.3)
+        key = key if isinstance(key, tuple) else (key,)
+        ax.set_title(", ".join(f"{k}={v}" for k, v in zip(others, key)) or "", loc="left", fontsize=10)
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda y, _: f"{y:,.0f}"))
+    axes[0][0].set_ylabel("total bill over the run, $")
+    axes[0][-1].legend(fontsize=8, frameon=False)
+    fig.suptitle(title or f"each agent's bill against {x_key}", fontsize=12)
+    return fig
