@@ -32,7 +32,7 @@ from ..market.settlement import DayTotals, Statement, settle
 from . import outbox, rejoin
 from .config import DayConfig
 from .history import DayHistory
-from .journal import Journal, restore, traffic
+from .journal import Journal, restore
 from .state import DayState
 
 log = logging.getLogger("dmosim.dmo")
@@ -141,7 +141,7 @@ class MarketDay:
         self._grid: GridState | None = None  # the current hour's, re-sent to an agent that rejoins
         self._bids_due = 0.0
         self.journal: Journal | None = None
-        self.history = DayHistory()
+        self.history: DayHistory | None = None  # opened by run(), on the journal if there is one
         self._resumed: tuple[str, int | None] | None = None
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
         bus.tap = self._traffic
@@ -157,10 +157,10 @@ class MarketDay:
         if c.journal:
             self.journal = Journal(c.journal, self.bus.keys.run_id, c.market_day)
             self._resumed, finished = restore(s, self.journal.entries)
-            self.history = DayHistory(traffic(self.journal.entries))
             if self._resumed is not None:
                 log.warning("resuming the run from %s: day %d %s, %d accepted messages", self.journal.path, s.day,
                             _when(*self._resumed), sum(s.accepted.values()))
+        self.history = DayHistory(self.journal)
         self._listen()
         if before_start is not None:
             before_start()
@@ -359,9 +359,8 @@ class MarketDay:
 
     def _traffic(self, key: str, payload: bytes, at: int) -> None:
         """Every payload sent or received (the bus's tap, on Zenoh's threads too): kept for late joiners."""
-        self.history.record(key, payload, at)
-        if self.journal is not None:
-            self.journal.traffic(key, payload, at)
+        if self.history is not None:
+            self.history.record(key, payload, at)
 
     def _publish(self, msg) -> None:
         self.bus.publish(msg)

@@ -10,38 +10,71 @@ or without ``zenoh.ext``; a DMO resumed from its journal answers with the traffi
 
 from __future__ import annotations
 
+import json
+import tempfile
 import threading
+from collections.abc import Iterator
 
 import zenoh
 
 from messages.keys import HISTORY, parse_key
 from messages.transport.bus import Entry
 
+from .journal import Journal, traffic, traffic_entry
+
 
 class DayHistory:
-    """Every payload the DMO sent or received, as (key, payload, ns); thread-safe (Zenoh's threads record)."""
+    """Every payload the DMO sent or received, as (key, payload, ns); thread-safe (Zenoh's threads record).
 
-    def __init__(self, entries: list[Entry] | None = None):
-        self.entries: list[Entry] = list(entries or ())
+    The traffic is kept on disk, not in memory, so that the DMO does not grow with the days of a run: in the
+    journal when the DMO keeps one (which also brings back the traffic of a DMO restarted on it), else in a
+    temporary file of the same lines that goes with the process. Memory holds only the latest message the DMO
+    published on each of its keys, which is bounded by the agents, not the days."""
+
+    def __init__(self, journal: Journal | None = None):
+        self._journal = journal
+        self._scratch = None if journal else tempfile.TemporaryFile("w+", encoding="utf-8")  # noqa: SIM115
+        self._latest: dict[str, Entry] = {}
         self._lock = threading.Lock()
+        for entry in traffic(journal.entries if journal else ()):
+            self._keep_latest(entry)
 
     def record(self, key: str, payload: bytes, at: int) -> None:
+        entry = (key, bytes(payload), at)
         with self._lock:
-            self.entries.append((key, bytes(payload), at))
+            self._keep_latest(entry)
+            if self._journal is not None:
+                self._journal.traffic(*entry)
+            else:
+                self._scratch.write(json.dumps(traffic_entry(*entry), separators=(",", ":")) + "\n")
+
+    def _keep_latest(self, entry: Entry) -> None:
+        if _published_by_dmo(entry[0]):
+            self._latest[entry[0]] = entry
 
     def answer(self, key_expr: str, parameters: str) -> list[Entry]:
         """The replies to a query: with ``history`` among the parameters every entry on a matching key, in order;
         otherwise the latest message the DMO published on each matching key."""
-        asked = zenoh.KeyExpr(key_expr)
-        with self._lock:
-            matching = [e for e in self.entries if asked.intersects(zenoh.KeyExpr(e[0]))]
+        asked, matches = zenoh.KeyExpr(key_expr), {}
+
+        def matching(key: str) -> bool:
+            if key not in matches:
+                matches[key] = asked.intersects(zenoh.KeyExpr(key))
+            return matches[key]
+
         if HISTORY in (p.split("=", 1)[0] for p in parameters.split(";") if p):
-            return matching
-        latest = {}
-        for entry in matching:
-            if _published_by_dmo(entry[0]):
-                latest[entry[0]] = entry
-        return sorted(latest.values(), key=lambda e: e[2])
+            with self._lock:
+                return [e for e in traffic(self._lines()) if matching(e[0])]
+        with self._lock:
+            latest = list(self._latest.values())
+        return sorted((e for e in latest if matching(e[0])), key=lambda e: e[2])
+
+    def _lines(self) -> Iterator[dict]:
+        if self._journal is not None:
+            return self._journal.lines()
+        self._scratch.seek(0)
+        lines = [json.loads(line) for line in self._scratch]  # leaves the file at its end, for the next record
+        return iter(lines)
 
 
 def _published_by_dmo(key: str) -> bool:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import json
 import threading
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, encode
@@ -60,7 +61,15 @@ class Journal:
         self.write({"rejected": code})
 
     def traffic(self, key: str, payload: bytes, at: int) -> None:
-        self.write({"traffic": key, "at": at, "payload": base64.b64encode(payload).decode("ascii")})
+        self.write(traffic_entry(key, payload, at))
+
+    def lines(self) -> Iterator[dict]:
+        """Every entry written so far, read back from the file (this run's and day's: the head is skipped)."""
+        with open(self.path, encoding="utf-8", errors="replace") as f:
+            next(f, None)
+            for line in f:
+                if line.endswith("\n"):  # a line still being written is not read
+                    yield json.loads(line)
 
     def close(self) -> None:
         with self._lock:
@@ -102,6 +111,11 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
     return clock, finished
 
 
-def traffic(entries: list[dict]) -> list[tuple[str, bytes, int]]:
-    """The traffic a journal holds, as (key, payload, ns) in the order it happened."""
+def traffic_entry(key: str, payload: bytes, at: int) -> dict:
+    """A payload sent or received, as a journal line."""
+    return {"traffic": key, "at": at, "payload": base64.b64encode(payload).decode("ascii")}
+
+
+def traffic(entries: Iterable[dict]) -> list[tuple[str, bytes, int]]:
+    """The traffic among journal entries, as (key, payload, ns) in the order it happened."""
     return [(e["traffic"], base64.b64decode(e["payload"]), e["at"]) for e in entries if "traffic" in e]

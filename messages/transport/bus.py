@@ -52,7 +52,8 @@ class BusConfig:
     may be started before its DMO or router; past it, opening fails (a client's Zenoh default is to fail at once).
 
     With explicit endpoints, multicast scouting is off and the scouting delay 0: the process connects where
-    it is told at once and never meets a stranger's run.
+    it is told at once and never meets a stranger's run. Without a config file, shared memory is off
+    (docs/protocol.md, "Transport").
     """
 
     mode: str | None = None
@@ -79,6 +80,8 @@ class BusConfig:
     def to_zenoh(self) -> zenoh.Config:
         config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
         settings: list[tuple[str, str]] = []
+        if not self.config_file:  # messages are small; each peer's 16 MiB pool would only cost memory
+            settings.append(("transport/shared_memory/enabled", "false"))
         if self.mode is not None:
             settings.append(("mode", json.dumps(self.mode)))
         if self.connect:

@@ -150,17 +150,19 @@ def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_surv
                (f"{p}/dmo/clock", b'{"phase":"bidding"}', 3), (f"{p}/agent/mg1/bid", b"\xff not json", 4),
                (f"{p}/dmo/award/mg1", b"award1", 5), (f"{p}/dmo/award/mg2", b"award2", 6)]
     journal = Journal(tmp_path / "dmo.journal", "run1", DAY)
-    history = DayHistory()
+    histories = {"journaled": DayHistory(journal), "in a scratch file": DayHistory()}
     for entry in entries:
-        history.record(*entry)
-        journal.traffic(*entry)
+        for history in histories.values():
+            history.record(*entry)
     journal.close()
-    assert history.answer(f"{p}/dmo/clock", "") == [entries[2]]  # the latest clock
-    assert history.answer(f"{p}/**", "") == [entries[2], entries[4], entries[5]]  # the DMO's latest, in time order
-    assert history.answer(f"{p}/**", "history") == entries  # everything, received payloads as they came
-    assert history.answer(f"{p}/agent/*/bid", "history;since=0") == [entries[3]]
-    assert history.answer(f"{p}/dmo/award/mg1", "") == [entries[4]]
     again = Journal(tmp_path / "dmo.journal", "run1", DAY)
+    histories["restarted on the journal"] = DayHistory(again)
+    for how, history in histories.items():
+        assert history.answer(f"{p}/dmo/clock", "") == [entries[2]], how  # the latest clock
+        assert history.answer(f"{p}/**", "") == [entries[2], entries[4], entries[5]], how  # the DMO's, in time order
+        assert history.answer(f"{p}/**", "history") == entries, how  # everything, payloads as they came
+        assert history.answer(f"{p}/agent/*/bid", "history;since=0") == [entries[3]], how
+        assert history.answer(f"{p}/dmo/award/mg1", "") == [entries[4]], how
     again.close()
     assert traffic(again.entries) == entries
 

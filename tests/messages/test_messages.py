@@ -276,7 +276,14 @@ def test_bus_config():
     assert json.loads(config.get_json("scouting/delay")) == 0
     assert json.loads(config.get_json("transport/link/tx/lease")) == 1500
     assert json.loads(config.get_json("transport/link/tx/keep_alive")) == 2
+    assert json.loads(config.get_json("transport/shared_memory/enabled")) is False
     with pytest.raises(ValueError):
         BusConfig(mode="server")
     with pytest.raises(ValueError):
         BusConfig(overrides=[("no/such/setting", "1")]).to_zenoh()
+
+
+def test_a_config_file_of_ones_own_keeps_zenohs_shared_memory(tmp_path):
+    own = tmp_path / "zenoh.json5"
+    own.write_text('{ transport: { shared_memory: { enabled: true } } }')
+    assert json.loads(BusConfig(config_file=str(own)).to_zenoh().get_json("transport/shared_memory/enabled"))
