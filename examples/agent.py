@@ -43,7 +43,7 @@ def main() -> None:
 
         def send(topic: str, kind: str, day: str, **fields) -> None:
             nonlocal seq
-            message = {"kind": kind, "schema_version": 2, "sender": args.id, "market_day": day, "seq": seq,
+            message = {"kind": kind, "schema_version": 3, "sender": args.id, "market_day": day, "seq": seq,
                        "sent_at": time.time_ns(), **fields}
             session.put(f"{prefix}/agent/{args.id}/{topic}", json.dumps(message))
             seq += 1

@@ -56,18 +56,33 @@ def decode(payload: bytes, expected_kind: str | None = None) -> Message:
     return msg
 
 
+# What each version added to a kind, and what an older message of that kind means by their absence.
+ADDED = ((2, "clock", {"day": 1, "days": 1}),
+         (3, "award", {"settlement_rule": None, "deviation_cost": None}),
+         (3, "settlement_statement", {"settlement_rule": None}))
+
+
 def _upgrade(payload: bytes) -> bytes | None:
     """A message of an older schema version as this version reads it, or None if there is nothing to upgrade.
-    Version 1 -> 2: a clock, which had no day, is day 1 of a one-day run; no other kind changed."""
+    Version 1 -> 2: a clock, which had no day, is day 1 of a one-day run. Version 2 -> 3: an award or a statement
+    names no settlement rule, which is the paper's at its penalty and credit rates. An older message that already
+    has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):
         return None
-    if not isinstance(data, dict) or data.get("schema_version") != 1 or data.get("kind") != "clock":
+    if not isinstance(data, dict):
         return None
-    if "day" in data or "days" in data:
+    version = data.get("schema_version")
+    if not isinstance(version, int) or isinstance(version, bool) or version >= SCHEMA_VERSION:
         return None
-    return json.dumps({**data, "day": 1, "days": 1}).encode()
+    added = {}
+    for since, kind, fields in ADDED:
+        if kind == data.get("kind") and version < since:
+            if any(name in data for name in fields):
+                return None
+            added.update(fields)
+    return json.dumps({**data, **added}).encode() if added else None
 
 
 def _oversize(size: int) -> str:

@@ -25,10 +25,13 @@ def _type(schema: dict) -> str:
     if "const" in schema:
         return f'`"{schema["const"]}"`'
     kind = schema.get("type")
+    if kind == "array" and "prefixItems" in schema:  # a fixed tuple
+        return f"array [{', '.join(_type(s) for s in schema['prefixItems'])}]"
     if kind == "array":
         low, high = schema.get("minItems"), schema.get("maxItems")
         count = (f"{low}" if low == high else f"up to {high}" if low in (None, 0) and high is not None
-                 else f"{low} or more" if high is None and low else "any number of")
+                 else f"{low} or more" if high is None and low else f"{low} to {high}" if low and high
+                 else "any number of")
         item = _type(schema["items"])
         plural = item if item.startswith("`") else "arrays" + item[5:] if item.startswith("array") else item + "s"
         return f"array of {count} {plural}"

@@ -19,10 +19,13 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, TypeA
 from scenarios.horizon import HOURS
 from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
 
-SCHEMA_VERSION = 2  # 2: the clock says which day of how many (a run of several market days)
+# 2: the clock says which day of how many (a run of several market days); 3: awards and statements name their
+# settlement rule, and awards carry its price of a deviation
+SCHEMA_VERSION = 3
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
+MAX_PIECES = 8
 MAX_UNITS = 64
 MAX_AGENTS = 1024
 CENT = 0.01
@@ -56,6 +59,11 @@ RejectCode = Literal["oversize", "not_json", "not_object", "unknown_kind", "unsu
 REJECT_CODES: tuple[str, ...] = get_args(RejectCode)
 Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
+Piece = tuple[Float, Float]
+RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]
+SETTLEMENT_RULE = ("the settlement rule the day is settled by, with every parameter, as docs/settlement.md names it "
+                   "(e.g. \"paper:penalty=150,credit=0\"); null: the paper rule at penalty_per_mwh and credit_per_mwh "
+                   "(as every day was settled before version 3)")
 
 
 class _WireModel(BaseModel):
@@ -74,7 +82,8 @@ class Envelope(_WireModel):
     kind: str  # each message type narrows it to its literal tag; declared here so it comes first on the wire
     schema_version: Annotated[int, Strict(), Field(ge=1, le=SCHEMA_VERSION), Field(description=(
         f"version of the message schemas the sender wrote; this protocol is version {SCHEMA_VERSION} (a version 1 "
-        "clock, which has no day and days, is read as day 1 of 1)"))] = SCHEMA_VERSION
+        "clock, which has no day and days, is read as day 1 of 1; a version 2 award or statement, which names no "
+        "settlement rule, as settled by the paper rule)"))] = SCHEMA_VERSION
     sender: Annotated[Name, Field(description=(
         "\"dmo\" or the agent id; must be the owner of the key the message travels on"))]
     market_day: Annotated[MarketDay, Field(description="the market day the message belongs to, an ISO date YYYY-MM-DD")]
@@ -157,8 +166,11 @@ class CallForBids(_FromDmo):
         "the feeder's import limit, MW: net imports of all agents above it congest the hour"))]
     export_limit_mw: Annotated[NonNeg, Field(description=(
         "the feeder's export limit, MW: net exports above it congest the hour"))]
-    penalty_per_mwh: Annotated[NonNeg, Field(description="c: $ per MWh imported above the award")]
-    credit_per_mwh: Annotated[NonNeg, Field(description="$ per MWh imported below the award (0: no credit)")] = 0.0
+    penalty_per_mwh: Annotated[NonNeg, Field(description=(
+        "c: $ per MWh imported above the award, under the paper rule (under another rule, the c an agent that does "
+        "not read deviation_cost schedules against)"))]
+    credit_per_mwh: Annotated[NonNeg, Field(description=(
+        "$ per MWh imported below the award (0: no credit), under the paper rule"))] = 0.0
     subperiods: Annotated[Subperiods, Field(description="K: metering sub-periods per hour, each 1/K h")]
     deadline_s: Annotated[float, Strict(), Field(gt=0, le=86_400), Field(description=(
         "bids are due this many seconds after sent_at"))]
@@ -200,14 +212,24 @@ class Award(_FromDmo):
     p_sch_mw: Annotated[Hourly, Field(description=(
         "24 hourly awards P_sch, MW, hour 1 first; positive imports, negative exports"))]
     clearing_price_per_mwh: Annotated[Hourly, Field(description="24 hourly clearing prices, $/MWh")]
-    penalty_per_mwh: Annotated[NonNeg, Field(description="c: $ per MWh imported above the award")]
-    credit_per_mwh: Annotated[NonNeg, Field(description="$ per MWh imported below the award (0: no credit)")] = 0.0
+    penalty_per_mwh: Annotated[NonNeg, Field(description=(
+        "c: $ per MWh imported above the award, under the paper rule (under another rule, the c an agent that does "
+        "not read deviation_cost schedules against)"))]
+    credit_per_mwh: Annotated[NonNeg, Field(description=(
+        "$ per MWh imported below the award (0: no credit), under the paper rule"))] = 0.0
     subperiods: Annotated[Subperiods, Field(description=(
         "K: metering sub-periods per hour; each meter report carries K readings"))]
     rules_version: Annotated[int, Strict(), Field(ge=1, le=10_000), Field(description=(
         "the version of the settlement rules the day is settled by"))]
     rules: Annotated[str, Strict(), Field(max_length=4000), Field(description=(
         "the settlement rules, in words"))]
+    settlement_rule: Annotated[RuleName | None, Field(description=SETTLEMENT_RULE)] = None
+    deviation_cost: Annotated[tuple[Annotated[tuple[Piece, ...], Field(min_length=1, max_length=MAX_PIECES)], ...]
+                              | None, Field(min_length=HOURS, max_length=HOURS), Field(description=(
+        "what the rule charges in each hour for a deviation d = P_M - P_sch (MW) held through it, as 24 hourly "
+        "lists of at most 8 pieces [slope $/MWh, intercept $/h]: the charge is max(slope d + intercept) $/h; "
+        "null when the rule cannot be written so (a rule of the user's own), and an agent then schedules against "
+        "the paper's term at penalty_per_mwh"))] = None
 
 
 # --- scheduling ---------------------------------------------------------------------------------------------
@@ -325,10 +347,11 @@ class SettlementStatement(_FromDmo):
 
     kind: Annotated[Literal["settlement_statement"], Field(description=KIND)] = "settlement_statement"
     agent: Annotated[AgentId, Field(description="the agent settled (the key names it too)")]
-    penalty_per_mwh: Annotated[NonNeg, Field(description="the penalty rate applied, $/MWh")]
-    credit_per_mwh: Annotated[NonNeg, Field(description="the credit rate applied, $/MWh")]
+    penalty_per_mwh: Annotated[NonNeg, Field(description="the penalty rate applied under the paper rule, $/MWh")]
+    credit_per_mwh: Annotated[NonNeg, Field(description="the credit rate applied under the paper rule, $/MWh")]
     rules_version: Annotated[int, Strict(), Field(ge=1, le=10_000), Field(description=(
         "the version of the settlement rules applied"))]
+    settlement_rule: Annotated[RuleName | None, Field(description=SETTLEMENT_RULE)] = None
     lines: Annotated[tuple[StatementLine, ...], Field(min_length=HOURS, max_length=HOURS), Field(description=(
         "24 lines, hours 1..24 in order"))]
     energy_charge: Annotated[Float, Field(description="$: the sum of the lines'")]

@@ -328,13 +328,16 @@ def _close(x: float, y: float) -> bool:
 
 
 def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSchedule, p_sch=None,
-                   penalty: float | None = None, tol: float = 1e-5, import_price=None) -> CheckReport:
+                   penalty: float | None = None, tol: float = 1e-5, import_price=None,
+                   deviation_cost=None) -> CheckReport:
     """Verify every constraint of ``schedule`` in every scenario and recompute its expected cost.
 
     ``p_sch`` (24,) defaults to the case's award, ``penalty`` to the schedule's (``inf`` forbids any positive
     mismatch). Violations beyond ``tol`` (widened to tol x magnitude for balance, energy and state of charge) are
     reported by equation number; the recomputed objective must match ``schedule.objective``. ``import_price``
-    (24,) $/MWh prices P_M, as the bidding model does.
+    (24,) $/MWh prices P_M, as the bidding model does. ``deviation_cost`` (a rule's hourly pieces, with ``slope``
+    and ``intercept`` (24, J)) prices the mismatch instead of ``penalty``: max_j slope_j d + intercept_j per
+    sub-period, d = P_M - P_sch.
     """
     p_sch = case.grid.p_sch if p_sch is None else p_sch
     penalty = float(schedule.penalty if penalty is None else penalty)
@@ -357,6 +360,10 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSched
     _check_loads(f, case, a, k, dt)
     mismatch = _check_balance_and_grid(f, case, a, k, a["p_sch"], penalty)
 
+    if deviation_cost is not None:
+        d = (a["dispatch.p_m"] - _subperiods(np.asarray(p_sch, float), k)[None, :]).reshape(-1, HOURS, k, 1)
+        rate = np.max(d * deviation_cost.slope[None, :, None, :] + deviation_cost.intercept[None, :, None, :], axis=-1)
+        mismatch, penalty = rate.reshape(len(d), HOURS * k), 1.0  # $/h per sub-period, counted at a rate of 1
     cost = _cost(case, a, up, down, mismatch, penalty, weight, import_price)
     objective = cost.total
     if not _close(objective, float(schedule.objective)):

@@ -13,8 +13,8 @@ from scenarios.case import load_case
 
 from ..operator.config import DayConfig, islanding_by_day
 from ..operator.day import MarketDay
-from .flags import (add_bus_flags, add_fault_flags, agent_ids, bus_config, credentials_for, hours, market_day,
-                    message_faults, nonneg_float, positive_int, setup_logging, today)
+from .flags import (SETTLEMENT_HELP, add_bus_flags, add_fault_flags, agent_ids, bus_config, credentials_for, hours,
+                    market_day, message_faults, nonneg_float, positive_int, settlement_flag, setup_logging, today)
 
 HELP = "the market operator role alone (the Zenoh router by default)"
 log = logging.getLogger("dmosim")
@@ -50,6 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--run-id", default="day", help="key prefix shared with the agents (default: day)")
     add_day_flags(p)
     p.add_argument("--credit", type=nonneg_float, default=0.0, help="$/MWh credited below the award (default: 0)")
+    p.add_argument("--settlement", metavar="RULE", help=SETTLEMENT_HELP)
     p.add_argument("--import-limit", type=nonneg_float, default=None, help="feeder import limit, MW (default: 8 x agents)")
     p.add_argument("--export-limit", type=nonneg_float, default=None, help="feeder export limit, MW (default: 5 x agents)")
     p.add_argument("--result", help="write the day's JSON result here (default: stdout)")
@@ -74,7 +75,7 @@ def day_config(args) -> DayConfig:
         islanding_by_day=islanding_by_day(args.island_hours, args.seed, args.days),
         fixed_awards=tuple(case.grid.p_sch) if args.market == "fixed" else None,
         registration_s=args.registration_timeout, bids_s=args.bid_timeout, schedule_s=args.schedule_timeout,
-        hour_s=args.hour_timeout, journal=args.journal)
+        hour_s=args.hour_timeout, journal=args.journal, settlement=settlement_flag(args.settlement))
 
 
 def run(args) -> int:

@@ -208,7 +208,11 @@ def recording_path(path: str, overwrite: bool) -> Path:
 
 
 def load_recording(path: str) -> Recording:
-    """A recording, or the one-line UsageError (exit 2) of a file that is not one."""
+    """A recording (a file, or a run directory's), or the one-line UsageError (exit 2) of a file that is not one."""
+    from ..experiment.rundir import RunDir  # noqa: PLC0415  (only for verbs that read recordings)
+
+    if Path(path).is_dir() and RunDir(Path(path)).recording.is_file():
+        path = str(RunDir(Path(path)).recording)
     try:
         return read_recording(path)
     except RecordingError as exc:
@@ -235,3 +239,20 @@ def message_faults(args, bus):
     if faults is not None:
         log.warning("injecting message faults: %s", ", ".join(map(str, faults.faults)))
     return faults
+
+
+SETTLEMENT_HELP = ("the settlement rule, NAME[:key=value,...] (paper, symmetric, deadband, price-linked) or "
+                   "path/to/rules.py:function[:key=value,...] (docs/settlement.md; default: paper at --penalty and "
+                   "--credit)")
+
+
+def settlement_flag(spec: str | None):
+    """``--settlement``: the rule, loaded and tried on a trial day, or the one-line UsageError; None if not given."""
+    if spec is None:
+        return None
+    from ..market.choice import choose  # noqa: PLC0415  (only for the verbs that settle)
+
+    try:
+        return choose(spec)
+    except ValueError as err:
+        raise UsageError(f"--settlement: {err}") from None

@@ -8,7 +8,8 @@ import json
 
 from messages.recording import BACKFILL_METADATA, Recording
 
-from ..replay.resettle import gaps
+from ..market.choice import paper_rule
+from ..replay.resettle import day_messages, gaps
 from .console import print_json
 from .flags import load_recording
 
@@ -16,7 +17,7 @@ HELP = "summary of a recording: run, market days, agents, channels, counts, what
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("path", help="an MCAP recording, or a run directory")
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -50,13 +51,22 @@ def describe(rec: Recording) -> dict:
         "duration_s": round((max(times) - min(times)) / 1e9, 3) if times else 0.0,
         "messages": len(rec.messages), "invalid_messages": invalid,
         "backfilled_messages": _int(rec.other_metadata.get(BACKFILL_METADATA, {}).get("messages", 0)),
-        "missing": gaps(rec),
+        "missing": gaps(rec), "settled_by": settled_by(rec),
         "chunks": rec.chunks, "compression": sorted(rec.compression),
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)} for a in rec.attachments],
         "channels": [{"key": c.relative_key, "messages": c.messages, "schema": c.schema_name,
                       "schema_encoding": c.schema_encoding, "message_encoding": c.message_encoding}
                      for c in sorted(rec.channels.values(), key=lambda c: c.relative_key)],
     }
+
+
+def settled_by(rec: Recording) -> dict[str, str]:
+    """Market day -> the settlement rule its awards name (docs/settlement.md)."""
+    out: dict[str, str] = {}
+    for _, award in day_messages(rec, None, "award"):
+        out.setdefault(award.market_day, award.settlement_rule
+                       or paper_rule(award.penalty_per_mwh, award.credit_per_mwh).label)
+    return dict(sorted(out.items()))
 
 
 def _int(text):
@@ -97,6 +107,11 @@ def render(info: dict) -> str:
     rows.append(f"messages:    {info['messages']} on {len(info['channels'])} channels"
                 + (f", {info['invalid_messages']} invalid" if info["invalid_messages"] else "")
                 + f"; {info['chunks']} chunks ({', '.join(info['compression']) or '-'})")
+    rules = set(info["settled_by"].values())
+    if len(rules) == 1:
+        rows.append(f"settled by:  {rules.pop()}")
+    elif rules:
+        rows += [f"settled by:  {day}: {rule}" for day, rule in info["settled_by"].items()]
     if info["backfilled_messages"]:
         rows.append(f"backfilled:  {info['backfilled_messages']} messages from before the recorder joined, given by "
                     "the DMO's history")

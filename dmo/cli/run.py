@@ -25,7 +25,8 @@ from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, fleet_of, resolved, run_locally
 from ..replay.reproduce import differences
 from .console import UsageError, print_json, progress
-from .flags import gap, hours, load_recording, market_day, nonneg_float, positive_int, recording_path, scales
+from .flags import (SETTLEMENT_HELP, gap, hours, load_recording, market_day, nonneg_float, positive_int,
+                    recording_path, scales)
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
@@ -59,6 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     setting.add_argument("--penalty", type=nonneg_float, help="$/MWh above the award (default: the case's)")
     setting.add_argument("--credit", type=nonneg_float,
                          help=f"$/MWh below the award (default: {default.market.credit:g})")
+    setting.add_argument("--settlement", metavar="RULE", help=SETTLEMENT_HELP)
     setting.add_argument("--import-limit", type=nonneg_float, help="feeder import limit, MW (default: 8 x agents)")
     setting.add_argument("--export-limit", type=nonneg_float, help="feeder export limit, MW (default: 5 x agents)")
     setting.add_argument("--island-hours", type=hours,
@@ -217,6 +219,7 @@ def summary_table(result: dict) -> str:
         rows.append(f"{agent:<8}{s['award_mwh']:>11.2f}{s['import_mwh']:>12.2f}{s['deviation_mwh']:>10.3f}"
                     f"{s['energy_charge']:>12,.2f}{s['deviation_penalty']:>11,.2f}{s['total']:>12,.2f}")
     islanded = "; ".join(f"{d['market_day']}: {', '.join(map(str, d['islanded_hours'])) or 'none'}" for d in days)
+    rows.append(f"settled by: {result['settlement_rule']}")
     rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {islanded}")
     recorded = result.get("recorded") or {}
     if result.get("recording"):

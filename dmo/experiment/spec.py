@@ -20,6 +20,8 @@ from microgrid_agent.solvers.routes import METHODS
 from scenarios.case import read_toml
 from scenarios.horizon import HOURS
 
+from ..market.choice import choose
+
 
 class ExperimentError(ValueError):
     """An experiment file or setting that cannot be used; the message is one line naming the file and the key."""
@@ -49,6 +51,14 @@ class Market(_Section):
     mode: Literal["bids", "fixed"] = "bids"
     penalty: NonNegative | None = None  # $/MWh above the award (None: the case's)
     credit: NonNegative = 0.0           # $/MWh below the award
+    settlement: str | None = None       # the settlement rule, docs/settlement.md (None: paper at penalty and credit)
+
+    @field_validator("settlement")
+    @classmethod
+    def _a_rule(cls, value: str | None) -> str | None:
+        if value is not None:
+            choose(value)  # loaded and tried on a trial day: a ValueError names the problem
+        return value
     import_limit: NonNegative | None = None  # MW (None: 8 x agents)
     export_limit: NonNegative | None = None  # MW (None: 5 x agents)
     island_hours: Annotated[int, Field(ge=0, le=HOURS)] = 1
@@ -110,6 +120,7 @@ class Experiment(_Section):
 FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
+    "market.settlement": "settlement",
     "market.import_limit": "import_limit", "market.export_limit": "export_limit",
     "market.island_hours": "island_hours", "market.subperiods": "subperiods",
     "schedule.scenarios": "scenarios", "schedule.gap": "gap", "schedule.time_limit": "time_limit",

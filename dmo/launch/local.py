@@ -94,6 +94,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             "--market", m.mode, "--seed", str(e.seed), "--island-hours", str(m.island_hours),
             "--subperiods", str(m.subperiods), "--days", str(e.days), "--credit", repr(m.credit),
             *_optional("--penalty", m.penalty), *_optional("--import-limit", m.import_limit),
+            *(["--settlement", m.settlement] if m.settlement else []),
             *_optional("--export-limit", m.export_limit),
             "--registration-timeout", repr(d.registration), "--bid-timeout", repr(d.bid),
             "--schedule-timeout", repr(d.schedule), "--hour-timeout", repr(d.hour),

@@ -15,7 +15,7 @@ Refusal = tuple[str, str]
 PHASE_ORDER = {phase: i for i, phase in enumerate(PHASES)}  # the clock's phases, in the order of the day
 # The phase in which each kind an agent sends is due.
 ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}
-# A reading may exceed the registered max import by this much (MW) before it is refused: float noise, not energy.
+# A reading may pass a registered limit by this much (MW) before it is refused: float noise, not energy.
 IMPORT_TOLERANCE_MW = 1e-9
 
 
@@ -49,16 +49,19 @@ def repeated(what: str, sender: str) -> Refusal:
     return "duplicate", f"second {what} from {sender}; the first one stands"
 
 
-def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported, max_import_mw: float) -> Refusal | None:
+def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported,
+                       registration: Registration) -> Refusal | None:
     """A meter report is accepted in real-time hour ``hour`` (1..24) if it is for this hour, at the day's
     ``subperiods``, the first for the hour (``reported`` holds the agent's hour indices 0..23 already taken) and
-    has no reading above the agent's registered max import."""
+    has every reading within the agent's registered limits, -max_export_mw <= P_M <= max_import_mw."""
     if msg.subperiods != subperiods:
         return "invalid", f"{msg.subperiods} sub-periods, the day has {subperiods}"
     if msg.hour != hour:
         return ("late" if msg.hour < hour else "invalid"), f"meter report for hour {msg.hour} during hour {hour}"
     if hour - 1 in reported:
         return "duplicate", f"second meter report for hour {hour}"
-    if max(msg.p_m_mw) > max_import_mw + IMPORT_TOLERANCE_MW:
-        return "invalid", f"P_M {max(msg.p_m_mw)} MW above registered max {max_import_mw}"
+    if max(msg.p_m_mw) > registration.max_import_mw + IMPORT_TOLERANCE_MW:
+        return "invalid", f"P_M {max(msg.p_m_mw)} MW above registered max import {registration.max_import_mw}"
+    if min(msg.p_m_mw) < -registration.max_export_mw - IMPORT_TOLERANCE_MW:
+        return "invalid", f"P_M {min(msg.p_m_mw)} MW below registered max export -{registration.max_export_mw}"
     return None

@@ -18,63 +18,15 @@ from fractions import Fraction
 
 from scenarios.horizon import HOURS, hourly
 
-Meter = Mapping[str, Mapping[int, Sequence[float | None]]]
+from .money import dollars, exact, exact_amount, money_sum, to_cents
+from .rules import BUILT_IN, Charges, DeviationRule, Meter, Rule, SettlementDay
 
-# The rules as the DMO announces them in every award, with their version: a recording names the rules it was
-# settled by, and ``dmosim settle`` refuses a version it does not implement.
+# The version of the statement's form, announced in every award: a recording names it, and ``dmosim settle``
+# refuses a version it does not implement. The rule itself is named beside it (docs/settlement.md).
 RULES_VERSION = 1
 RULES = ("energy charge = clearing price x award per hour; penalty = c x max(P_M - P_sch, 0) x dt per sub-period; "
          "under-import credited at the credit rate (default 0); a missing sub-period is settled at P_M = the "
          "agent's registered max import with no credit (docs/market.md)")
-
-
-# --- exact arithmetic ---------------------------------------------------------------------------------------
-
-def exact(x: float) -> Fraction:
-    """The exact value of x's shortest decimal form: 0.1 is 1/10, as written in the recording."""
-    return Fraction(repr(float(x)))
-
-
-def to_cents(amount: Fraction) -> int:
-    """Round an exact amount ($) half-even to whole cents: the only rounding settlement does."""
-    return int(round(amount * 100))
-
-
-def dollars(cents: int) -> Decimal:
-    return Decimal(cents).scaleb(-2)
-
-
-def _money(amounts) -> Decimal:
-    """Exact sum of cent amounts, kept at two places (an empty sum is 0.00)."""
-    return sum(amounts, Decimal("0.00"))
-
-
-# --- rules ------------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Rules:
-    """Settlement parameters. ``penalty`` c and ``credit`` in $/MWh, finite and >= 0; ``subperiods`` K per
-    hour (dt = 1/K h); ``p_m_max`` (MW) per agent, the import assumed for every missing meter sub-period."""
-
-    subperiods: int
-    penalty: float
-    credit: float
-    p_m_max: Mapping[str, float]
-
-    def __post_init__(self) -> None:
-        if isinstance(self.subperiods, bool) or not isinstance(self.subperiods, int) or self.subperiods < 1:
-            raise ValueError(f"subperiods must be an integer >= 1, got {self.subperiods!r}")
-        for name in ("penalty", "credit"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or math.isnan(v):
-                raise ValueError(f"{name} rate must be a number, got {v!r}")
-            if math.isinf(v):
-                raise ValueError(f"{name} rate must be finite to be settled, got {v}")
-            if v < 0:
-                raise ValueError(f"{name} rate must be >= 0, got {v}")
-        for agent, v in self.p_m_max.items():
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"p_m_max of {agent} must be a finite number >= 0, got {v!r}")
 
 
 # --- statements -------------------------------------------------------------------------------------------
@@ -146,41 +98,46 @@ class DayTotals:
 
 # --- one hour ---------------------------------------------------------------------------------------------
 
-def hour_line(hour: int, award: float, price: float, readings: Sequence[float | None] | None,
-              rules: Rules, p_m_max: float) -> HourLine:
-    """Settle one agent-hour. ``readings`` holds P_M (MW) per sub-period, None for a missing sub-period;
-    ``readings`` None means the whole hour is missing. A missing sub-period is settled at P_M = p_m_max, the
-    most the agent could have imported, with no under-import credit (docs/market.md, "Missing meter data")."""
-    k = rules.subperiods
-    readings = [None] * k if readings is None else list(readings)
-    p_sch, cap = exact(award), exact(p_m_max)
-    metered = [exact(p) for p in readings if p is not None]
-    n_missing = k - len(metered)
-    dt = Fraction(1, k)
+class RuleError(ValueError):
+    """A settlement rule that raised, or returned what cannot be settled: one line naming the rule and the problem."""
 
+
+def hour_line(day: SettlementDay, agent: str, hour: int, charges: Charges) -> HourLine:
+    """One agent-hour (index 0..23): the rule's money, each item rounded once to the cent, beside the metered
+    energies. ``import_mwh`` and ``deviation_mwh`` count a missing sub-period at the agent's max import."""
+    readings = day.readings(agent, hour)
+    p_sch, cap, dt = exact(day.awards[agent][hour]), exact(day.max_import[agent]), Fraction(1, day.subperiods)
+    metered = [exact(p) for p in readings if p is not None]
+    n_missing = len(readings) - len(metered)
     imported = (sum(metered, Fraction(0)) + n_missing * cap) * dt
     over = (sum((max(p - p_sch, 0) for p in metered), Fraction(0)) + n_missing * max(cap - p_sch, 0)) * dt
     under = sum((max(p_sch - p, 0) for p in metered), Fraction(0)) * dt
 
-    energy = to_cents(exact(price) * p_sch)  # MW x 1 h = MWh
-    penalty = to_cents(exact(rules.penalty) * over)
-    credit = to_cents(exact(rules.credit) * under)
-    return HourLine(hour=hour, award_mwh=float(award), price=float(price), energy_charge=dollars(energy),
-                    import_mwh=float(imported), deviation_mwh=float(over), under_import_mwh=float(under),
-                    penalty=dollars(penalty), credit=dollars(credit), missing=n_missing > 0,
-                    missing_subperiods=n_missing, total=dollars(energy + penalty - credit))
+    where = f"{agent} hour {hour + 1}"
+    energy, penalty, credit = (to_cents(exact_amount(getattr(charges, name), f"{where}: {name}"))
+                               for name in ("energy_charge", "penalty", "credit"))
+    if penalty < 0 or credit < 0:
+        raise RuleError(f"{where}: a negative {'penalty' if penalty < 0 else 'credit'}; a payment to the agent is a "
+                        "credit, a charge a penalty")
+    if charges.total is not None:
+        total = to_cents(exact_amount(charges.total, f"{where}: total"))
+        if total != energy + penalty - credit:
+            raise RuleError(f"{where}: total {dollars(total)} is not energy_charge + penalty - credit "
+                            f"({dollars(energy + penalty - credit)})")
+    return HourLine(hour=hour, award_mwh=float(day.awards[agent][hour]), price=float(day.prices[hour]),
+                    energy_charge=dollars(energy), import_mwh=float(imported), deviation_mwh=float(over),
+                    under_import_mwh=float(under), penalty=dollars(penalty), credit=dollars(credit),
+                    missing=n_missing > 0, missing_subperiods=n_missing, total=dollars(energy + penalty - credit))
 
 
-def statement(agent: str, award: Sequence[float], prices: Sequence[float],
-              reports: Mapping[int, Sequence[float | None]], rules: Rules) -> Statement:
+def statement(agent: str, lines: Sequence[HourLine]) -> Statement:
     """One agent's 24 hour lines and their totals."""
-    lines = tuple(hour_line(h, award[h], prices[h], reports.get(h), rules, rules.p_m_max[agent])
-                  for h in range(HOURS))
+    lines = tuple(lines)
     return Statement(agent=agent, lines=lines,
-                     energy_charge=_money(line.energy_charge for line in lines),
-                     deviation_penalty=_money(line.penalty for line in lines),
-                     credit=_money(line.credit for line in lines),
-                     total=_money(line.total for line in lines),
+                     energy_charge=money_sum(line.energy_charge for line in lines),
+                     deviation_penalty=money_sum(line.penalty for line in lines),
+                     credit=money_sum(line.credit for line in lines),
+                     total=money_sum(line.total for line in lines),
                      missing_subperiods=sum(line.missing_subperiods for line in lines))
 
 
@@ -189,10 +146,10 @@ def day_totals(statements: Mapping[str, Statement], meter: Meter) -> DayTotals:
     s = [statements[a] for a in agents]
     deviation = sum((exact(line.deviation_mwh) for st in s for line in st.lines), Fraction(0))
     return DayTotals(agents=agents,
-                      energy_charge=_money(st.energy_charge for st in s),
-                      deviation_penalty=_money(st.deviation_penalty for st in s),
-                      credit=_money(st.credit for st in s),
-                      total=_money(st.total for st in s),
+                      energy_charge=money_sum(st.energy_charge for st in s),
+                      deviation_penalty=money_sum(st.deviation_penalty for st in s),
+                      credit=money_sum(st.credit for st in s),
+                      total=money_sum(st.total for st in s),
                       deviation_mwh=float(deviation),
                       missing_subperiods=sum(st.missing_subperiods for st in s),
                       agents_without_meter=tuple(a for a in agents if not meter.get(a)))
@@ -200,11 +157,23 @@ def day_totals(statements: Mapping[str, Statement], meter: Meter) -> DayTotals:
 
 # --- validation and entry point ------------------------------------------------------------------------------
 
-def _check_meter(meter: Meter, awards: Mapping[str, Sequence[float]], rules: Rules) -> None:
+def _limits(name: str, value: float | Mapping[str, float], agents: Sequence[str]) -> dict[str, float]:
+    if isinstance(value, Mapping):
+        absent = [a for a in agents if a not in value]
+        if absent:
+            raise ValueError(f"no {name} for agent {absent[0]}")
+    out = {a: value[a] if isinstance(value, Mapping) else value for a in agents}
+    for agent, v in out.items():
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"{name} of {agent} must be a finite number >= 0, got {v!r}")
+    return out
+
+
+def _check_meter(meter: Meter, day: SettlementDay) -> None:
     if not isinstance(meter, Mapping):
         raise ValueError("meter must map agent id to {hour index: readings}")
     for agent, hours in meter.items():
-        if agent not in awards:
+        if agent not in day.awards:
             raise ValueError(f"meter report from agent {agent!r}, which has no award")
         if not isinstance(hours, Mapping):
             raise ValueError(f"meter of {agent} must map hour index to readings")
@@ -213,47 +182,84 @@ def _check_meter(meter: Meter, awards: Mapping[str, Sequence[float]], rules: Rul
                 raise ValueError(f"meter of {agent}: hour index must be an integer 0..{HOURS - 1}, got {h!r}")
             if isinstance(readings, (str, bytes)) or not isinstance(readings, Sequence):
                 raise ValueError(f"meter of {agent}, hour index {h}: readings must be a sequence")
-            if len(readings) != rules.subperiods:
+            if len(readings) != day.subperiods:
                 raise ValueError(f"meter of {agent}, hour index {h}: {len(readings)} readings, "
-                                 f"expected {rules.subperiods}")
+                                 f"expected {day.subperiods}")
             for p in readings:
                 if p is None:
                     continue
                 if isinstance(p, bool) or not isinstance(p, numbers.Real) or not math.isfinite(p):
                     raise ValueError(f"meter of {agent}, hour index {h}: reading {p!r} is not a finite number")
-                if p > rules.p_m_max[agent]:
+                if p > day.max_import[agent]:
                     raise ValueError(f"meter of {agent}, hour index {h}: reading {p} MW above "
-                                     f"p_m_max {rules.p_m_max[agent]} MW")
+                                     f"p_m_max {day.max_import[agent]} MW")
+                if p < -day.max_export[agent]:
+                    raise ValueError(f"meter of {agent}, hour index {h}: reading {p} MW below -p_m_min "
+                                     f"{day.max_export[agent]} MW")
 
 
-def settle(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *, subperiods: int,
-           penalty: float, p_m_max: float | Mapping[str, float], credit: float = 0.0,
-           ) -> tuple[dict[str, Statement], DayTotals]:
-    """Settle a market day: one statement per awarded agent (sorted by id) and the day's totals.
-
-    ``awards``: agent -> 24 MW (P_sch, + import); ``prices``: 24 clearing prices ($/MWh); ``meter``: agent ->
-    {hour index 0..23: K readings of P_M (MW), None for a missing sub-period}; an absent hour or agent is
-    missing. ``penalty`` c and ``credit`` in $/MWh, finite and >= 0; ``p_m_max`` (MW), scalar or per agent, the
-    most an agent can import: readings above it are rejected, missing sub-periods are settled at it.
-    Raises ValueError with a one-line reason for invalid input.
-    """
+def settlement_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *,
+                   subperiods: int, p_m_max: float | Mapping[str, float],
+                   p_m_min: float | Mapping[str, float] | None = None) -> SettlementDay:
+    """The day a rule settles, checked: ValueError with a one-line reason for invalid input (``settle``)."""
     if not isinstance(awards, Mapping):
         raise ValueError("awards must map agent id to 24 hourly MW values")
     agents = sorted(awards)
     for a in agents:
         if not isinstance(a, str) or not a.strip():
             raise ValueError(f"agent id must be a non-empty string, got {a!r}")
-    award_rows = {a: hourly(awards[a], f"award of {a}") for a in agents}
-    price_row = hourly(prices, "clearing price")
-    if isinstance(p_m_max, Mapping):
-        absent = [a for a in agents if a not in p_m_max]
-        if absent:
-            raise ValueError(f"no p_m_max for agent {absent[0]}")
-        caps = {a: p_m_max[a] for a in agents}
-    else:
-        caps = {a: p_m_max for a in agents}
-    rules = Rules(subperiods=subperiods, penalty=penalty, credit=credit, p_m_max=caps)
-    _check_meter(meter, awards, rules)
+    if isinstance(subperiods, bool) or not isinstance(subperiods, int) or subperiods < 1:
+        raise ValueError(f"subperiods must be an integer >= 1, got {subperiods!r}")
+    max_import = _limits("p_m_max", p_m_max, agents)
+    day = SettlementDay(awards={a: hourly(awards[a], f"award of {a}") for a in agents},
+                        prices=hourly(prices, "clearing price"), meter=meter, subperiods=subperiods,
+                        max_import=max_import,
+                        max_export=max_import if p_m_min is None else _limits("p_m_min", p_m_min, agents))
+    _check_meter(meter, day)
+    return day
 
-    statements = {a: statement(a, award_rows[a], price_row, meter.get(a, {}), rules) for a in agents}
-    return statements, day_totals(statements, meter)
+
+def settle_day(day: SettlementDay, rule: Rule, name: str, **params) -> tuple[dict[str, Statement], DayTotals]:
+    """Settle ``day`` under ``rule`` (called ``name`` in errors) with ``params``; RuleError, one line, if the rule
+    raises or returns what cannot be settled."""
+    try:
+        charges = rule(day, **params)
+    except ValueError as err:
+        raise RuleError(f"settlement rule {name}: {err}") from None
+    except Exception as err:  # a user's rule may raise anything: say what and where, in one line
+        raise RuleError(f"settlement rule {name} raised {type(err).__name__}: {err}") from None
+    if not isinstance(charges, Mapping) or set(charges) != set(day.awards):
+        got = sorted(charges) if isinstance(charges, Mapping) else type(charges).__name__
+        raise RuleError(f"settlement rule {name} returned {got}; it must map each awarded agent "
+                        f"({', '.join(sorted(day.awards))}) to 24 Charges")
+    statements = {}
+    for agent in sorted(day.awards):
+        hours = charges[agent]
+        if isinstance(hours, (str, bytes)) or not isinstance(hours, Sequence) or len(hours) != HOURS:
+            raise RuleError(f"settlement rule {name}: {agent} must have 24 Charges, one per hour")
+        if not all(isinstance(c, Charges) for c in hours):
+            raise RuleError(f"settlement rule {name}: {agent}'s hours must be Charges")
+        try:
+            statements[agent] = statement(agent, [hour_line(day, agent, h, c) for h, c in enumerate(hours)])
+        except ValueError as err:
+            raise RuleError(f"settlement rule {name}: {err}") from None
+    return statements, day_totals(statements, day.meter)
+
+
+def settle(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *, subperiods: int,
+           p_m_max: float | Mapping[str, float], p_m_min: float | Mapping[str, float] | None = None,
+           rule: Rule | None = None, **params) -> tuple[dict[str, Statement], DayTotals]:
+    """Settle a market day: one statement per awarded agent (sorted by id) and the day's totals.
+
+    ``awards``: agent -> 24 MW (P_sch, + import); ``prices``: 24 clearing prices ($/MWh); ``meter``: agent ->
+    {hour index 0..23: K readings of P_M (MW), None for a missing sub-period}; an absent hour or agent is
+    missing. ``p_m_max`` and ``p_m_min`` (MW, scalar or per agent; ``p_m_min`` defaults to ``p_m_max``) are the
+    most an agent can import and export: readings beyond them are rejected. ``rule`` is a settlement rule
+    (default: the paper's, ``rules.BUILT_IN["paper"]``) and ``params`` its parameters, e.g. ``penalty=150``.
+    Raises ValueError with a one-line reason for invalid input (RuleError for what the rule does).
+    """
+    day = settlement_day(awards, prices, meter, subperiods=subperiods, p_m_max=p_m_max, p_m_min=p_m_min)
+    rule = rule or BUILT_IN["paper"]
+    if isinstance(rule, DeviationRule):
+        rule.parameters(params)  # an invalid parameter of a built-in rule is bad input, not a rule that fails
+    return settle_day(day, rule, getattr(rule, "name", getattr(rule, "__name__", "rule")), **params)

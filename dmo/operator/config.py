@@ -9,11 +9,14 @@ import numpy as np
 from scenarios.days import day_seed, market_days
 from scenarios.horizon import HOURS
 
+from ..market.choice import ChosenRule, paper_rule
+
 
 @dataclass(frozen=True)
 class DayConfig:
     """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. Deadlines are
-    wall-clock seconds per phase (per hour in real time). ``fixed_awards`` (24 MW) replaces clearing by those
+    wall-clock seconds per phase (per hour in real time). ``settlement`` is the rule, checked (``market.choice``).
+    ``fixed_awards`` (24 MW) replaces clearing by those
     awards for every agent (the paper's Table I). ``islanded_hours`` holds for every day unless
     ``islanding_by_day`` gives each day its own."""
 
@@ -38,12 +41,26 @@ class DayConfig:
     resume_wait_s: float = 30.0  # a resumed DMO waits this long for its agents to reconnect
     days: int = 1
     islanding_by_day: tuple[tuple[int, ...], ...] | None = None
+    settlement: ChosenRule | None = None  # the settlement rule (None: the paper's at penalty and credit)
 
     def __post_init__(self):
         if self.days < 1:
             raise ValueError(f"a run has at least one day, not {self.days}")
         if self.islanding_by_day is not None and len(self.islanding_by_day) != self.days:
             raise ValueError(f"islanding_by_day gives {len(self.islanding_by_day)} days, the run has {self.days}")
+
+    @property
+    def rule(self) -> ChosenRule:
+        """The settlement rule the days are settled by (docs/settlement.md)."""
+        return self.settlement or paper_rule(self.penalty, self.credit)
+
+    @property
+    def rates(self) -> tuple[float, float]:
+        """The penalty and credit rates the DMO's messages announce: the paper rule's own, or under another rule
+        the paper's term an agent that cannot read the rule schedules against."""
+        rule = self.rule
+        return (rule.parameters["penalty"], rule.parameters["credit"]) if rule.name == "paper" else (
+            self.penalty, self.credit)
 
     def market_day_of(self, day: int) -> str:
         """The date of day ``day`` (1-based) of the run."""

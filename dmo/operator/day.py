@@ -28,7 +28,7 @@ from scenarios.names import check_agent_id
 from ..market import acceptance
 from ..market.acceptance import PHASE_ORDER, Refusal
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
-from ..market.settlement import DayTotals, Statement, settle
+from ..market.settlement import DayTotals, Statement, settlement_day
 from . import outbox, rejoin
 from .config import DayConfig
 from .history import DayHistory
@@ -79,6 +79,7 @@ class RunResult:
     """Every day of a run, in order."""
 
     days: list[DayResult]
+    settlement_rule: str  # the rule every day was settled by, with every parameter
 
     def report(self, run_id: str, transport: dict) -> dict:
         """The DMO's part of the ``dmosim run --json`` object (docs/experiments.md, "The result"). A one-day run
@@ -87,7 +88,8 @@ class RunResult:
         per day. ``days`` holds each day's own object either way."""
         days = [d.report() for d in self.days]
         agents = sorted(self.days[-1].state.registered)
-        out = {"run_id": run_id, "agents": agents, "days": days, "transport": transport}
+        out = {"run_id": run_id, "agents": agents, "days": days, "settlement_rule": self.settlement_rule,
+               "transport": transport}
         if len(days) == 1:
             return {**out, **days[0], "days": days}
         money = ("energy_charge", "deviation_penalty", "credit", "total")
@@ -124,8 +126,10 @@ def clearing_of(config: DayConfig, state: DayState) -> ClearingResult:
 def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult) -> tuple[dict[str, Statement],
                                                                                            DayTotals]:
     """The day's statements, a pure function of its awards and the meter reports it accepted."""
-    return settle(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods, penalty=config.penalty,
-                  credit=config.credit, p_m_max={a: r.max_import_mw for a, r in state.registered.items()})
+    day = settlement_day(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods,
+                         p_m_max={a: r.max_import_mw for a, r in state.registered.items()},
+                         p_m_min={a: r.max_export_mw for a, r in state.registered.items()})
+    return config.rule.settle(day)
 
 
 class MarketDay:
@@ -172,7 +176,7 @@ class MarketDay:
         self._linger()
         if self.journal is not None:
             self.journal.close()
-        return RunResult(results)
+        return RunResult(results, c.rule.label)
 
     def _run_day(self, day: int) -> DayResult:
         s, c = self.state, self.config
@@ -257,7 +261,7 @@ class MarketDay:
                 if not isinstance(msg, MeterReport):
                     return self._refuse(key, msg, acceptance.out_of_phase(msg, s.phase))
                 refusal = acceptance.check_meter_report(msg, hour, c.subperiods, s.meter[msg.sender],
-                                                        s.registered[msg.sender].max_import_mw)
+                                                        s.registered[msg.sender])
                 if refusal:
                     return self._refuse(key, msg, refusal)
                 s.meter[msg.sender][hour - 1] = msg.p_m_mw
@@ -275,7 +279,7 @@ class MarketDay:
             log.warning("settlement: %s", incident.reason)
         statements, totals = settlement_of(c, s, self.clearing)
         for st in statements.values():
-            self._publish(outbox.statement_message(st, s.market_day, c.penalty, c.credit))
+            self._publish(outbox.statement_message(st, s.market_day, *c.rates, c.rule.label))
         self._publish(outbox.day_summary(s.market_day, s.registered, self.clearing.price, statements, s.rejected,
                                          s.incidents))
         return statements, totals

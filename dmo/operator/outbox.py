@@ -9,7 +9,7 @@ from messages import (DMO, AgentTotals, Award, CallForBids, Clock, DaySummary, G
                       StatementLine)
 
 from ..market.clearing import ClearingResult
-from ..market.settlement import RULES, RULES_VERSION, Statement
+from ..market.settlement import RULES_VERSION, Statement
 from .config import DayConfig
 
 
@@ -23,16 +23,18 @@ def call_for_bids(config: DayConfig, day: int, deadline_s: float) -> CallForBids
     c = config
     return CallForBids(sender=DMO, market_day=c.market_day_of(day), iso_price_per_mwh=c.iso_price,
                        price_floor_per_mwh=c.price_floor, price_cap_per_mwh=c.price_cap,
-                       import_limit_mw=c.import_limit, export_limit_mw=c.export_limit, penalty_per_mwh=c.penalty,
-                       credit_per_mwh=c.credit, subperiods=c.subperiods, deadline_s=deadline_s)
+                       import_limit_mw=c.import_limit, export_limit_mw=c.export_limit, penalty_per_mwh=c.rates[0],
+                       credit_per_mwh=c.rates[1], subperiods=c.subperiods, deadline_s=deadline_s)
 
 
 def award(config: DayConfig, day: int, clearing: ClearingResult, agent: str) -> Award:
     """One agent's award of day ``day``: its P_sch, the clearing prices and the settlement terms and rules."""
     c = config
+    rule = c.rule
     return Award(sender=DMO, market_day=c.market_day_of(day), agent=agent, p_sch_mw=clearing.awards[agent],
-                 clearing_price_per_mwh=clearing.price, penalty_per_mwh=c.penalty, credit_per_mwh=c.credit,
-                 subperiods=c.subperiods, rules_version=RULES_VERSION, rules=RULES)
+                 clearing_price_per_mwh=clearing.price, penalty_per_mwh=c.rates[0], credit_per_mwh=c.rates[1],
+                 subperiods=c.subperiods, rules_version=RULES_VERSION, rules=rule.words, settlement_rule=rule.label,
+                 deviation_cost=rule.deviation_cost(clearing.awards[agent], clearing.price))
 
 
 def grid_state(config: DayConfig, day: int, hour: int) -> GridState:
@@ -42,8 +44,10 @@ def grid_state(config: DayConfig, day: int, hour: int) -> GridState:
                      connected=(connected,) * config.subperiods)
 
 
-def statement_message(st: Statement, market_day: str, penalty: float, credit: float) -> SettlementStatement:
-    """A settlement Statement as the message the DMO publishes (hours 1..24 on the wire)."""
+def statement_message(st: Statement, market_day: str, penalty: float, credit: float,
+                      rule: str | None = None) -> SettlementStatement:
+    """A settlement Statement as the message the DMO publishes (hours 1..24 on the wire), settled by ``rule`` (its
+    full name; None: the paper rule at ``penalty`` and ``credit``)."""
     lines = tuple(StatementLine(hour=line.hour + 1, p_sch_mw=line.award_mwh, clearing_price_per_mwh=line.price,
                                 energy_charge=float(line.energy_charge), import_mwh=line.import_mwh,
                                 deviation_mwh=line.deviation_mwh, under_import_mwh=line.under_import_mwh,
@@ -51,7 +55,7 @@ def statement_message(st: Statement, market_day: str, penalty: float, credit: fl
                                 total=float(line.total), missing=line.missing,
                                 missing_subperiods=line.missing_subperiods) for line in st.lines)
     return SettlementStatement(sender=DMO, market_day=market_day, agent=st.agent, penalty_per_mwh=penalty,
-                               credit_per_mwh=credit, rules_version=RULES_VERSION, lines=lines,
+                               credit_per_mwh=credit, rules_version=RULES_VERSION, settlement_rule=rule, lines=lines,
                                energy_charge=float(st.energy_charge), deviation_penalty=float(st.deviation_penalty),
                                deviation_credit=float(st.credit), total=float(st.total),
                                missing_subperiods=st.missing_subperiods)

@@ -25,9 +25,9 @@ from messages.transport import Bus
 
 from ..market import acceptance
 from ..market.acceptance import Refusal
-from ..market.settlement import settle
+from ..market.settlement import settlement_day
 from ..operator.outbox import day_summary
-from .resettle import RecordedDay, as_message
+from .resettle import RecordedDay, as_message, recorded_rule
 
 log = logging.getLogger("dmosim.replay")
 
@@ -131,7 +131,7 @@ class AsDmo:
             return refusal
         if self.phase == "realtime" and isinstance(msg, MeterReport):
             return acceptance.check_meter_report(msg, self.hour, self.day.terms.subperiods, self.meter,
-                                                 self.registration.max_import_mw)
+                                                 self.registration)
         kind, what = _EXPECTED.get(self.phase, (None, None))
         if kind is not None and isinstance(msg, kind):
             return acceptance.repeated(what, msg.sender) if what in self.answered else None
@@ -152,10 +152,10 @@ class AsDmo:
 
     def _settle(self) -> dict:
         day, terms, agent = self.day, self.day.terms, self.agent
-        cap = self.registration.max_import_mw
-        statements, _ = settle({agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
-                               subperiods=terms.subperiods, penalty=terms.penalty_per_mwh, credit=terms.credit_per_mwh,
-                               p_m_max={agent: cap})
+        reg = self.registration
+        statements, _ = recorded_rule(day).settle(settlement_day(
+            {agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
+            subperiods=terms.subperiods, p_m_max={agent: reg.max_import_mw}, p_m_min={agent: reg.max_export_mw}))
         message = as_message(day, statements[agent])
         self.bus.publish(message)
         self.bus.publish(day_summary(day.market_day, (agent,), terms.clearing_price_per_mwh, statements,

@@ -14,15 +14,17 @@ import collections
 import hashlib
 from dataclasses import dataclass, field
 
-from messages import Award, MeterReport, SettlementStatement, encode, relative_key, sender_matches_key
+from messages import (Award, MeterReport, Registration, SettlementStatement, encode, relative_key,
+                      sender_matches_key)
 from messages.recording import RecordedMessage, Recording
 from scenarios.days import market_days as scenario_days
 
-from ..market.settlement import RULES_VERSION, Statement, settle
+from ..market.choice import ChosenRule, choose, paper_rule
+from ..market.settlement import RULES_VERSION, Statement, settlement_day
 from ..operator.outbox import statement_message
 
-STATEMENT_FIELDS = ("penalty_per_mwh", "credit_per_mwh", "rules_version", "energy_charge", "deviation_penalty",
-                    "deviation_credit", "total", "missing_subperiods")
+STATEMENT_FIELDS = ("penalty_per_mwh", "credit_per_mwh", "rules_version", "settlement_rule", "energy_charge",
+                    "deviation_penalty", "deviation_credit", "total", "missing_subperiods")
 
 
 class ResettleError(ValueError):
@@ -35,7 +37,7 @@ class RecordedDay:
 
     market_day: str
     awards: dict[str, Award]
-    caps: dict[str, float]
+    registered: dict[str, Registration]   # each agent's registration: its import and export limits
     meter: dict[str, dict[int, tuple[float, ...]]]
     statements: dict[str, SettlementStatement]
     summary_totals: dict[str, dict] | None
@@ -143,7 +145,8 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
                             + (f" ({rec.cut_note})" if rec.cut_note else ""))
     first = next(iter(awards.values()))
     for a in awards.values():
-        for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", "clearing_price_per_mwh"):
+        for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", "clearing_price_per_mwh",
+                     "settlement_rule"):
             if getattr(a, name) != getattr(first, name):
                 raise ResettleError(f"{rec.path}: the awards of {first.agent} and {a.agent} differ in {name}")
     if first.rules_version != RULES_VERSION:
@@ -151,15 +154,15 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
                             f"version {RULES_VERSION}")
 
     refused = _refused(rec)
-    caps: dict[str, float] = {}
+    registered: dict[str, Registration] = {}
     for m, msg in day_messages(rec, None, "registration"):  # registered on the run's first day
         if not _take(refused, m.relative_key, m.payload, msg):
-            caps.setdefault(msg.sender, msg.max_import_mw)
+            registered.setdefault(msg.sender, msg)
     meter: dict[str, dict[int, tuple[float, ...]]] = {a: {} for a in awards}
     reports, left_out = accepted_meter_reports(rec, first.market_day, agents=set(awards), subperiods=first.subperiods)
     for _, msg in reports:
         meter[msg.sender][msg.hour - 1] = msg.p_m_mw
-    missing = sorted(set(awards) - set(caps))
+    missing = sorted(set(awards) - set(registered))
     if missing:
         raise ResettleError(f"{rec.path}: no registration recorded for {', '.join(missing)}, so no max import to "
                             "settle missing meter data by")
@@ -168,7 +171,7 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
         statements.setdefault(msg.agent, msg)
     summaries = decoded("day_summary")
     totals = {a: t.model_dump() for a, t in summaries[-1][1].totals.items()} if summaries else None
-    return RecordedDay(first.market_day, awards, caps, meter, statements, totals, left_out)
+    return RecordedDay(first.market_day, awards, registered, meter, statements, totals, left_out)
 
 
 def accepted_messages(rec: Recording, kind: str,
@@ -220,23 +223,34 @@ def _take(refused: collections.Counter, key: str, payload: bytes, msg) -> bool:
     return False
 
 
-def resettle(day: RecordedDay, penalty: float | None = None, credit: float | None = None) -> dict[str, Statement]:
-    """Every agent's statement from the recorded awards and meter reports, under the recorded terms unless
-    ``penalty`` or ``credit`` ($/MWh) say otherwise."""
+def recorded_rule(day: RecordedDay) -> ChosenRule:
+    """The rule the day was settled by, as its awards name it (a rule of one's own is loaded again from where it
+    was named); ResettleError if it cannot be."""
+    if day.terms.settlement_rule is None:
+        return paper_rule(day.terms.penalty_per_mwh, day.terms.credit_per_mwh)
+    try:
+        return choose(day.terms.settlement_rule)
+    except ValueError as err:
+        raise ResettleError(f"{day.market_day} was settled by {day.terms.settlement_rule}, which cannot be used "
+                            f"here: {err}") from None
+
+
+def resettle(day: RecordedDay, rule: ChosenRule | None = None) -> dict[str, Statement]:
+    """Every agent's statement from the recorded awards and meter reports, under the recorded rule unless ``rule``
+    says otherwise. The agents' recorded behaviour is held fixed: their readings are what they were."""
     terms = day.terms
-    statements, _ = settle({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh, day.meter,
-                           subperiods=terms.subperiods,
-                           penalty=terms.penalty_per_mwh if penalty is None else penalty,
-                           credit=terms.credit_per_mwh if credit is None else credit,
-                           p_m_max={a: day.caps[a] for a in day.awards})
+    settled = settlement_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh,
+                             day.meter, subperiods=terms.subperiods,
+                             p_m_max={a: day.registered[a].max_import_mw for a in day.awards},
+                             p_m_min={a: day.registered[a].max_export_mw for a in day.awards})
+    statements, _ = (rule or recorded_rule(day)).settle(settled)
     return statements
 
 
-def as_message(day: RecordedDay, st: Statement, penalty: float | None = None,
-               credit: float | None = None) -> SettlementStatement:
+def as_message(day: RecordedDay, st: Statement) -> SettlementStatement:
+    """A statement under the recorded rule, as the DMO would have sent it."""
     terms = day.terms
-    return statement_message(st, day.market_day, terms.penalty_per_mwh if penalty is None else penalty,
-                             terms.credit_per_mwh if credit is None else credit)
+    return statement_message(st, day.market_day, terms.penalty_per_mwh, terms.credit_per_mwh, terms.settlement_rule)
 
 
 def compare(day: RecordedDay, statements: dict[str, Statement]) -> list[str]:

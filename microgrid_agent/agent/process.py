@@ -33,7 +33,7 @@ from scenarios.generation import forecast_scenario, make_scenarios, sample
 from scenarios.horizon import HOURS
 
 from ..instance import Instance
-from ..model import Params, first_stage_of
+from ..model import DeviationCost, Params, first_stage_of
 from .bidding import bid_curve
 from .realtime import Operator
 
@@ -265,12 +265,12 @@ class MicrogridAgent:
         self.award = award
         c, k = self.config, award.subperiods
         scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=day_seed(c.seed, self.day))
-        p_sch = np.asarray(award.p_sch_mw, float)
-        schedule = Instance(self.case, scen, Params(p_sch, award.penalty_per_mwh)).solve(
-            method=c.method, workers=c.workers, gap=c.gap, time_limit=c.time_limit)
+        params = award_params(award)
+        schedule = Instance(self.case, scen, params).solve(method=c.method, workers=c.workers, gap=c.gap,
+                                                           time_limit=c.time_limit)
         realised = sample(self.case, 1, k, island_hours=0, seed=day_seed(c.seed, self.day) + 1000)
-        self.operator = Operator(self.case, first_stage_of(schedule), p_sch, award.penalty_per_mwh, k, realised,
-                                 forecast_scenario(self.case, k))
+        self.operator = Operator(self.case, first_stage_of(schedule), params.p_sch, params.penalty, k, realised,
+                                 forecast_scenario(self.case, k), deviation_cost=params.deviation_cost)
         p_m_hourly = (schedule.probability @ schedule.dispatch.p_m).reshape(HOURS, k).mean(axis=1)
         self._answer(Schedule(
             sender=self.id, market_day=self.market_day, status=schedule.status,
@@ -350,3 +350,14 @@ _ANSWERS = {"bid": "bidding", "schedule": "scheduling", "meter_report": "realtim
 def _terms(award: Award) -> dict:
     """An award's content, without the envelope that differs between copies (seq, sent_at)."""
     return award.model_dump(exclude={"seq", "sent_at"})
+
+
+def award_params(award: Award) -> Params:
+    """What the schedule is solved against: the award P^sch and the announced rule's price of a deviation
+    (docs/settlement.md, "What agents schedule against"). The paper's rule is its own term c ΔP+ of (19)-(21); a
+    rule the award gives no pieces for (a user's own) is scheduled against that term at the award's penalty."""
+    p_sch = np.asarray(award.p_sch_mw, float)
+    cost = None if award.deviation_cost is None else DeviationCost.from_pieces(award.deviation_cost)
+    if cost is not None and cost.paper_rate() is not None:
+        return Params(p_sch, cost.paper_rate())
+    return Params(p_sch, award.penalty_per_mwh, deviation_cost=cost)

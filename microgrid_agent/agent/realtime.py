@@ -21,7 +21,7 @@ from scenarios.days import Midnight, hours_in_state
 from scenarios.generation import ScenarioSet, forecast_scenario
 from scenarios.horizon import HOURS
 
-from ..model import Params
+from ..model import DeviationCost, Params
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings, energy_weight, start_indicators
 from ..solvers.extensive import solve
 
@@ -56,12 +56,13 @@ class HourResult:
 class RealisedDay:
     """The realised day: ``scenario`` holds the realised load and renewables with the announced connection, and
     ``schedule`` the operated dispatch as a one-scenario schedule (its objective the realised cost), so
-    ``checker.check_schedule(case, scenario, schedule, p_sch=..., penalty=...)`` verifies it."""
+    ``checker.check_schedule(case, scenario, schedule, p_sch=..., penalty=..., deviation_cost=...)`` verifies it."""
 
     scenario: ScenarioSet
     schedule: StochasticSchedule
     p_sch: np.ndarray
     penalty: float
+    deviation_cost: DeviationCost | None = None  # the announced rule's, priced instead of the penalty
 
     @property
     def cost(self) -> CostBreakdown:
@@ -79,10 +80,12 @@ class RealisedDay:
 class Operator:
     """Operates one microgrid through a realised day. ``first_stage`` is ``model.first_stage_of(schedule)``;
     ``realised`` and ``forecast`` are one-scenario sets at ``subperiods`` (``forecast`` defaults to the exact
-    expected forecast, grid-connected); ``p_sch`` (24,) and ``penalty`` are the award's."""
+    expected forecast, grid-connected); ``p_sch`` (24,), ``penalty`` and ``deviation_cost`` (the announced rule's,
+    if the model carries it: ``process.award_params``) are the award's."""
 
     def __init__(self, case: Case, first_stage: dict, p_sch: Sequence[float], penalty: float, subperiods: int,
-                 realised: ScenarioSet, forecast: ScenarioSet | None = None, time_limit: float | None = None):
+                 realised: ScenarioSet, forecast: ScenarioSet | None = None, time_limit: float | None = None,
+                 deviation_cost: DeviationCost | None = None):
         self.case, self.K = case, int(subperiods)
         forecast = forecast_scenario(case, self.K) if forecast is None else forecast
         for what, scen in (("realised", realised), ("forecast", forecast)):
@@ -90,7 +93,7 @@ class Operator:
                 raise ValueError(f"{what} must be one scenario at {self.K} sub-periods per hour, "
                                  f"got {scen.S} at {scen.subperiods}")
         self.p_sch = np.asarray(p_sch, float).reshape(HOURS)
-        self.penalty = float(penalty)
+        self.penalty, self.deviation_cost = float(penalty), deviation_cost
         if math.isnan(self.penalty) or self.penalty < 0:
             raise ValueError(f"penalty must be >= 0 (or inf), got {penalty}")
         self.realised, self.forecast, self.time_limit = realised, forecast, time_limit
@@ -165,7 +168,8 @@ class Operator:
                 raise ValueError(f"connected must be {self.K} booleans (one per sub-period), got {c!r}")
         self._connected[n0:n1] = np.concatenate(conns).astype(float)
         scen = self._scenario(n1)
-        plan = solve(self.case, scen, Params(self.p_sch, self.penalty), gap=1e-9, time_limit=self.time_limit,
+        plan = solve(self.case, scen, Params(self.p_sch, self.penalty, deviation_cost=self.deviation_cost), gap=1e-9,
+                     time_limit=self.time_limit,
                      fixed=self._fixed, pinned=(n0, self._done))
         self._commit(plan.dispatch, n0, n1)
         results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen) for h in range(first, last + 1)]
@@ -189,8 +193,11 @@ class Operator:
         """Realised cost of sub-periods n0..n1 and of the commitment transitions in ``hours``."""
         dt = energy_weight(self.K, "real")
         case, now = self.case, slice(n0, n1)
-        dev = np.maximum(self._done["PM"][0, now] - np.repeat(self.p_sch, self.K)[now], 0.0)
-        penalty = 0.0 if math.isinf(self.penalty) else self.penalty * dt * math.fsum(dev)
+        deviation = self._done["PM"][0] - np.repeat(self.p_sch, self.K)
+        if self.deviation_cost is not None:  # the announced rule's charge ($/h) for each sub-period's deviation
+            penalty = dt * math.fsum(self.deviation_cost.rate(deviation)[now])
+        else:
+            penalty = 0.0 if math.isinf(self.penalty) else self.penalty * dt * math.fsum(np.maximum(deviation[now], 0))
         startup = math.fsum(case.unit_array("startup_cost") @ self.first.startup[:, hours]) + math.fsum(
             case.unit_array("shutdown_cost") @ self.first.shutdown[:, hours])
         return CostBreakdown(
@@ -253,4 +260,4 @@ class Operator:
             timings=Timings(*(math.fsum(getattr(t, f) for t in timings) for f in ("build_s", "solve_s", "total_s"))),
             unit_names=tuple(u.name for u in self.case.units), load_names=tuple(d.name for d in self.case.loads),
         )
-        return RealisedDay(scen, schedule, self.p_sch.copy(), self.penalty)
+        return RealisedDay(scen, schedule, self.p_sch.copy(), self.penalty, self.deviation_cost)

@@ -44,7 +44,9 @@ def _stacked(data, rows: int, n: int):
 def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict) -> list[cp.Constraint]:
     """Main grid transfer (18) and its positive mismatch (19)-(21).
 
-    (18): islanded (U = 0) forces P_M = 0. The positive mismatch is modelled exactly as
+    (18): islanded (U = 0) forces P_M = 0. With ``params.deviation_cost`` (an announced settlement rule), the
+    mismatch is priced by its epigraph dC >= slope_j (P_M - P^sch) + intercept_j instead, and dP+ takes no part.
+    Otherwise the positive mismatch is modelled exactly as
     dP+ >= P_M - P^sch, dP+ >= 0 (minimised through its penalty); an infinite penalty becomes P_M <= P^sch
     wherever connected. ``mismatch="big-m"`` keeps the paper's indicator form (20)-(21), corrected so that it
     is exact (docs/model.md), to test that both give the same optimum.
@@ -53,6 +55,13 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
     PM, dP, U = v["PM"], v["dP"], scen.connected
     pm_max = case.grid.p_m_max
     limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
+    if params.deviation_cost is not None:
+        # The announced rule's price of the deviation (19), max_j slope_j d + intercept_j, by its epigraph dC.
+        cost, d = params.deviation_cost, PM - p_sch
+        dC = deviation_cost_variable(v)
+        return [*limits, *(dC >= cp.multiply(np.tile(np.repeat(cost.slope[:, j], ix.K), (ix.S, 1)), d)
+                           + np.tile(np.repeat(cost.intercept[:, j], ix.K), (ix.S, 1))
+                           for j in range(cost.slope.shape[1]))]
     if np.isinf(params.penalty):
         # P_M <= P^sch where connected (U = 1) and no limit beyond (18) where islanded (U = 0).
         return [*limits, PM <= pm_max - cp.multiply(pm_max - p_sch, U), dP == 0]
@@ -68,3 +77,18 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
         mismatch - dP >= -cp.multiply(M, 1 - delta),  # (21)
         mismatch <= cp.multiply(M, delta),  # delta = 0 only where the mismatch is not positive
     ]
+
+
+def deviation_cost_variable(v: dict) -> cp.Variable:
+    """dC (S, N), $/h: the deviation cost of each scenario and sub-period under an announced rule; made once."""
+    if "dC" not in v:
+        v["dC"] = cp.Variable(v["PM"].shape, name="dC")
+    return v["dC"]
+
+
+def dp_plus_of(params: Params, subperiods: int, p_m: np.ndarray, dp: np.ndarray | None) -> np.ndarray:
+    """ΔP+ (S, N) of a solved dispatch: the dP+ variable's value, or, where a rule's dC priced the mismatch and
+    dP+ took no part, max(P_M - P^sch, 0) from P_M."""
+    if params.deviation_cost is None:
+        return dp
+    return np.maximum(p_m - np.repeat(params.p_sch, subperiods)[None, :], 0.0)

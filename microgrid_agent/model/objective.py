@@ -9,6 +9,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
 from ..schedule import energy_weight
+from .grid import deviation_cost_variable
 from .index import Index
 from .params import Params
 
@@ -18,6 +19,7 @@ def objective(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict)
 
     Energy terms are MW x ``energy_weight`` (dt in the real convention); start-up and shut-down costs are
     counted once per transition, as part of F. With ``params.import_price`` (bidding), grid energy is priced too.
+    The penalty term is c dP+, or with ``params.deviation_cost`` the announced rule's dC (grid.py).
     """
     ew = energy_weight(ix.K, params.cost_convention)
     pr = np.asarray(scen.probability, float)[:, None] * ew
@@ -27,7 +29,9 @@ def objective(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict)
         "curtailment": cp.sum(cp.multiply(pr * case.grid.voll, v["LS"])),
         "penalty": cp.Constant(0.0),
     }
-    if np.isfinite(params.penalty):
+    if params.deviation_cost is not None:
+        terms["penalty"] = cp.sum(cp.multiply(np.tile(pr, (1, ix.N)), deviation_cost_variable(v)))
+    elif np.isfinite(params.penalty):
         terms["penalty"] = cp.sum(cp.multiply(pr * params.penalty, v["dP"]))
     if params.import_price is not None:
         terms["energy"] = cp.sum(cp.multiply(pr * np.repeat(params.import_price, ix.K), v["PM"]))

@@ -27,7 +27,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, first_stage_constraints, recourse,
+from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, dp_plus_of, first_stage_constraints, recourse,
                      second_stage_constraints, startup_cost, variables)
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
@@ -82,16 +82,15 @@ class Subproblems:
 
     def dispatch(self, x: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Second-stage values (name -> (subset, *shape)) and cost terms (name -> (subset,)) at x."""
-        out = {n: [] for n in SECOND_STAGE if n in self.var}
+        out = {n: [] for n in SECOND_STAGE if n in self.var and self.columns.holds(self.var[n])}
         costs = {n: [] for n in self.terms}
         for s in self.indices:
             col = np.asarray(self._solve(s, x).getSolution().col_value)
+            for var in self.var.values():  # every variable of the LP, so that each cost term has its value
+                if self.columns.holds(var):
+                    var.value = self.columns.value(var, col)
             for name in out:
-                self.var[name].value = self.columns.value(self.var[name], col)
                 out[name].append(self.var[name].value)
-            for name in FIRST_STAGE:
-                if name in self.var:
-                    self.var[name].value = self.columns.value(self.var[name], col)
             for name, term in self.terms.items():
                 costs[name].append(float(term.value))
         return {n: np.array(v) for n, v in out.items()}, {n: np.array(v) for n, v in costs.items()}
@@ -423,7 +422,8 @@ def _schedule(case, scen, params, master, x, arrays, costs, upper, lower, status
 
     dispatch = Dispatch(p_unit=stacked("P", G), p_renewable=stacked("Pr", R), p_storage=stacked("Pst", 1)[0],
                         soc=stacked("C", 1)[0], d_load=stacked("D", Dn), p_m=stacked("PM", 1)[0],
-                        load_shed=stacked("LS", 1)[0], dp_plus=stacked("dP", 1)[0])
+                        load_shed=stacked("LS", 1)[0],
+                        dp_plus=dp_plus_of(params, scen.subperiods, stacked("PM", 1)[0], stacked("dP", 1)[0]))
     first = FirstStage(commitment=pieces["I"], startup=pieces["y"], shutdown=pieces["w"],
                        discharging=pieces.get("u", np.zeros(HOURS)), charging=pieces.get("v", np.zeros(HOURS)),
                        load_on=pieces.get("z", np.zeros((Dn, HOURS))))

@@ -11,7 +11,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from ..model import Model, Params, build
+from ..model import Model, Params, build, dp_plus_of
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .highs import FEASIBLE
 
@@ -99,5 +99,6 @@ def _dispatch(model: Model) -> Dispatch:
         d_load=_value(model, "D", (Dn, S, N)),
         p_m=_value(model, "PM", (S, N)),
         load_shed=_value(model, "LS", (S, N)),
-        dp_plus=_value(model, "dP", (S, N)),
+        dp_plus=dp_plus_of(model.params, model.scen.subperiods, _value(model, "PM", (S, N)),
+                           None if model.params.deviation_cost else _value(model, "dP", (S, N))),
     )

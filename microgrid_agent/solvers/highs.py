@@ -23,6 +23,10 @@ class Columns:
 
     offsets: dict[int, int]
 
+    def holds(self, var: cp.Variable) -> bool:
+        """Whether ``var`` takes part in the problem (cvxpy compiles only the variables it meets)."""
+        return var.id in self.offsets
+
     def of(self, var: cp.Variable) -> np.ndarray:
         return np.arange(self.offsets[var.id], self.offsets[var.id] + var.size, dtype=np.int32)
 

@@ -32,6 +32,7 @@ def test_every_key_has_a_default_and_the_resolved_file_reads_back_the_same():
     ({"schedule": {"scenarioss": 3}}, "schedule.scenarioss: unknown key"),
     ({"market_day": "2026-02-30"}, "market_day: '2026-02-30' is not a date"),
     ({"profiles": {"load_scale": [1.0, -1.0]}}, "profiles.load_scale.1: Input should be greater than 0"),
+    ({"market": {"settlement": "deadband:width=1"}}, "market.settlement: settlement rule deadband has no parameter"),
 ])
 def test_a_bad_experiment_is_one_line_naming_the_key(data, message):
     with pytest.raises(ExperimentError) as err:
@@ -55,6 +56,8 @@ def test_flags_override_the_file(tmp_path, capsys):
     (["run", "--fault", "kill:mg1:3:2", "--check"], "day 2 is past the run's 1 day(s)"),
     (["run", "--fault", "kill:mg7:3", "--check"], "unknown agent mg7"),
     (["run", "--from", "nothing.mcap", "--check"], "nothing.mcap: no such file"),
+    (["run", "--settlement", "tests/dmo/test_rules.py:_raises", "--check"], "raised KeyError: 'mg1'"),
+    (["dmo", "--agents", "1", "--settlement", "nosuch"], "--settlement: unknown settlement rule 'nosuch'"),
 ])
 def test_bad_input_to_run_is_one_line_and_exit_2(argv, says, capsys):
     assert main(argv) == 2
@@ -102,6 +105,7 @@ def test_a_sweep_runs_every_combination_each_validated():
     (["market.penalty=-5"], "--set market.penalty=-5: market.penalty: Input should be greater than or equal to 0"),
     (["market.pennalty=5"], "unknown key"),
     (["seed=1,2", "seed=3"], "seed is swept twice"),
+    (["market.settlement=paper,deadband:rate=-1"], "market.settlement: settlement rule deadband: rate must be"),
 ])
 def test_a_bad_sweep_is_one_line_and_exit_2_before_anything_runs(tmp_path, capsys, settings, says):
     (tmp_path / "exp.toml").write_text("[agents]\ncount = 1\n")

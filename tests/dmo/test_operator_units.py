@@ -8,6 +8,7 @@ import json
 import pytest
 
 from dmo.market.clearing import fixed_awards
+from dmo.market.choice import choose
 from dmo.market.settlement import RULES, RULES_VERSION, settle
 from dmo.operator import incidents, outbox
 from dmo.operator.config import DayConfig, draw_islanding
@@ -224,6 +225,22 @@ def test_the_dmos_messages_carry_its_terms_and_survive_the_wire():
     assert summary.agents == ("mg1", "mg2") and summary.rejected_messages == 3
     assert summary.totals["mg2"].total == float(statements["mg2"].total)
     for msg in (award, call, message, summary, outbox.clock(c, 1, "realtime", 3, 60.0)):
+        assert decode(encode(msg)) == msg
+
+
+def test_the_award_announces_the_rule_and_its_rates():
+    clearing = fixed_awards({"mg1": (1.0,) * HOURS}, config().iso_price)
+    paper = outbox.award(config(settlement=choose("paper:penalty=50")), 1, clearing, "mg1")
+    assert (paper.penalty_per_mwh, paper.credit_per_mwh) == (50.0, 0.0)  # the rule's own rates
+    assert paper.settlement_rule == "paper:penalty=50,credit=0" and paper.rules == RULES
+    assert paper.deviation_cost == (((0.0, 0.0), (50.0, 0.0)),) * HOURS
+    band = outbox.award(config(settlement=choose("deadband:band_mw=0.5")), 1, clearing, "mg1")
+    assert band.penalty_per_mwh == 150.0 and band.rules.startswith(band.settlement_rule + ": f(d) = rate x")
+    assert band.deviation_cost[0] == ((0.0, 0.0), (0.0, 0.0), (150.0, -75.0))
+    own = outbox.award(config(settlement=choose("examples/settlement_rule.py:capped_penalty:cap=9")), 1, clearing,
+                       "mg1")
+    assert own.deviation_cost is None and own.rules.startswith("examples/settlement_rule.py:capped_penalty:cap=9: The")
+    for msg in (paper, band, own):
         assert decode(encode(msg)) == msg
 
 

@@ -153,7 +153,7 @@ def test_missing_data_never_costs_less_than_reporting(case, price, penalty, cred
     k, cap, award, readings = case
     hidden = {h: [None if data.draw(st.booleans()) else p for p in r] for h, r in readings.items()}
     dropped = dict(list(readings.items())[1:])
-    common = dict(subperiods=k, penalty=penalty, p_m_max=cap, credit=credit)
+    common = dict(subperiods=k, penalty=penalty, p_m_max=cap, p_m_min=15.0, credit=credit)
     honest, _ = settle({"mg1": award}, day(price), {"mg1": readings}, **common)
     for partial in (hidden, dropped, {}):
         missing, _ = settle({"mg1": award}, day(price), {"mg1": partial}, **common)

@@ -45,7 +45,9 @@ SAMPLES = {
                       if h % 2 else [] for h in range(HOURS)]),
     "award": Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=[1.5] * HOURS,
                    clearing_price_per_mwh=[41.0] * HOURS, penalty_per_mwh=150.0, subperiods=K, rules_version=1,
-                   rules="energy charge = price x award; penalty = c x max(P_M - P_sch, 0) x dt"),
+                   rules="energy charge = price x award; penalty = c x max(P_M - P_sch, 0) x dt",
+                   settlement_rule="deadband:rate=150,below_rate=0,band_mw=0.5,band_share=0",
+                   deviation_cost=[[[0.0, 0.0], [0.0, 0.0], [150.0, -75.0]]] * HOURS),
     "schedule": Schedule(sender="mg1", market_day=DAY, status="optimal",
                          commitment={"G1": [1] * HOURS, "G2": [0] * HOURS},
                          expected_cost=39566.0, p_m_expected_mw=[1.4] * HOURS, scenarios=10, mip_gap=0.004),
@@ -120,6 +122,25 @@ def _rejects(payload: bytes, code: str, *words: str, expected_kind: str | None =
 
 def _with(kind: str, /, **changes) -> bytes:
     return _bytes({**_wire(kind), **changes})
+
+
+def _older(kind: str, version: int, *dropped: str) -> bytes:
+    data = {k: v for k, v in _wire(kind).items() if k not in dropped}
+    return _bytes({**data, "schema_version": version})
+
+
+def test_older_messages_read_as_they_were_meant():
+    """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates."""
+    clock = decode(_older("clock", 1, "day", "days"))
+    assert (clock.day, clock.days) == (1, 1)
+    award = decode(_older("award", 2, "settlement_rule", "deviation_cost"))
+    assert award.settlement_rule is None and award.deviation_cost is None
+    assert award.p_sch_mw == SAMPLES["award"].p_sch_mw
+    assert decode(_older("settlement_statement", 2, "settlement_rule")).settlement_rule is None
+    # a message of an older version that has a later version's field is not upgraded, and a current one that
+    # leaves a field out is refused
+    _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
+    _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
 
 
 def test_rejects_non_finite_numbers():

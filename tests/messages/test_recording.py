@@ -21,6 +21,7 @@ import tomllib
 from pathlib import Path
 
 import jsonschema
+import pandas as pd
 import pytest
 import zenoh
 from mcap.reader import make_reader
@@ -192,16 +193,39 @@ def test_settle_under_another_penalty_rate_prints_the_change_per_agent(day):
     statements = {m.agent: m for _, m in read_recording(day[0]).decoded("settlement_statement")}
     out = dmosim("settle", str(day[0]), "--penalty", "0", "--json")
     assert out.returncode == 0, out.stderr
-    rows = {r["agent"]: r for r in json.loads(out.stdout)["agents"]}
-    assert set(rows) == {"mg1", "mg2"}
+    rows = {r["agent"]: r for r in json.loads(out.stdout)["rows"]}
+    assert set(rows) == {"mg1", "mg2"} and {r["rule"] for r in rows.values()} == {"paper:penalty=0,credit=0"}
     for agent, st in statements.items():
-        assert rows[agent]["total"] == st.total and rows[agent]["new_total"] == st.energy_charge
-        assert rows[agent]["difference"] == pytest.approx(-st.deviation_penalty, abs=1e-9)
-    doubled = {r["agent"]: r for r in json.loads(dmosim("settle", str(day[0]), "--penalty", "300", "--json").stdout)["agents"]}
+        assert rows[agent]["recorded_total"] == st.total and rows[agent]["total"] == st.energy_charge
+        assert rows[agent]["change"] == pytest.approx(-st.deviation_penalty, abs=1e-9)
+    doubled = {r["agent"]: r for r in json.loads(dmosim("settle", str(day[0]), "--penalty", "300", "--json").stdout)["rows"]}
     for agent, st in statements.items():  # twice the rate, twice the penalty (each line rounds once: 24 cents)
-        assert doubled[agent]["difference"] == pytest.approx(st.deviation_penalty, abs=0.24)
+        assert doubled[agent]["change"] == pytest.approx(st.deviation_penalty, abs=0.24)
     text = dmosim("settle", str(day[0]), "--penalty", "300").stdout
-    assert "re-settled at penalty $300/MWh" in text and re.search(r"^mg1\s", text, re.M)
+    assert "held fixed" in text and re.search(r"^\S+\s+mg1\s+paper:penalty=300,credit=0\s", text, re.M)
+
+
+def test_settle_compares_rules_on_recordings_and_run_directories_in_one_table(day, tmp_path):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "recording.mcap").write_bytes(day[0].read_bytes())
+    table = tmp_path / "rules.csv"
+    rules = ["paper", "deadband:band_mw=0.5", "examples/settlement_rule.py:capped_penalty:cap=50"]
+    out = dmosim("settle", str(day[0]), str(run_dir), *(a for r in rules for a in ("--rule", r)), "--csv", str(table),
+                 "--json")
+    assert out.returncode == 0, out.stderr
+    rows = pd.read_csv(table)
+    assert len(rows) == 2 * 3 * 2 and rows.to_dict("records") == json.loads(out.stdout)["rows"]
+    recorded = {m.agent: m.total for _, m in read_recording(day[0]).decoded("settlement_statement")}
+    for r in rows.itertuples():
+        assert r.recorded_total == recorded[r.agent] and r.total == pytest.approx(r.recorded_total + r.change)
+        assert r.total == pytest.approx(r.energy_charge + r.deviation_penalty - r.deviation_credit)
+    paper = rows[rows.rule == "paper:penalty=150,credit=0"]
+    assert (paper.change == 0).all()  # the recorded day was settled by the paper rule at $150
+    capped = rows[rows.rule.str.contains("capped_penalty")]
+    assert (capped.deviation_penalty <= 50).all()
+    assert one_line_error(dmosim("settle", str(day[0]), "--rule", "deadband:width=1")).startswith(
+        "error: --rule: settlement rule deadband has no parameter 'width'")
 
 
 # --- cut and bad files -----------------------------------------------------------------------------------------

@@ -10,7 +10,8 @@ import pytest
 
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.instance import make_instance
-from microgrid_agent.model import Params
+from dmo.market.rules import BUILT_IN
+from microgrid_agent.model import DeviationCost, Params
 from microgrid_agent.solvers.extensive import solve
 from microgrid_agent.solvers.metrics import stochastic_metrics
 from scenarios.case import load_case, parse_case
@@ -135,6 +136,82 @@ def test_min_up_time_changes_the_brute_force_optimum():
     costs = [verified(tiny_case(m), tiny_scenarios(tiny_case(m)), Params(np.full(24, 2.0), 80.0)).objective
              for m in ((1, 1), (3, 3))]
     assert costs[1] > costs[0] + 1.0
+
+
+# --- the mismatch term generalised to an announced settlement rule --------------------------------------------------
+
+RULES = [("paper", {"penalty": 80.0, "credit": 15.0}),  # a credit below the cheapest unit: nothing to gain later
+         ("symmetric", {"above": 60.0, "below": 25.0}),
+         ("deadband", {"rate": 90.0, "below_rate": 15.0, "band_mw": 0.4, "band_share": 0.1}),
+         ("price-linked", {"k": 2.0, "floor": 35.0})]
+
+
+def rule_cost(case, name, params) -> DeviationCost:
+    """The built-in rule's pieces, as the DMO's award carries them to the agent."""
+    prices = [10.0 * (t % 5) for t in range(24)]
+    return DeviationCost.from_pieces(BUILT_IN[name].deviation_cost(params, case.grid.p_sch, prices))
+
+
+def rule_merit_order_cost(case, scen, commitment, cost: DeviationCost) -> float:
+    """Expected cost of a fixed commitment when the import x is priced by the rule, f(x - P_sch) (independent of the
+    model): each hour and scenario alone, the least of units' merit order + curtailment + f over x. That sum is
+    piecewise linear and convex in x, so its least value is at a breakpoint: the ends of x's range, the rule's
+    kinks, or where the merit order moves to the next unit."""
+    units, total = case.units, 0.0
+    startup = sum(u.startup_cost * np.maximum(np.diff(np.r_[float(u.initial_on), commitment[g]]), 0).sum()
+                  for g, u in enumerate(units))
+    for s, t in itertools.product(range(scen.S), range(24)):
+        on = [u for u, o in zip(units, commitment[:, t] > 0) if o]
+        need = scen.load[s, t] - sum(u.p_min for u in on)
+        flexible = sorted((u.cost, u.p_max - u.p_min) for u in on)
+        grid, award = case.grid.p_m_max * scen.connected[s, t], case.grid.p_sch[t]
+        slope, intercept = cost.slope[t], cost.intercept[t]
+        f = lambda d: float(np.max(slope * d + intercept))  # noqa: E731
+        order = np.argsort(slope)
+        kinks = [(intercept[a] - intercept[b]) / (slope[b] - slope[a]) for a, b in zip(order, order[1:])
+                 if slope[b] > slope[a]]
+        lo, hi = -grid, min(grid, need)
+        candidates = [lo, hi, *(award + k for k in kinks), *(need - np.cumsum([c for _, c in flexible]))]
+
+        def merit(r):
+            out = 0.0
+            for price, amount in flexible:
+                take = min(max(r, 0.0), amount)
+                out, r = out + price * take, r - take
+            return out + case.grid.voll * max(r, 0.0)
+
+        best = min(merit(need - x) + f(x - award) for x in candidates if lo - 1e-12 <= x <= hi + 1e-12)
+        total += scen.probability[s] * (best + sum(u.cost * u.p_min for u in on))
+    return total + startup
+
+
+@pytest.mark.parametrize("name, params", RULES, ids=[r[0] for r in RULES])
+def test_a_rules_optimum_equals_brute_force_and_the_checker_prices_it_alike(name, params):
+    case = tiny_case()
+    scen = tiny_scenarios(case)
+    cost = rule_cost(case, name, params)
+    params_ = Params(np.asarray(case.grid.p_sch), case.grid.penalty, deviation_cost=cost)
+    best = np.inf
+    for bits in itertools.product((0, 1), repeat=2 * ACTIVE):
+        commitment = np.zeros((2, 24))
+        commitment[:, :ACTIVE] = np.reshape(bits, (2, ACTIVE))
+        best = min(best, rule_merit_order_cost(case, scen, commitment, cost))
+    schedule = solve(case, scen, params_, gap=EXACT)
+    report = check_schedule(case, scen, schedule, p_sch=params_.p_sch, deviation_cost=cost)
+    report.raise_if_failed()
+    assert schedule.objective == pytest.approx(best, rel=1e-6)
+    assert report.cost.penalty == pytest.approx(schedule.cost.penalty, rel=1e-9, abs=1e-9)
+
+
+def test_the_paper_rules_pieces_schedule_as_the_papers_own_term():
+    case = tiny_case()
+    scen = tiny_scenarios(case)
+    cost = rule_cost(case, "paper", {"penalty": case.grid.penalty, "credit": 0.0})
+    assert cost.paper_rate() == case.grid.penalty
+    paper = verified(case, scen, Params(np.asarray(case.grid.p_sch), case.grid.penalty))
+    pieces = solve(case, scen, Params(np.asarray(case.grid.p_sch), case.grid.penalty, deviation_cost=cost), gap=EXACT)
+    assert pieces.objective == pytest.approx(paper.objective, rel=1e-9)
+    assert rule_cost(case, "paper", {"penalty": 80.0, "credit": 5.0}).paper_rate() is None
 
 
 @pytest.fixture(scope="module")

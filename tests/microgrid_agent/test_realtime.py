@@ -7,10 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from dmo.market.rules import BUILT_IN
 from dmo.market.settlement import settle
 from microgrid_agent.agent.realtime import Operator
 from microgrid_agent.checker import check_schedule
-from microgrid_agent.model import Params, first_stage_of
+from microgrid_agent.model import DeviationCost, Params, first_stage_of
 from microgrid_agent.solvers.extensive import solve
 from scenarios.case import load_case
 from scenarios.days import carry_over, day_seed
@@ -81,22 +82,31 @@ def test_realised_day_keeps_the_commitment_and_the_physics(case, first_stage, da
     assert math.fsum(h.cost.total for h in hours) == pytest.approx(result.cost.total)
 
 
-def test_the_operators_penalty_is_what_the_dmo_bills_for_its_reports(case, first_stage):
+@pytest.mark.parametrize("rule, params", [("paper", {"penalty": PENALTY}),
+                                          ("deadband", {"rate": PENALTY, "below_rate": 40.0, "band_mw": 0.5})])
+def test_the_operators_penalty_is_what_the_dmo_bills_for_its_reports(case, first_stage, rule, params):
     """Against an award that the realised day both exceeds and undershoots, each hour's penalty in the agent's own
-    cost is what the DMO's settlement charges for the meter readings the agent reports (to the cent), and the
-    reported deviations are what the DMO reads off those readings."""
+    cost is what the DMO's settlement charges, penalty less credit, for the meter readings the agent reports (to
+    the cent), under the paper's rule and under another rule the agent operates against; and the reported
+    deviations are what the DMO reads off those readings."""
     p_sch = np.where(np.arange(24) % 2, 0.0, 12.0)  # nothing on odd hours, more than needed on even ones
-    op = operator(case, first_stage, p_sch, seed=5)
+    pieces = BUILT_IN[rule].deviation_cost(params, p_sch, [0.0] * 24)
+    cost = None if rule == "paper" else DeviationCost.from_pieces(pieces)
+    op = Operator(case, first_stage, p_sch, PENALTY, K, sample(case, 1, K, island_hours=0, seed=5),
+                  deviation_cost=cost)
     hours = [op.operate_hour(h, [True] * K) for h in range(1, 25)]
     meter = {"mg1": {h.hour - 1: tuple(float(x) for x in h.p_m) for h in hours}}
-    statements, _ = settle({"mg1": p_sch}, [0.0] * 24, meter, subperiods=K, penalty=PENALTY,
-                           p_m_max=case.grid.p_m_max)
-    billed = [float(line.penalty) for line in statements["mg1"].lines]
+    statements, _ = settle({"mg1": p_sch}, [0.0] * 24, meter, subperiods=K, p_m_max=case.grid.p_m_max,
+                           rule=BUILT_IN[rule], **params)
+    billed = [float(line.penalty - line.credit) for line in statements["mg1"].lines]
     assert billed == pytest.approx([h.cost.penalty for h in hours], abs=0.005)
     assert any(b > 0 for b in billed) and any(b == 0 for b in billed)
     for h, line in zip(hours, statements["mg1"].lines):
         assert line.deviation_mwh == pytest.approx(np.maximum(h.deviation, 0).sum() / K, abs=1e-9)
         assert line.under_import_mwh == pytest.approx(np.maximum(-h.deviation, 0).sum() / K, abs=1e-9)
+    result = op.day_result()
+    check_schedule(case, result.scenario, result.schedule, p_sch=p_sch, penalty=PENALTY,
+                   deviation_cost=result.deviation_cost).raise_if_failed()
 
 
 def test_islanded_subperiods_have_no_grid_transfer(case, first_stage, p_sch):

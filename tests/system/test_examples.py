@@ -30,3 +30,9 @@ def test_market_days_runs_two_days_and_reads_them_as_tables(tmp_path):
     assert f"run {result['run_id']}" in out and "2026-07-07" in out.split("each agent's bill per day")[1]
     for agent, days in result["realised"].items():
         assert [d["day"] for d in days] == [1, 2] and f"{agent}: own operating cost" in out
+
+
+def test_settlement_rule_settles_a_day_under_the_paper_rule_and_its_capped_variant():
+    lines = run_example("settlement_rule.py").stdout.splitlines()
+    assert lines[0].startswith("paper ") and "capped_penalty:cap=20" in lines[1]
+    assert "mg1 $20.00, mg2 $20.00, mg3 $20.00" in lines[1]

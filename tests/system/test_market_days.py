@@ -1,6 +1,7 @@
-"""Several market days end to end: ``dmosim run --days 2`` as real processes, the DMO killed and restarted on
-the second day, every day settled again from the recording, and each agent carrying its microgrid across
-midnight (units in their state for their minimum up/down times, storage at its energy)."""
+"""Several market days end to end: ``dmosim run --days 2`` as real processes under a settlement rule other than the
+paper's, the DMO killed and restarted on the second day, every day settled again from the recording under the
+same rule, and each agent carrying its microgrid across midnight (units in their state for their minimum up/down
+times, storage at its energy)."""
 
 from __future__ import annotations
 
@@ -16,13 +17,14 @@ from scenarios.case import load_case
 from scenarios.days import hours_in_state
 
 FIRST, SECOND = "2026-07-06", "2026-07-07"
+RULE = "deadband:below_rate=40,band_mw=0.2"  # not the paper's rule: settled live and again under the same one
 
 
 def test_two_days_carry_over_midnight_survive_a_dmo_restart_and_settle_from_the_recording(tmp_path):
     argv = dmosim("run", "--agents", "2", "--days", "2", "--market-day", FIRST, "--subperiods", "1", *TINY,
                   *DEADLINES, "--seed", "4", "--load-scale", "1,0.8", "--fault", "restart:dmo:5:2",
                   "--fault", "delay:agent/*/meter:0.6",  # hour 5's reports are on their way when the DMO dies
-                  "--out", str(tmp_path), "--json", "--quiet")
+                  "--settlement", RULE, "--out", str(tmp_path), "--json", "--quiet")
     out = subprocess.run(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
@@ -41,11 +43,15 @@ def test_two_days_carry_over_midnight_survive_a_dmo_restart_and_settle_from_the_
     assert settled["identical"] and settled["market_days"] == [FIRST, SECOND]
     for day, again in zip(result["days"], settled["days"]):
         assert again["totals"] == {a: s["total"] for a, s in day["settlement"].items()}
+    recording = read_recording(result["recording"])
+    named = "deadband:rate=150,below_rate=40,band_mw=0.2,band_share=0.1"
+    assert {msg.settlement_rule for _, msg in recording.decoded("settlement_statement")} == {named}
+    assert all(msg.settlement_rule == named and msg.deviation_cost is not None for _, msg in recording.decoded("award"))
     hours = pd.read_csv(tmp_path / "tables" / "hours.csv")
     assert hours.groupby("market_day").size().to_dict() == {FIRST: 48, SECOND: 48}
 
     # across midnight: each agent's day 2 started where its day 1 ended
-    schedules = {(msg.market_day, msg.sender): msg for _, msg in read_recording(result["recording"]).decoded("schedule")}
+    schedules = {(msg.market_day, msg.sender): msg for _, msg in recording.decoded("schedule")}
     case = load_case("paper")
     for agent in result["agents"]:
         lines = [ln for ln in (tmp_path / "logs" / f"{agent}.log").read_text().splitlines()

@@ -1,0 +1,164 @@
+"""A settlement rule as a user names it: a built-in by name, or a function of the user's own, with parameters;
+checked on a synthetic day before it settles anything (docs/settlement.md, "Choosing a rule").
+
+``NAME[:key=value,...]`` names a built-in rule (``paper``, ``symmetric``, ``deadband``, ``price-linked``);
+``path/to/rules.py:function[:key=value,...]`` or ``module:function[:key=value,...]`` a rule of one's own.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from scenarios.horizon import HOURS
+
+from .rules import BUILT_IN, DeviationRule, Rule
+from .settlement import RULES, DayTotals, RuleError, Statement, settle_day, settlement_day
+
+
+@dataclass(frozen=True)
+class ChosenRule:
+    """A rule and its parameters. ``name`` is the rule as named (``deadband``, ``rules.py:capped``), ``params`` the
+    parameters given (a built-in's defaults fill in the rest)."""
+
+    name: str
+    rule: Rule = field(compare=False)
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def built_in(self) -> DeviationRule | None:
+        return self.rule if isinstance(self.rule, DeviationRule) else None
+
+    @property
+    def parameters(self) -> dict[str, float]:
+        """Every parameter the rule settles with: a built-in's defaults with those given over them."""
+        return self.built_in.parameters(self.params) if self.built_in else dict(self.params)
+
+    @property
+    def label(self) -> str:
+        """The rule as one would name it again: ``deadband:band_mw=0.5,rate=150``."""
+        params = ",".join(f"{k}={_number(v)}" for k, v in self.parameters.items())
+        return f"{self.name}:{params}" if params else self.name
+
+    @property
+    def words(self) -> str:
+        """The rule in words, as the award states it."""
+        if self.name == "paper":
+            return RULES
+        if self.built_in:
+            return (f"{self.label}: f(d) = {self.built_in.formula} ($/h, d = P_M - P_sch), charged f(d) x dt per "
+                    "sub-period; energy charge = clearing price x award per hour; a missing sub-period is charged the "
+                    "worst reading within the registered limits, with no credit (docs/settlement.md)")
+        doc = (getattr(self.rule, "__doc__", None) or "a rule of the user's own").strip().split("\n\n")[0]
+        return f"{self.label}: {' '.join(doc.split())}"[:4000]
+
+    def deviation_cost(self, award, prices) -> list[list[tuple[float, float]]] | None:
+        """The pieces an award carries for the agent's model (docs/settlement.md, "What agents schedule against"):
+        a built-in's, where convex; None for a rule of one's own, which the model cannot carry."""
+        return self.built_in.deviation_cost(self.params, award, prices) if self.built_in else None
+
+    def settle(self, day) -> tuple[dict[str, Statement], DayTotals]:
+        """Settle a ``SettlementDay``; RuleError, one line, when the rule fails."""
+        return settle_day(day, self.rule, self.name, **self.params)
+
+
+def _number(v: float) -> str:
+    """A parameter at its shortest exact form: 150, 0.5, 1e-07."""
+    text = repr(float(v))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def paper_rule(penalty: float, credit: float = 0.0) -> ChosenRule:
+    """The paper's rule at these rates."""
+    return ChosenRule("paper", BUILT_IN["paper"], {"penalty": penalty, "credit": credit})
+
+
+def choose(spec: str) -> ChosenRule:
+    """The rule ``spec`` names, loaded and checked (``check``); ValueError, one line, when it cannot be used."""
+    target, params = _split(spec)
+    if target in BUILT_IN:
+        chosen = ChosenRule(target, BUILT_IN[target], params)
+        try:
+            chosen.parameters  # noqa: B018  (validates them)
+        except ValueError as err:
+            raise ValueError(f"settlement rule {err}") from None
+    elif ":" in target:
+        chosen = ChosenRule(target, _load(target), params)
+    else:
+        raise ValueError(f"unknown settlement rule {target!r}: the built-in rules are {', '.join(BUILT_IN)}; a rule "
+                         "of your own is path/to/rules.py:function or module:function")
+    check(chosen)
+    return chosen
+
+
+def _split(spec: str) -> tuple[str, dict[str, float]]:
+    """``target[:key=value,...]`` -> (target, {key: value})."""
+    spec = spec.strip()
+    target, _, last = spec.rpartition(":")
+    if not target or "=" not in last:
+        target, last = spec, ""
+    params = {}
+    for item in filter(None, (p.strip() for p in last.replace(";", ",").split(","))):
+        key, eq, value = item.partition("=")
+        try:
+            number = float(value)
+        except ValueError:
+            number = math.nan
+        if not eq or not key.strip() or not math.isfinite(number):
+            raise ValueError(f"settlement rule {target}: {item!r} is not key=number")
+        params[key.strip()] = number
+    if not target:
+        raise ValueError("no settlement rule named")
+    return target, params
+
+
+def _load(target: str) -> Rule:
+    """The function ``path/to/rules.py:function`` or ``module:function`` names."""
+    where, _, name = target.rpartition(":")
+    try:
+        if where.endswith(".py") or "/" in where:
+            path = Path(where)
+            if not path.is_file():
+                raise ValueError(f"settlement rule {target}: no file {where}")
+            module_name = f"dmosim_rule_{abs(hash(str(path.resolve())))}"
+            spec = importlib.util.spec_from_file_location(module_name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[module_name] = module  # dataclasses and pickling look the module up by name
+            spec.loader.exec_module(module)
+        else:
+            module = importlib.import_module(where)
+    except ValueError:
+        raise
+    except Exception as err:  # a user's module may fail to import in any way: say how, in one line
+        raise ValueError(f"settlement rule {target}: cannot load {where}: {type(err).__name__}: {err}") from None
+    rule = getattr(module, name, None)
+    if not callable(rule):
+        raise ValueError(f"settlement rule {target}: {where} has no function {name!r}")
+    return rule
+
+
+def trial_day():
+    """A small day that exercises what a rule must handle: an importer and an exporter, two sub-periods, readings
+    above and below the award, a negative price, a missing sub-period, a missing hour and an agent with no meter data
+    at all."""
+    prices = [20.0 + 2.5 * h for h in range(HOURS)]
+    prices[3] = -5.0
+    awards = {"mg1": [3.0] * HOURS, "mg2": [-2.0] * HOURS, "mg3": [1.5] * HOURS}
+    meter = {"mg1": {h: [3.0 + (h % 5 - 2) * 0.75, 3.0 - (h % 3) * 0.5] for h in range(HOURS) if h != 7},
+             "mg2": {h: [-2.0 + (h % 4 - 1) * 0.5, None if h == 11 else -2.5] for h in range(HOURS)}}
+    return settlement_day(awards, prices, meter, subperiods=2, p_m_max={"mg1": 6.0, "mg2": 4.0, "mg3": 3.0},
+                          p_m_min={"mg1": 6.0, "mg2": 4.0, "mg3": 3.0})
+
+
+def check(chosen: ChosenRule) -> None:
+    """Settle the synthetic day under ``chosen``: a rule that raises, returns money that is not finite, or lines
+    that do not add up is refused with one line naming it and the problem (ValueError)."""
+    try:
+        chosen.settle(trial_day())
+    except RuleError as err:
+        raise ValueError(f"{err} (on a synthetic day, before settling anything)") from None
