@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 
 from scenarios.case import load_case
 
-from .console import print_json, progress
+from .console import UsageError, print_json, progress
 from .flags import add_method_flags, gap, hours, nonneg_float, penalty, positive_int
 
 if TYPE_CHECKING:
@@ -42,6 +42,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--transfer-scale", type=nonneg_float, default=1.0, help="multiplier of the award P_sch (default: 1)")
     p.add_argument("--penalty", type=penalty, default=None, help="$/MWh above the award, or inf (default: the case's)")
     p.add_argument("--metrics", action="store_true", help="also compute VSS and EVPI (solves S + 2 more problems)")
+    p.add_argument("--evaluate", type=positive_int, metavar="N", default=None,
+                   help="also evaluate the schedule's first stage on N fresh scenarios (LPs only): its expected "
+                        "cost for the uncertainty it was drawn from, with a 95%% confidence interval "
+                        "(docs/solver.md, \"Out of sample\"); N >= 2")
     p.add_argument("--json", action="store_true", help="print one JSON object (README, \"Commands\")")
     p.add_argument("--verbose", action="store_true", help="show the HiGHS log")
 
@@ -78,6 +82,8 @@ def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
 
 
 def run(args) -> int:
+    if args.evaluate is not None and args.evaluate < 2:
+        raise UsageError("--evaluate: an out-of-sample evaluation needs at least 2 scenarios")
     inst = instance_from_args(args)
     schedule = solve_verified(inst, args)
     out = schedule.summary() | {"case": inst.case.name, "seed": args.seed, "verified": True}
@@ -86,11 +92,28 @@ def run(args) -> int:
 
         progress(f"computing VSS and EVPI ({inst.scen.S + 2} more solves)")
         out["metrics"] = stochastic_metrics(inst, schedule, gap=args.gap, time_limit=args.time_limit).as_dict()
+    if args.evaluate is not None:
+        out["evaluation"] = evaluate(inst, schedule, args)
     if args.json:
         print_json(out)
     else:
         print(render(schedule, out))
     return 0
+
+
+def evaluate(inst: Instance, schedule: StochasticSchedule, args) -> dict:
+    """``--evaluate N``: the schedule's first stage on N fresh scenarios, drawn as the instance's from another
+    seed, with the same islanding hours."""
+    from microgrid_agent.solvers.evaluation import evaluate_schedule, fresh_seed  # noqa: PLC0415
+    from scenarios.generation import sample  # noqa: PLC0415
+
+    progress(f"evaluating the first stage on {args.evaluate} fresh scenarios")
+    fresh = sample(inst.case, args.evaluate, inst.scen.subperiods, island_hours=getattr(args, "island_hours", 1),
+                   seed=fresh_seed(args.seed))
+    result = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=args.workers).as_dict()
+    progress(f"out of sample: ${result['expected_cost']:,.2f}, 95% interval ${result['low']:,.2f} .. "
+             f"${result['high']:,.2f} ({result['seconds']:.1f} s)")
+    return result
 
 
 def _money(x: float) -> str:
@@ -116,6 +139,10 @@ def render(schedule: StochasticSchedule, out: dict) -> str:
         f"time            build {schedule.timings.build_s:.2f} s, solve {schedule.timings.solve_s:.2f} s, "
         f"total {schedule.timings.total_s:.2f} s",
     ]
+    if "evaluation" in out:
+        e = out["evaluation"]
+        rows.append(f"out of sample   ${e['expected_cost']:>12,.2f}   95% interval ${e['low']:,.2f} .. ${e['high']:,.2f} "
+                    f"({e['scenarios']} fresh scenarios, first stage fixed; in sample ${schedule.objective:,.2f})")
     if "metrics" in out:
         m = out["metrics"]
         rows.append(f"VSS             ${m['vss']:>12,.2f}   (EEV ${m['eev']:,.2f} - RP ${m['rp']:,.2f})")

@@ -60,27 +60,30 @@ def shutdown_after_ramping_down(case: Case, v: dict, dt: float) -> list[cp.Const
 
 
 def unit_dispatch(case: Case, ix: Index, v: dict) -> list[cp.Constraint]:
-    """Dispatch of the units: limits (3) and ramps (4)-(5).
+    """Dispatch of the units: limits (3) and ramps (4)-(5), the ramps scaled by the commitment.
 
     Departures from the printed form (docs/model.md): ramps hold between every pair of consecutive sub-periods,
-    across hour boundaries too, as rates UR dt per sub-period, and allow a start-up (shut-down) to jump from
-    (to) zero through the minimum output in one step.
+    across hour boundaries too, as rates UR dt per sub-period, and a start-up (shut-down) may jump from (to) zero
+    through the minimum output in one step. Written as P_n - P_{n-1} <= (P_min + UR dt) I(n) - P_min I(n-1) and
+    its mirror, they allow exactly the dispatches of the paper's form at every binary commitment, and cut off
+    the fractional commitments that would ramp like whole units in the LP relaxation (a tighter bound).
     """
     G = len(case.units)
     P = v["P"]
     p_min, p_max = case.unit_array("p_min"), case.unit_array("p_max")
     I_n = ix.expand(v["I"], G)
+    I_prev = previous(np.repeat(case.unit_array("initial_on"), ix.S), I_n)  # the commitment one sub-period before
     initial = np.repeat(case.unit_array("initial_output"), ix.S)
     p_prev = previous(initial, P)
-    allowance = cp.multiply(ix.per_row(p_min), ix.at_hour_start(v["y"], G))
-    # A shut-down steps from P_min to 0; at midnight, from the output the day starts with (the previous day
-    # could have ramped it down), so every first stage keeps a feasible dispatch.
-    step_down = ix.per_row(p_min)
+    step = ix.per_row(p_min)
+    # A shut-down steps from P_min to 0; at midnight, from the output the day starts with (the previous day could
+    # have ramped it down), so every first stage keeps a feasible dispatch.
+    step_down = step.copy()
     step_down[:, 0] = initial
-    allowance_down = cp.multiply(step_down, ix.at_hour_start(v["w"], G))
+    up, down = ix.per_row(case.unit_array("ramp_up") * ix.dt), ix.per_row(case.unit_array("ramp_down") * ix.dt)
     return [
-        P >= cp.multiply(ix.per_row(p_min), I_n),  # (3)
+        P >= cp.multiply(step, I_n),  # (3)
         P <= cp.multiply(ix.per_row(p_max), I_n),  # (3)
-        P - p_prev <= ix.per_row(case.unit_array("ramp_up") * ix.dt) + allowance,  # (4)
-        p_prev - P <= ix.per_row(case.unit_array("ramp_down") * ix.dt) + allowance_down,  # (5)
+        P - p_prev <= cp.multiply(step + up, I_n) - cp.multiply(step, I_prev),  # (4)
+        p_prev - P <= cp.multiply(step_down + down, I_prev) - cp.multiply(step_down, I_n),  # (5)
     ]

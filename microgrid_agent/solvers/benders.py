@@ -69,15 +69,19 @@ class Subproblems:
             data, self.columns = compile_problem(problem)
             self.models[s] = highs_model(data, integer=False)
         self.var, self.terms = v, terms
-        self.x_cols = np.concatenate([self.columns.of(v[n]) for n in FIRST_STAGE if n in v])
+        # The master's x, laid out as first_stage_values reads it; a first-stage variable the scenario LP does not
+        # meet (the start-up indicators, once ramps are scaled by the commitment) has a zero subgradient.
+        first = [v[n] for n in FIRST_STAGE if n in v]
+        self.x_held = np.concatenate([np.full(var.size, self.columns.holds(var)) for var in first])
+        self.x_cols = np.concatenate([self.columns.of(var) for var in first if self.columns.holds(var)])
 
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Q_s(x) and a subgradient per scenario of this subset."""
-        values, grads = np.empty(len(self.indices)), np.empty((len(self.indices), len(self.x_cols)))
+        values, grads = np.empty(len(self.indices)), np.zeros((len(self.indices), len(self.x_held)))
         for i, s in enumerate(self.indices):
             h = self._solve(s, x)
             values[i] = h.getInfo().objective_function_value
-            grads[i] = np.asarray(h.getSolution().col_dual)[self.x_cols]
+            grads[i, self.x_held] = np.asarray(h.getSolution().col_dual)[self.x_cols]
         return values, grads
 
     def dispatch(self, x: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -97,7 +101,7 @@ class Subproblems:
 
     def _solve(self, s: int, x: np.ndarray) -> highspy.Highs:
         h = self.models[s]
-        fix_columns(h, self.x_cols, x)
+        fix_columns(h, self.x_cols, np.asarray(x)[self.x_held])
         h.run()
         if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
             raise SolveError(f"scenario {s}: subproblem {h.modelStatusToString(h.getModelStatus())} for the "
@@ -179,6 +183,7 @@ class ScenarioPool:
 
 _SLACK = 1e-6  # relative slack above which a cut counts as not binding
 _EARLY_GAP = 0.02  # relative gap of the first MILP masters
+_CUTOFF_MARGIN = 1e-6  # relative: how far a master's pruning may trust a bound at its cutoff
 
 
 class CutPool:
@@ -265,16 +270,27 @@ class Master:
         self.h.deleteRows(len(drop), (self.base_rows + drop).astype(np.int32))
         self.active = np.delete(self.active, drop)
 
-    def solve(self, relaxed: bool, gap: float, time_limit: float | None) -> tuple[np.ndarray, float, float]:
-        """x^, the master's objective and its lower bound (for an LP, the two are equal)."""
+    def solve(self, relaxed: bool, gap: float, time_limit: float | None,
+              cutoff: float | None = None) -> tuple[np.ndarray | None, float, float]:
+        """x^, the master's objective and its lower bound (for an LP, the two are equal).
+
+        With ``cutoff``, a MILP master looks only for x below it: one whose every x costs at least the cutoff
+        returns None and the cutoff as its bound (HiGHS's ``objective_bound`` prunes the nodes above it, so the
+        master stops as soon as its bound passes the cutoff instead of closing its own gap)."""
         kind = highspy.HighsVarType.kContinuous if relaxed else highspy.HighsVarType.kInteger
         self.h.changeColsIntegrality(len(self.binary), self.binary, np.array([kind] * len(self.binary)))
         self.h.setOptionValue("mip_rel_gap", gap)
         self.h.setOptionValue("time_limit", float(time_limit) if time_limit else INF)
+        self.h.setOptionValue("objective_bound", INF if relaxed or cutoff is None else float(cutoff))
         if not relaxed and self.incumbent is not None:
             self.h.setSolution(self._start())
         self.h.run()
-        info = self.h.getInfo()
+        info, status = self.h.getInfo(), self.h.getModelStatus()
+        # Nothing below the cutoff: HiGHS says infeasible, or, started from an incumbent above it, returns that
+        # incumbent as optimal with its value as the bound; either way the master's optimum is at the cutoff or above.
+        if not relaxed and cutoff is not None and (status == highspy.HighsModelStatus.kInfeasible or (
+                status == highspy.HighsModelStatus.kOptimal and info.objective_function_value >= cutoff)):
+            return None, cutoff, cutoff
         if info.primal_solution_status != FEASIBLE:
             raise SolveError(f"master: no solution ({self.h.modelStatusToString(self.h.getModelStatus())})")
         self.last = np.asarray(self.h.getSolution().col_value)
@@ -346,11 +362,16 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
 
         def master_solve(relaxed: bool):
             # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
-            # half the target gap once close, where their bound is the one certified.
+            # half the target gap once close, where their bound is the one certified. A MILP master need not
+            # prove more than the target: x costing (1 - gap) x the best value or more are cut off
+            # (``_CUTOFF_MARGIN`` above it, so that a bound at the cutoff, less HiGHS's tolerance, certifies).
             t0 = time.perf_counter()
             remaining = None if deadline is None else max(1.0, deadline - t0)
             master_gap = max(gap / 2, min(_EARLY_GAP, _apart(lower, upper) / 4))
-            x, _, bound = master.solve(relaxed=relaxed, gap=master_gap, time_limit=remaining)
+            cutoff = upper - (gap - 2 * _CUTOFF_MARGIN) * abs(upper) if np.isfinite(upper) else None
+            x, _, bound = master.solve(relaxed=relaxed, gap=master_gap, time_limit=remaining, cutoff=cutoff)
+            if x is None:  # nothing below the cutoff: the bound is the cutoff, less the pruning tolerance
+                bound -= _CUTOFF_MARGIN * abs(upper)
             return x, bound, time.perf_counter() - t0
 
         # The LP relaxation first: cheap masters, most of the cuts. In-out stabilisation (Ben-Ameur and Neto
@@ -371,6 +392,10 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
         while True:
             x, bound, master_s = master_solve(relaxed=False)
             lower = max(lower, bound)
+            if x is None:  # every x left costs (1 - gap) x the best value or more: the best is certified
+                trace.add("milp", bound, upper, master_s, 0.0)
+                report("integer master, iteration", lower, upper, master_s)
+                break
             value, values = evaluate("milp", x, bound, master_s)
             if value < upper:
                 upper, best = value, x
@@ -386,6 +411,14 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
         pool.close()
     return _schedule(case, scen, params, master, best, arrays, costs, upper, lower, status, trace,
                      time.perf_counter() - start)
+
+
+def first_stage_vector(case: Case, values: dict[str, np.ndarray]) -> np.ndarray:
+    """A first stage by variable name as the flat x of the master and the subproblems (``first_stage_values``
+    reads it back)."""
+    var = variables(case, 1, HOURS)
+    return np.concatenate([np.asarray(values[n], float).reshape(var[n].shape).ravel(order="F")
+                           for n in FIRST_STAGE if n in var])
 
 
 def first_stage_values(var: dict[str, cp.Variable], x: np.ndarray) -> dict[str, np.ndarray]:

@@ -212,3 +212,12 @@ def test_schemas_writes_one_json_schema_per_kind_and_an_index(tmp_path):
         jsonschema.validate(missing, schema)
     (tmp_path / "file").write_text("")
     assert main(["schemas", "--out", str(tmp_path / "file")]) == 2
+
+
+def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios():
+    out = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "6", "--json")
+    assert out.returncode == 0, out.stderr
+    evaluation = json.loads(out.stdout)["evaluation"]
+    assert evaluation["scenarios"] == 6 and evaluation["low"] <= evaluation["expected_cost"] <= evaluation["high"]
+    bad = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "at least 2 scenarios" in bad.stderr
