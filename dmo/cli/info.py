@@ -8,8 +8,7 @@ import json
 
 from messages.recording import BACKFILL_METADATA, Recording
 
-from ..market.choice import paper_rule
-from ..replay.resettle import day_messages, gaps
+from ..replay.resettle import day_messages, gaps, rule_named
 from .console import print_json
 from .flags import load_recording
 
@@ -64,8 +63,7 @@ def settled_by(rec: Recording) -> dict[str, str]:
     """Market day -> the settlement rule its awards name (docs/settlement.md)."""
     out: dict[str, str] = {}
     for _, award in day_messages(rec, None, "award"):
-        out.setdefault(award.market_day, award.settlement_rule
-                       or paper_rule(award.penalty_per_mwh, award.credit_per_mwh).label)
+        out.setdefault(award.market_day, rule_named(award))
     return dict(sorted(out.items()))
 
 

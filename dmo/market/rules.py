@@ -106,8 +106,8 @@ class DeviationRule:
     formula: str
 
     def __call__(self, day: SettlementDay, **params) -> dict[str, list[Charges]]:
-        rates = {k: exact(v) for k, v in self.parameters(params).items()}
-        return {agent: [self._hour(day, agent, h, rates) for h in range(HOURS)] for agent in day.awards}
+        return {agent: [self._hour(day, agent, h, f) for h, f in enumerate(self.hourly(params, award, day.prices))]
+                for agent, award in day.awards.items()}
 
     def parameters(self, given: Mapping[str, object]) -> dict[str, float]:
         """The defaults overridden by ``given``; an unknown name or a value that is not a finite number >= 0 raises
@@ -134,9 +134,9 @@ class DeviationRule:
         hours = self.hourly(params, award, prices)
         return [f.pieces() for f in hours] if all(f.convex for f in hours) else None
 
-    def _hour(self, day: SettlementDay, agent: str, h: int, rates: Mapping[str, Fraction]) -> Charges:
+    def _hour(self, day: SettlementDay, agent: str, h: int, f: DeviationPrice) -> Charges:
+        """One agent-hour under the hour's deviation price ``f``."""
         p_sch, price = exact(day.awards[agent][h]), exact(day.prices[h])
-        f = self.pricing(rates, p_sch, price)
         dt = Fraction(1, day.subperiods)
         readings = day.readings(agent, h)
         money = [f.at(exact(p) - p_sch) * dt for p in readings if p is not None]

@@ -21,18 +21,19 @@ def clock(config: DayConfig, day: int, phase: str, hour: int | None, deadline_s:
 def call_for_bids(config: DayConfig, day: int, deadline_s: float) -> CallForBids:
     """Day ``day``'s terms; bids are due ``deadline_s`` after it is sent."""
     c = config
+    penalty, credit = c.rates
     return CallForBids(sender=DMO, market_day=c.market_day_of(day), iso_price_per_mwh=c.iso_price,
                        price_floor_per_mwh=c.price_floor, price_cap_per_mwh=c.price_cap,
-                       import_limit_mw=c.import_limit, export_limit_mw=c.export_limit, penalty_per_mwh=c.rates[0],
-                       credit_per_mwh=c.rates[1], subperiods=c.subperiods, deadline_s=deadline_s)
+                       import_limit_mw=c.import_limit, export_limit_mw=c.export_limit, penalty_per_mwh=penalty,
+                       credit_per_mwh=credit, subperiods=c.subperiods, deadline_s=deadline_s)
 
 
 def award(config: DayConfig, day: int, clearing: ClearingResult, agent: str) -> Award:
     """One agent's award of day ``day``: its P_sch, the clearing prices and the settlement terms and rules."""
     c = config
-    rule = c.rule
+    rule, (penalty, credit) = c.rule, c.rates
     return Award(sender=DMO, market_day=c.market_day_of(day), agent=agent, p_sch_mw=clearing.awards[agent],
-                 clearing_price_per_mwh=clearing.price, penalty_per_mwh=c.rates[0], credit_per_mwh=c.rates[1],
+                 clearing_price_per_mwh=clearing.price, penalty_per_mwh=penalty, credit_per_mwh=credit,
                  subperiods=c.subperiods, rules_version=RULES_VERSION, rules=rule.words, settlement_rule=rule.label,
                  deviation_cost=rule.deviation_cost(clearing.awards[agent], clearing.price))
 

@@ -223,15 +223,19 @@ def _take(refused: collections.Counter, key: str, payload: bytes, msg) -> bool:
     return False
 
 
+def rule_named(award: Award) -> str:
+    """The settlement rule an award names, with every parameter; one of schemas before version 3 names none,
+    which is the paper's at the award's rates."""
+    return award.settlement_rule or paper_rule(award.penalty_per_mwh, award.credit_per_mwh).label
+
+
 def recorded_rule(day: RecordedDay) -> ChosenRule:
     """The rule the day was settled by, as its awards name it (a rule of one's own is loaded again from where it
     was named); ResettleError if it cannot be."""
-    if day.terms.settlement_rule is None:
-        return paper_rule(day.terms.penalty_per_mwh, day.terms.credit_per_mwh)
     try:
-        return choose(day.terms.settlement_rule)
+        return choose(rule_named(day.terms))
     except ValueError as err:
-        raise ResettleError(f"{day.market_day} was settled by {day.terms.settlement_rule}, which cannot be used "
+        raise ResettleError(f"{day.market_day} was settled by {rule_named(day.terms)}, which cannot be used "
                             f"here: {err}") from None
 
 
