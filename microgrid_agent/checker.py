@@ -307,14 +307,17 @@ def _check_balance_and_grid(f: _Findings, case: Case, a: dict, k: int, p_sch: np
 
 
 def _cost(case: Case, a: dict, up: np.ndarray, down: np.ndarray, mismatch: np.ndarray, penalty: float,
-          weight: float, import_price) -> CostBreakdown:
-    """Objective (1): expected generation, curtailment and mismatch energy cost, plus first-stage start-up cost."""
+          weight: float, import_price, shortfall: np.ndarray | None) -> CostBreakdown:
+    """Objective (1): expected generation, curtailment and mismatch energy cost, plus first-stage start-up cost;
+    with ``shortfall`` (S, N), the award not taken where it must be, at VOLL in the penalty."""
     pr = a["scenarios.probability"]
     generation = weight * float(np.einsum("g,gsn,s->", case.unit_array("cost"), a["dispatch.p_unit"], pr))
     startup = float((case.unit_array("startup_cost")[:, None] * up).sum()
                     + (case.unit_array("shutdown_cost")[:, None] * down).sum())
     curtailment = weight * case.grid.voll * float(pr @ a["dispatch.load_shed"].sum(axis=1))
     mismatch_cost = 0.0 if math.isinf(penalty) else weight * penalty * float(pr @ mismatch.sum(axis=1))
+    if shortfall is not None:
+        mismatch_cost += weight * case.grid.voll * float(pr @ shortfall.sum(axis=1))
     energy = 0.0
     if import_price is not None:
         price = np.repeat(np.asarray(import_price, float), a["dispatch.p_m"].shape[1] // HOURS)
@@ -329,7 +332,7 @@ def _close(x: float, y: float) -> bool:
 
 def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSchedule, p_sch=None,
                    penalty: float | None = None, tol: float = 1e-5, import_price=None,
-                   deviation_cost=None) -> CheckReport:
+                   deviation_cost=None, take_award: bool | None = None) -> CheckReport:
     """Verify every constraint of ``schedule`` in every scenario and recompute its expected cost.
 
     ``p_sch`` (24,) defaults to the case's award, ``penalty`` to the schedule's (``inf`` forbids any positive
@@ -337,7 +340,8 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSched
     reported by equation number; the recomputed objective must match ``schedule.objective``. ``import_price``
     (24,) $/MWh prices P_M, as the bidding model does. ``deviation_cost`` (a rule's hourly pieces, with ``slope``
     and ``intercept`` (24, J)) prices the mismatch instead of ``penalty``: max_j slope_j d + intercept_j per
-    sub-period, d = P_M - P_sch.
+    sub-period, d = P_M - P_sch. ``take_award`` (default: the schedule's) prices the award not taken while
+    connected, max(0, U P_sch - P_M), at VOLL.
     """
     p_sch = case.grid.p_sch if p_sch is None else p_sch
     penalty = float(schedule.penalty if penalty is None else penalty)
@@ -364,7 +368,12 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSched
         d = (a["dispatch.p_m"] - _subperiods(np.asarray(p_sch, float), k)[None, :]).reshape(-1, HOURS, k, 1)
         rate = np.max(d * deviation_cost.slope[None, :, None, :] + deviation_cost.intercept[None, :, None, :], axis=-1)
         mismatch, penalty = rate.reshape(len(d), HOURS * k), 1.0  # $/h per sub-period, counted at a rate of 1
-    cost = _cost(case, a, up, down, mismatch, penalty, weight, import_price)
+    take = schedule.take_award if take_award is None else take_award
+    shortfall = None
+    if take:
+        sch = _subperiods(np.asarray(p_sch, float), k)[None, :]
+        shortfall = np.maximum(0.0, sch * a["scenarios.connected"] - a["dispatch.p_m"])
+    cost = _cost(case, a, up, down, mismatch, penalty, weight, import_price, shortfall)
     objective = cost.total
     if not _close(objective, float(schedule.objective)):
         f.note(f"(1) objective: schedule states {schedule.objective:.10g}, recomputed {objective:.10g} "

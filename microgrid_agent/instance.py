@@ -44,10 +44,15 @@ def make_instance(
     seed: int = 0,
     sample_size: int | None = None,
     cost_convention: str = "real",
+    take_award: bool = False,
+    stratified: bool = False,
 ) -> Instance:
     """The case's Table I award scaled by ``transfer_scale`` (Fig. 3), its penalty unless given (Fig. 5), and
-    ``scenarios`` reduced from a seeded sample with ``island_hours`` of islanding each (Fig. 2)."""
-    scen = make_scenarios(case, scenarios, subperiods, island_hours, seed=seed, sample_size=sample_size)
+    ``scenarios`` reduced from a seeded sample with ``island_hours`` of islanding each (Fig. 2). With
+    ``take_award`` the award must be taken while connected, not only kept below (docs/model.md); with
+    ``stratified`` the sample spreads the islanding evenly over the day (scenarios.generation.sample)."""
+    scen = make_scenarios(case, scenarios, subperiods, island_hours, seed=seed, sample_size=sample_size,
+                          stratified=stratified)
     p_sch = np.asarray(case.grid.p_sch, float) * transfer_scale
     c = case.grid.penalty if penalty is None else float(penalty)
-    return Instance(case, scen, Params(p_sch, c, cost_convention))
+    return Instance(case, scen, Params(p_sch, c, cost_convention, take_award=take_award))

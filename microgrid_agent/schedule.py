@@ -124,6 +124,7 @@ class StochasticSchedule:
     unit_names: tuple[str, ...]
     load_names: tuple[str, ...]
     extra: dict = field(default_factory=dict)
+    take_award: bool = False  # solved with the award as a floor too (Params.take_award)
 
     @property
     def scenarios(self) -> int:
@@ -181,6 +182,7 @@ class StochasticSchedule:
             "scenarios": self.scenarios,
             "subperiods": self.subperiods,
             "penalty": self.penalty,
+            "take_award": self.take_award,
             "cost_convention": self.cost_convention,
             "timings": self.timings.as_dict(),
             **self.extra,

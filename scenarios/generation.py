@@ -70,8 +70,10 @@ class ScenarioSet:
         )
 
 
-def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed: int = 0) -> ScenarioSet:
-    """n equiprobable scenarios of the case's uncertain data at ``subperiods`` sub-periods per hour.
+def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed: int = 0,
+           stratified: bool = False) -> ScenarioSet:
+    """n scenarios of the case's uncertain data at ``subperiods`` sub-periods per hour, equiprobable unless
+    ``stratified``.
 
     Section IV of the paper draws each scenario as "a uniformly distributed random nondispatchable unit
     generation and load": the forecast of a sub-period is the hourly forecast of its hour, and the fixed load is
@@ -84,6 +86,13 @@ def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed:
     u ~ U[0, 1) per scenario, each quantity from its own stream of ``seed``: the same seed gives the same
     errors whatever H, the bounds or n (scenario s is the same in a larger sample), and neighbouring H start
     their events from the same u.
+
+    ``stratified`` spreads the islanding evenly over the m = 25 - H possible start hours instead: the start hours
+    of scenarios 1, 2, ... follow one random order of all m, over and over, so each hour starts the event in
+    n // m or n // m + 1 scenarios. With n >= m every start hour is a stratum of probability 1/m, shared equally
+    by its scenarios (the probabilities then differ by at most a factor (n // m + 1) / (n // m)); with n < m the n
+    hours are distinct and equiprobable. Either way each scenario's cost is weighted as its start hour's true
+    probability asks, so expectations stay unbiased (``stratum_weights``). Forecast errors are drawn as before.
     """
     if n < 1:
         raise ValueError(f"n must be at least 1 scenario, got {n}")
@@ -103,19 +112,32 @@ def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed:
         bound = case.uncertainty.for_renewable(unit.name)
         renewable[r] = np.clip(perturbed(unit.forecast, bound, _RENEWABLE_STREAM + r), 0.0, unit.capacity)
 
-    u = np.random.default_rng([seed, _ISLAND_STREAM]).random(n)
-    start = np.floor(u * (HOURS - island_hours + 1)).astype(int)[:, None]  # 0-based hour
+    m = HOURS - island_hours + 1  # start hours an H-hour event can have
+    islands = np.random.default_rng([seed, _ISLAND_STREAM])
+    if stratified:
+        start = islands.permutation(m)[np.arange(n) % m]
+    else:
+        start = np.floor(islands.random(n) * m).astype(int)  # 0-based hour
+    probability = np.full(n, 1.0 / n)
+    if stratified and island_hours > 0 and n >= m:
+        probability = stratum_weights(start, np.full(m, 1.0 / m))
     hour = np.arange(HOURS)
-    islanded = (start <= hour) & (hour < start + island_hours)
+    islanded = (start[:, None] <= hour) & (hour < start[:, None] + island_hours)
     connected = np.repeat(1.0 - islanded, subperiods, axis=1)
 
     return ScenarioSet(
         subperiods=subperiods,
-        probability=np.full(n, 1.0 / n),
+        probability=probability,
         load=load,
         renewable=renewable,
         connected=connected,
     )
+
+
+def stratum_weights(stratum: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    """Each member's probability when stratum h, of true probability ``mass[h]``, is shared equally by its members."""
+    counts = np.bincount(stratum, minlength=len(mass))
+    return mass[stratum] / counts[stratum]
 
 
 def scenario_distances(scen: ScenarioSet) -> np.ndarray:
@@ -173,12 +195,14 @@ def make_scenarios(
     island_hours: int = 1,
     seed: int = 0,
     sample_size: int | None = None,
+    stratified: bool = False,
 ) -> ScenarioSet:
-    """The paper's "reduced 100 scenarios": ``sample_size`` sampled scenarios (default 10 n) reduced to n."""
+    """The paper's "reduced 100 scenarios": ``sample_size`` sampled scenarios (default 10 n) reduced to n; with
+    ``stratified``, the sample spreads the islanding evenly over the day (``sample``)."""
     size = 10 * n if sample_size is None else sample_size
     if size < n:
         raise ValueError(f"sample_size ({size}) must be at least n ({n})")
-    return reduce_scenarios(sample(case, size, subperiods, island_hours, seed), n)
+    return reduce_scenarios(sample(case, size, subperiods, island_hours, seed, stratified), n)
 
 
 def expected_value(scen: ScenarioSet) -> ScenarioSet:

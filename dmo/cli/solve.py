@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import time
 from typing import TYPE_CHECKING
 
 from scenarios.case import load_case
@@ -29,10 +30,16 @@ def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
     p.add_argument("--sample-size", type=positive_int, default=None, help="scenarios sampled before reduction (default: 10x)")
     p.add_argument("--subperiods", type=positive_int, default=6, help="sub-periods per hour (default: 6, i.e. 10 minutes)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scenario draws (default: 0)")
+    p.add_argument("--islanding", choices=("random", "stratified"), default="random",
+                   help="how islanding start hours are drawn: random (each uniform over the day) or stratified "
+                        "(spread evenly over the day, each start hour weighted by its probability); default: random")
     p.add_argument("--gap", type=gap, default=0.005, help="relative MIP gap to reach (default: 0.005)")
     p.add_argument("--time-limit", type=nonneg_float, default=900.0, help="seconds per solve (default: 900)")
     p.add_argument("--cost-convention", choices=("real", "paper"), default="real",
                    help="real: energy costs x dt; paper: objective (1) as printed, no dt (see docs/model.md)")
+    p.add_argument("--take-award", action="store_true",
+                   help="the award must be taken while connected (P_M = P_sch; what cannot be absorbed is priced at "
+                        "VOLL), not only kept below (docs/model.md, \"How the award binds\")")
     add_method_flags(p, workers=2)
 
 
@@ -46,6 +53,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also evaluate the schedule's first stage on N fresh scenarios (LPs only): its expected "
                         "cost for the uncertainty it was drawn from, with a 95%% confidence interval "
                         "(docs/solver.md, \"Out of sample\"); N >= 2")
+    p.add_argument("--replications", type=positive_int, metavar="R", default=None,
+                   help="also solve R independent sample problems of --scenarios scenarios each (sampled, not "
+                        "reduced): a statistical lower bound of the true optimum, and with --evaluate the "
+                        "schedule's optimality gap with a 95%% upper limit (docs/solver.md, \"Out of sample\"); R >= 2")
     p.add_argument("--json", action="store_true", help="print one JSON object (README, \"Commands\")")
     p.add_argument("--verbose", action="store_true", help="show the HiGHS log")
 
@@ -56,7 +67,7 @@ def instance_from_args(args, **overrides) -> Instance:
 
     settings = dict(
         scenarios=args.scenarios, subperiods=args.subperiods, seed=args.seed, sample_size=args.sample_size,
-        cost_convention=args.cost_convention,
+        cost_convention=args.cost_convention, take_award=args.take_award, stratified=args.islanding == "stratified",
         island_hours=getattr(args, "island_hours", 1), transfer_scale=getattr(args, "transfer_scale", 1.0),
         penalty=getattr(args, "penalty", None),
     )
@@ -70,7 +81,8 @@ def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
 
     s = inst.scen
     progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S)}): {s.S} scenarios x {s.N} sub-periods, "
-             f"penalty {_money(inst.params.penalty)}/MWh, gap {args.gap:g}, time limit {args.time_limit:g} s")
+             f"penalty {_money(inst.params.penalty)}/MWh{', award must be taken' if inst.params.take_award else ''}, "
+             f"gap {args.gap:g}, time limit {args.time_limit:g} s")
     schedule = inst.solve(method=args.method, workers=args.workers, gap=args.gap, time_limit=args.time_limit,
                           verbose=getattr(args, "verbose", False), progress=lambda m: progress(label + m))
     report = check_schedule(inst.case, inst.scen, schedule, p_sch=inst.params.p_sch)
@@ -84,6 +96,8 @@ def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
 def run(args) -> int:
     if args.evaluate is not None and args.evaluate < 2:
         raise UsageError("--evaluate: an out-of-sample evaluation needs at least 2 scenarios")
+    if args.replications is not None and args.replications < 2:
+        raise UsageError("--replications: a statistical lower bound needs at least 2 replications")
     inst = instance_from_args(args)
     schedule = solve_verified(inst, args)
     out = schedule.summary() | {"case": inst.case.name, "seed": args.seed, "verified": True}
@@ -94,6 +108,8 @@ def run(args) -> int:
         out["metrics"] = stochastic_metrics(inst, schedule, gap=args.gap, time_limit=args.time_limit).as_dict()
     if args.evaluate is not None:
         out["evaluation"] = evaluate(inst, schedule, args)
+    if args.replications is not None:
+        out |= replicate(args, out.get("evaluation"))
     if args.json:
         print_json(out)
     else:
@@ -108,12 +124,34 @@ def evaluate(inst: Instance, schedule: StochasticSchedule, args) -> dict:
     from scenarios.generation import sample  # noqa: PLC0415
 
     progress(f"evaluating the first stage on {args.evaluate} fresh scenarios")
+    stratified = args.islanding == "stratified"
     fresh = sample(inst.case, args.evaluate, inst.scen.subperiods, island_hours=getattr(args, "island_hours", 1),
-                   seed=fresh_seed(args.seed))
-    result = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=args.workers).as_dict()
+                   seed=fresh_seed(args.seed), stratified=stratified)
+    result = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=args.workers,
+                               stratified=stratified).as_dict()
     progress(f"out of sample: ${result['expected_cost']:,.2f}, 95% interval ${result['low']:,.2f} .. "
              f"${result['high']:,.2f} ({result['seconds']:.1f} s)")
     return result
+
+
+def replicate(args, evaluation: dict | None) -> dict:
+    """``--replications R``: R sample problems of ``--scenarios`` i.i.d. scenarios (no reduction, so that each is
+    an unbiased sample problem), each solved and verified; their bounds give the statistical lower bound, and with
+    an evaluation the optimality gap."""
+    from microgrid_agent.solvers.evaluation import (Evaluation, lower_bound, optimality_gap,  # noqa: PLC0415
+                                                    replication_seed)
+
+    start, bounds = time.perf_counter(), []
+    for r in range(args.replications):
+        inst = instance_from_args(args, seed=replication_seed(args.seed, r), sample_size=args.scenarios)
+        bounds.append(solve_verified(inst, args, f"[replication {r + 1}/{args.replications}] ").bound)
+    lower = lower_bound(bounds, args.scenarios, time.perf_counter() - start)
+    progress(f"statistical lower bound: ${lower.estimate:,.2f}, 95% lower limit ${lower.low:,.2f} "
+             f"({lower.replications} replications, {lower.seconds:.1f} s)")
+    out = {"replications": lower.as_dict()}
+    if evaluation is not None:
+        out["optimality_gap"] = optimality_gap(Evaluation(**evaluation), lower)
+    return out
 
 
 def _money(x: float) -> str:
@@ -143,6 +181,14 @@ def render(schedule: StochasticSchedule, out: dict) -> str:
         e = out["evaluation"]
         rows.append(f"out of sample   ${e['expected_cost']:>12,.2f}   95% interval ${e['low']:,.2f} .. ${e['high']:,.2f} "
                     f"({e['scenarios']} fresh scenarios, first stage fixed; in sample ${schedule.objective:,.2f})")
+    if "replications" in out:
+        b = out["replications"]
+        rows.append(f"lower bound     ${b['estimate']:>12,.2f}   95% lower limit ${b['low']:,.2f} ({b['replications']} "
+                    f"replications of {b['scenarios']} sampled scenarios: a statistical bound of the true optimum)")
+    if "optimality_gap" in out:
+        g = out["optimality_gap"]
+        rows.append(f"optimality gap  ${g['estimate']:>12,.2f}   95% upper limit ${g['high']:,.2f} "
+                    f"({g['relative_high']:.2%} of the out-of-sample cost)")
     if "metrics" in out:
         m = out["metrics"]
         rows.append(f"VSS             ${m['vss']:>12,.2f}   (EEV ${m['eev']:,.2f} - RP ${m['rp']:,.2f})")

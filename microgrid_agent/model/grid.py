@@ -50,11 +50,18 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
     dP+ >= P_M - P^sch, dP+ >= 0 (minimised through its penalty); an infinite penalty becomes P_M <= P^sch
     wherever connected. ``mismatch="big-m"`` keeps the paper's indicator form (20)-(21), corrected so that it
     is exact (docs/model.md), to test that both give the same optimum.
+
+    With ``params.take_award`` the award must also be taken while connected: P_M >= U P^sch - dP-, where the
+    shortfall dP- >= 0 is the award the microgrid could not absorb in that sub-period (its load, storage and
+    adjustable loads full, its committed units at P_min, its renewables spilled), priced at VOLL like shed load
+    (objective.py). With an infinite penalty this is P_M = P^sch wherever the microgrid can absorb it.
     """
     p_sch = np.tile(np.repeat(params.p_sch, ix.K), (ix.S, 1))
     PM, dP, U = v["PM"], v["dP"], scen.connected
     pm_max = case.grid.p_m_max
     limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
+    if params.take_award:
+        limits.append(PM >= cp.multiply(p_sch, U) - shortfall_variable(v))
     if params.deviation_cost is not None:
         # The announced rule's price of the deviation (19), max_j slope_j d + intercept_j, by its epigraph dC.
         cost, d = params.deviation_cost, PM - p_sch
@@ -84,6 +91,13 @@ def deviation_cost_variable(v: dict) -> cp.Variable:
     if "dC" not in v:
         v["dC"] = cp.Variable(v["PM"].shape, name="dC")
     return v["dC"]
+
+
+def shortfall_variable(v: dict) -> cp.Variable:
+    """dP- (S, N), MW >= 0: the award not taken while connected, where it must be (``Params.take_award``); made once."""
+    if "dPm" not in v:
+        v["dPm"] = cp.Variable(v["PM"].shape, nonneg=True, name="dP_minus")
+    return v["dPm"]
 
 
 def dp_plus_of(params: Params, subperiods: int, p_m: np.ndarray, dp: np.ndarray | None) -> np.ndarray:

@@ -9,7 +9,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
 from ..schedule import energy_weight
-from .grid import deviation_cost_variable
+from .grid import deviation_cost_variable, shortfall_variable
 from .index import Index
 from .params import Params
 
@@ -19,7 +19,8 @@ def objective(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict)
 
     Energy terms are MW x ``energy_weight`` (dt in the real convention); start-up and shut-down costs are
     counted once per transition, as part of F. With ``params.import_price`` (bidding), grid energy is priced too.
-    The penalty term is c dP+, or with ``params.deviation_cost`` the announced rule's dC (grid.py).
+    The penalty term is c dP+, or with ``params.deviation_cost`` the announced rule's dC (grid.py); with
+    ``params.take_award`` it also holds the award not taken, dP-, at VOLL.
     """
     ew = energy_weight(ix.K, params.cost_convention)
     pr = np.asarray(scen.probability, float)[:, None] * ew
@@ -33,6 +34,8 @@ def objective(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict)
         terms["penalty"] = cp.sum(cp.multiply(np.tile(pr, (1, ix.N)), deviation_cost_variable(v)))
     elif np.isfinite(params.penalty):
         terms["penalty"] = cp.sum(cp.multiply(pr * params.penalty, v["dP"]))
+    if params.take_award:
+        terms["penalty"] = terms["penalty"] + cp.sum(cp.multiply(pr * case.grid.voll, shortfall_variable(v)))
     if params.import_price is not None:
         terms["energy"] = cp.sum(cp.multiply(pr * np.repeat(params.import_price, ix.K), v["PM"]))
     return terms

@@ -54,7 +54,8 @@ class DeviationCost:
 @dataclass(frozen=True)
 class Params:
     """What a solve varies around the case: the award P^sch (24,), the penalty c, the cost convention. With
-    ``deviation_cost``, the mismatch is priced by it instead of by c (microgrid_agent/model/grid.py)."""
+    ``deviation_cost``, the mismatch is priced by it instead of by c; with ``take_award``, the award is also a
+    floor while connected (microgrid_agent/model/grid.py)."""
 
     p_sch: np.ndarray
     penalty: float
@@ -62,3 +63,4 @@ class Params:
     mismatch: Mismatch = "positive-part"
     import_price: np.ndarray | None = None  # (24,) $/MWh paid for P_M, for bidding (agent/bidding.py)
     deviation_cost: DeviationCost | None = None
+    take_award: bool = False  # the award must be taken while connected: P_M >= P^sch too (model/grid.py)

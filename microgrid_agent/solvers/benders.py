@@ -465,7 +465,7 @@ def _schedule(case, scen, params, master, x, arrays, costs, upper, lower, status
     summary = trace.summary()
     return StochasticSchedule(status=status, objective=cost.total, bound=min(lower, cost.total), cost=cost, first=first,
                     dispatch=dispatch, probability=pr.copy(), subperiods=scen.subperiods, penalty=params.penalty,
-                    cost_convention=params.cost_convention,
+                    cost_convention=params.cost_convention, take_award=params.take_award,
                     timings=Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"], total_s=total),
                     unit_names=tuple(u.name for u in case.units), load_names=tuple(d.name for d in case.loads),
                     extra={"method": "benders", "decomposition": summary, "trace": trace.rows})

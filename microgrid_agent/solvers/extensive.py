@@ -65,6 +65,7 @@ def solve(
         timings=Timings(build_s=total - solve_s, solve_s=solve_s, total_s=total),
         unit_names=tuple(u.name for u in case.units),
         load_names=tuple(d.name for d in case.loads),
+        take_award=params.take_award,
     )
 
 

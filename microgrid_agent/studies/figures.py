@@ -103,10 +103,15 @@ def islanding_figure(frame: pd.DataFrame, cost_convention: str, subperiods: int)
     return fig
 
 
+_READING_TITLES = {"ceiling": "award as a ceiling: P_M <= P^sch", "take": "award taken while connected: P_M = P^sch"}
+
+
 def transfer_figure(frame: pd.DataFrame, paper: pd.DataFrame, cost_convention: str, subperiods: int) -> Figure:
-    """Fig. 3: cost and its components against the award scale, the paper's printed points overlaid."""
-    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
-    _cost_lines(ax, frame["transfer_scale"], frame)
+    """Fig. 3: cost and its components against the award scale, one panel per reading of the infinite penalty,
+    the paper's printed points overlaid on each."""
+    readings = list(dict.fromkeys(frame["award"]))
+    fig, axes = plt.subplots(1, len(readings), figsize=(6 * len(readings), 4.8), sharey=True, constrained_layout=True,
+                             squeeze=False)
     factor = float(paper["factor"].iloc[0])
     if cost_convention == "paper" and math.isclose(factor, 1.0):
         how = "paper (as printed)"
@@ -114,14 +119,19 @@ def transfer_figure(frame: pd.DataFrame, paper: pd.DataFrame, cost_convention: s
         how = "paper (converted to $ of energy, /6)"
     else:
         how = f"paper (x {subperiods}/6 to {subperiods} sub-periods/h)"
-    for name, marker, color in (("objective", "*", "black"), ("generation", "P", "C0"), ("curtailment", "X", "C2")):
-        ax.plot(paper["transfer_scale"], paper[f"{name}_converted"], marker, ms=13, ls="none", color=color,
-                mec="white", zorder=4 if name == "objective" else 3, label=f"{how}: {'total' if name == 'objective' else name}")
-    ax.set_xlabel("award P^sch as a multiple of Table I (-)")
-    ax.set_ylabel(cost_label(cost_convention, subperiods))
-    ax.set_xticks(frame["transfer_scale"])
-    ax.set_title("Fig. 3: operation cost vs main grid power transfer (1-hour islanding, c = inf)")
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)  # below: points fill the axes
+    for ax, reading in zip(axes[0], readings):
+        ours = frame[frame["award"] == reading]
+        _cost_lines(ax, ours["transfer_scale"], ours)
+        for name, marker, color in (("objective", "*", "black"), ("generation", "P", "C0"), ("curtailment", "X", "C2")):
+            ax.plot(paper["transfer_scale"], paper[f"{name}_converted"], marker, ms=13, ls="none", color=color,
+                    mec="white", zorder=4 if name == "objective" else 3,
+                    label=f"{how}: {'total' if name == 'objective' else name}")
+        ax.set_xlabel("award P^sch as a multiple of Table I (-)")
+        ax.set_xticks(ours["transfer_scale"])
+        ax.set_title(_READING_TITLES.get(reading, reading), fontsize=10)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)  # below: points fill the axes
+    axes[0, 0].set_ylabel(cost_label(cost_convention, subperiods))
+    fig.suptitle("Fig. 3: operation cost vs main grid power transfer (1-hour islanding, c = inf)")
     return fig
 
 

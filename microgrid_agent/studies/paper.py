@@ -32,6 +32,7 @@ Frames = dict[str, pd.DataFrame]
 
 ISLAND_HOURS = (0, 1, 2, 3, 4, 5, 6)
 TRANSFER_SCALES = (0.35, 0.5, 0.75, 1.0, 1.25, 1.4)
+AWARD_READINGS = {"ceiling": False, "take": True}  # Fig. 3 under each reading of an infinite penalty: take_award
 PENALTIES = (0.0, 25.0, 50.0, 100.0, 150.0, 300.0, 1000.0, math.inf)
 DISPATCH_ISLANDED_HOURS = (12, 13, 14)  # Fig. 4: "a scenario with islanding between hours 12-14"
 
@@ -67,8 +68,9 @@ def cost_row(schedule: StochasticSchedule) -> dict[str, float]:
     }
 
 
-def _sweep(make: MakeInstance, solve: Solve, name: str, values: Sequence, fixed: dict) -> pd.DataFrame:
-    """Solve once per value of one setting ``name``, all else ``fixed``; one cost row per value.
+def _sweep(make: MakeInstance, solve: Solve, name: str, values: Sequence, fixed: dict, tag: str = "") -> pd.DataFrame:
+    """Solve once per value of one setting ``name``, all else ``fixed``; one cost row per value (``tag`` opens
+    each solve's progress label).
 
     A cost column with the setting's own name (the penalty study's "penalty") becomes "<name>_cost".
     """
@@ -76,7 +78,7 @@ def _sweep(make: MakeInstance, solve: Solve, name: str, values: Sequence, fixed:
     rows = []
     for i, value in enumerate(values, 1):
         inst = make(**fixed, **{name: value})
-        schedule = solve(inst, f"[{i}/{len(values)}] {name}={_text(value)}: ")
+        schedule = solve(inst, f"[{i}/{len(values)}] {tag}{name}={_text(value)}: ")
         rows.append({name: value, **{columns[c]: v for c, v in cost_row(schedule).items()}})
     return pd.DataFrame(rows, columns=[name, *columns.values()])
 
@@ -176,9 +178,17 @@ def paper_factor(cost_convention: str, subperiods: int) -> float:
 def transfer(make: MakeInstance, solve: Solve, values: Sequence[float] = TRANSFER_SCALES) -> Frames:
     """Fig. 3: operation cost vs the award P^sch as a multiple of Table I, with 1-hour islanding.
 
+    ``transfer``: one cost row per scale and reading of the infinite penalty, column "award": "ceiling"
+    (P_M <= P^sch) or "take" (P_M = P^sch while connected, the award not absorbed at VOLL; docs/model.md).
     ``transfer_paper``: paper_points() as printed, plus the factor to our units and the converted values.
     """
-    frame = _sweep(make, solve, "transfer_scale", list(values), {"island_hours": 1, "penalty": math.inf})
+    sweeps = []
+    for reading, take in AWARD_READINGS.items():
+        sweep = _sweep(make, solve, "transfer_scale", list(values),
+                       {"island_hours": 1, "penalty": math.inf, "take_award": take}, tag=f"award {reading}, ")
+        sweeps.append(sweep.assign(award=reading))
+    frame = pd.concat(sweeps, ignore_index=True)
+    frame = frame[["transfer_scale", "award", *COST_COLUMNS]]
     inst = make(island_hours=1, penalty=math.inf)
     factor = paper_factor(inst.params.cost_convention, inst.scen.subperiods)
     paper = paper_points()

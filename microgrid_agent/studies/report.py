@@ -44,7 +44,7 @@ def render(name: str, frames: Frames, convention: str, k: int, units: list[str])
             f"{'gap':>7} {'solve s':>8}"]
     paid = figures.component(frame, "penalty")
     for _, r in frame.iterrows():
-        shown = "inf" if math.isinf(r[key]) else f"{r[key]:g}"
+        shown = ("inf" if math.isinf(r[key]) else f"{r[key]:g}") + (f" {r['award']}" if "award" in frame else "")
         rows.append(f"{shown:>15} {r['objective']:>12,.0f} {r['generation']:>12,.0f} {r['startup']:>10,.0f} "
                     f"{r['curtailment']:>12,.0f} {r[paid]:>10,.0f} {r['mip_gap']:>7.2%} {r['solve_s']:>8.1f}")
     rows.append(f"(costs in the {convention} convention at {k} sub-periods/h)")

@@ -153,6 +153,7 @@ def test_unreadable_case_file_exits_2(tmp_path, content):
     ["--scenarios", "0"], ["--scenarios", "many"], ["--subperiods", "-2"], ["--island-hours", "25"],
     ["--penalty", "-5"], ["--penalty", "nan"], ["--gap", "2"], ["--transfer-scale", "x"], ["--case", "nope"],
     ["--no-such-flag"], ["--cost-convention", "weird"], ["--method", "simplex"], ["--workers", "0"],
+    ["--islanding", "even"], ["--replications", "0"], ["--replications", "1"], ["--take-award", "yes"],
 ])
 def test_bad_flags_exit_2_with_one_line(flags):
     out = dmosim("solve", *flags)

@@ -175,3 +175,17 @@ def test_benders_agrees_with_the_extensive_form_under_an_announced_rule(small):
                    deviation_cost=params.deviation_cost).raise_if_failed()
     assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
     assert schedule.bound <= reference.objective * (1 + 1e-6) and schedule.cost.penalty > 0
+
+
+def test_benders_agrees_with_the_extensive_form_when_the_award_must_be_taken(small):
+    """The floor P_M >= U P_sch - dP- and its price reach the master's relaxation and the scenario LPs alike."""
+    params = replace(small.params, penalty=np.inf, take_award=True)
+    reference = solve(small.case, small.scen, params, gap=1e-6)
+    schedule = solve_decomposed(small.case, small.scen, params, gap=GAP, workers=1)
+    check_schedule(small.case, small.scen, schedule, p_sch=params.p_sch).raise_if_failed()
+    assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
+    connected = small.scen.connected > 0
+    award = np.broadcast_to(np.repeat(params.p_sch, small.scen.subperiods), connected.shape)
+    # this microgrid can absorb its award in every sub-period: P_M = P_sch wherever connected, nothing refused
+    assert np.abs(schedule.dispatch.p_m - award)[connected].max() < 1e-6
+    assert schedule.take_award and schedule.cost.penalty == pytest.approx(0.0, abs=1e-6)

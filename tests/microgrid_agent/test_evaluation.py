@@ -3,11 +3,16 @@ the extensive form's own value of that first stage on those scenarios, in one pr
 
 from __future__ import annotations
 
+import json
+
+import numpy as np
 import pytest
 
+from dmo.cli import main
 from microgrid_agent.instance import make_instance
 from microgrid_agent.model import first_stage_of
-from microgrid_agent.solvers.evaluation import evaluate_schedule, fresh_seed
+from microgrid_agent.solvers.evaluation import (Evaluation, estimate, evaluate_schedule, fresh_seed, lower_bound,
+                                                optimality_gap, replication_seed)
 from microgrid_agent.solvers.extensive import solve
 from scenarios.case import load_case
 from scenarios.generation import sample
@@ -35,3 +40,44 @@ def test_the_estimate_is_the_first_stage_s_value_on_the_fresh_scenarios(solved):
 
 def test_fresh_scenarios_are_not_the_schedule_s_own():
     assert fresh_seed(0) != 0 and fresh_seed(0) != fresh_seed(1) and fresh_seed(3) == fresh_seed(3)
+    seeds = {replication_seed(0, r) for r in range(5)} | {fresh_seed(0), 0}
+    assert len(seeds) == 7  # replications draw apart from each other, the schedule and the evaluation
+
+
+def test_the_stratified_estimate_weights_each_stratum_by_its_mass_and_its_own_variance():
+    costs = np.array([1.0, 3.0, 10.0, 14.0, 20.0])
+    stratum = np.array([0, 0, 1, 1, 1])
+    probability = np.array([0.25, 0.25, 0.5 / 3, 0.5 / 3, 0.5 / 3])  # two strata of mass 1/2
+    mean, error = estimate(costs, probability, stratum)
+    assert mean == pytest.approx(0.5 * 2.0 + 0.5 * 44 / 3)
+    assert error == pytest.approx(np.sqrt(0.25 * 2.0 / 2 + 0.25 * np.var([10, 14, 20], ddof=1) / 3))
+    plain = estimate(costs, np.full(5, 0.2))
+    assert plain == pytest.approx((costs.mean(), costs.std(ddof=1) / np.sqrt(5)))
+    # a stratum with one member has no variance of its own: the plain error, which is the larger
+    assert estimate(costs, probability, np.array([0, 1, 1, 1, 1]))[1] == pytest.approx(costs.std(ddof=1) / np.sqrt(5))
+
+
+def test_the_lower_bound_and_the_gap_follow_mak_morton_and_wood():
+    lower = lower_bound([100.0, 104.0, 96.0, 100.0], scenarios=5, seconds=1.0)
+    error = np.std([100, 104, 96, 100], ddof=1) / 2
+    assert lower.estimate == 100.0 and lower.std_error == pytest.approx(error)
+    assert lower.low == pytest.approx(100.0 - 2.353363 * error, rel=1e-6)  # t(0.95, 3 degrees of freedom)
+    upper = Evaluation(scenarios=400, expected_cost=103.0, std_error=0.5, low=0, high=0, seconds=0)
+    gap = optimality_gap(upper, lower)
+    assert gap["estimate"] == pytest.approx(3.0)
+    assert gap["high"] == pytest.approx(3.0 + 1.644854 * 0.5 + 2.353363 * error, rel=1e-6)
+    assert gap["relative_high"] == pytest.approx(gap["high"] / 103.0)
+    with pytest.raises(ValueError, match="at least 2 replications"):
+        lower_bound([1.0], scenarios=5, seconds=0)
+
+
+def test_solve_reports_a_statistical_bound_and_the_schedule_s_gap(capsys):
+    flags = ["solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--workers", "1"]
+    assert main([*flags, "--evaluate", "20", "--replications", "3", "--islanding", "stratified", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    bound, gap = out["replications"], out["optimality_gap"]
+    assert bound["replications"] == 3 and len(bound["bounds"]) == 3 and bound["low"] < bound["estimate"]
+    assert gap["estimate"] == pytest.approx(out["evaluation"]["expected_cost"] - bound["estimate"])
+    assert gap["high"] > max(gap["estimate"], 0)
+    assert main([*flags, "--replications", "1"]) == 2
+    assert "at least 2 replications" in capsys.readouterr().err

@@ -152,11 +152,11 @@ def rule_cost(case, name, params) -> DeviationCost:
     return DeviationCost.from_pieces(BUILT_IN[name].deviation_cost(params, case.grid.p_sch, prices))
 
 
-def rule_merit_order_cost(case, scen, commitment, cost: DeviationCost) -> float:
+def rule_merit_order_cost(case, scen, commitment, cost: DeviationCost, islanded_free: bool = False) -> float:
     """Expected cost of a fixed commitment when the import x is priced by the rule, f(x - P_sch) (independent of the
     model): each hour and scenario alone, the least of units' merit order + curtailment + f over x. That sum is
     piecewise linear and convex in x, so its least value is at a breakpoint: the ends of x's range, the rule's
-    kinks, or where the merit order moves to the next unit."""
+    kinks, or where the merit order moves to the next unit. With ``islanded_free``, f costs nothing islanded."""
     units, total = case.units, 0.0
     startup = sum(u.startup_cost * np.maximum(np.diff(np.r_[float(u.initial_on), commitment[g]]), 0).sum()
                   for g, u in enumerate(units))
@@ -166,7 +166,8 @@ def rule_merit_order_cost(case, scen, commitment, cost: DeviationCost) -> float:
         flexible = sorted((u.cost, u.p_max - u.p_min) for u in on)
         grid, award = case.grid.p_m_max * scen.connected[s, t], case.grid.p_sch[t]
         slope, intercept = cost.slope[t], cost.intercept[t]
-        f = lambda d: float(np.max(slope * d + intercept))  # noqa: E731
+        charged = not (islanded_free and scen.connected[s, t] == 0)
+        f = lambda d: float(np.max(slope * d + intercept)) if charged else 0.0  # noqa: E731
         order = np.argsort(slope)
         kinks = [(intercept[a] - intercept[b]) / (slope[b] - slope[a]) for a, b in zip(order, order[1:])
                  if slope[b] > slope[a]]
@@ -279,3 +280,27 @@ def test_ten_minute_resolution_schedule_verifies():
     assert schedule.dispatch.p_m.shape == (2, 144)
     assert schedule.mip_gap <= 0.02 + 1e-9
     assert schedule.bound <= schedule.objective
+
+
+@pytest.mark.parametrize("penalty", [80.0, 0.0])
+def test_an_award_that_must_be_taken_equals_brute_force(penalty):
+    """Taken while connected: the award not absorbed costs VOLL, the import above it the penalty, and islanded
+    hours nothing. The tiny case has no load after hour 3, so the award is refused there at VOLL in every
+    commitment; at penalty 0, extra import is free, so only the floor separates the readings."""
+    case = tiny_case()
+    scen = tiny_scenarios(case)
+    params = Params(np.asarray(case.grid.p_sch), penalty, take_award=True)
+    as_rule = DeviationCost.from_pieces([[(-case.grid.voll, 0.0), (0.0, 0.0), (penalty, 0.0)]] * 24)
+    best = np.inf
+    for bits in itertools.product((0, 1), repeat=2 * ACTIVE):
+        commitment = np.zeros((2, 24))
+        commitment[:, :ACTIVE] = np.reshape(bits, (2, ACTIVE))
+        best = min(best, rule_merit_order_cost(case, scen, commitment, as_rule, islanded_free=True))
+    schedule = verified(case, scen, params)
+    assert schedule.take_award and schedule.objective == pytest.approx(best, rel=1e-6)
+    refused = case.grid.voll * 2.0 * (24 - ACTIVE)  # 2 MW in each hour without load, in both scenarios
+    assert schedule.cost.penalty >= refused - 1e-6
+    ceiling = verified(case, scen, replace(params, take_award=False))
+    assert ceiling.objective < schedule.objective - refused + 1e-6
+    # the checker prices the refused award itself: told the award was a ceiling, it finds a different cost
+    assert not check_schedule(case, scen, schedule, p_sch=params.p_sch, penalty=penalty, take_award=False).ok

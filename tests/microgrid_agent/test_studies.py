@@ -74,12 +74,16 @@ def test_islanding_cost_grows_with_islanding_hours():
     assert (frame["penalty"] == 0).all()  # infinite penalty: the award is a cap, never exceeded
 
 
-def test_transfer_cost_falls_as_the_award_grows():
+def test_transfer_under_both_readings_of_the_award():
     frames = studies.transfer(make, solve, values=(0.5, 1.4))
     frame, paper = frames["transfer"], frames["transfer_paper"]
-    assert list(frame.columns) == ["transfer_scale", *studies.COST_COLUMNS]
-    # with c = inf the award is only an upper limit on P_M, so a larger award relaxes the problem
-    assert_monotone(frame["objective"].tolist(), increasing=False)
+    assert list(frame.columns) == ["transfer_scale", "award", *studies.COST_COLUMNS]
+    ceiling, take = (frame[frame["award"] == r].set_index("transfer_scale") for r in ("ceiling", "take"))
+    assert list(ceiling.index) == list(take.index) == [0.5, 1.4]
+    # as a ceiling (c = inf: P_M <= P_sch) a larger award relaxes the problem, so the cost falls
+    assert_monotone(ceiling["objective"].tolist(), increasing=False)
+    # taking the award adds a floor, so it never costs less (test_model.py checks the floor against brute force)
+    assert (take["objective"] >= ceiling["objective"] * (1 - GAP)).all()
     assert paper["factor"].eq(1 / 6).all()  # real convention: the paper's costs are 6x dollars of energy
     assert paper.loc[paper["transfer_scale"] == 1.0, "objective_converted"].item() == pytest.approx(39_566 / 6)
 

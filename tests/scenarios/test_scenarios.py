@@ -220,3 +220,27 @@ def test_subset_and_single():
     np.testing.assert_array_equal(one.connected[0], scen.connected[3])
     with pytest.raises(ValueError, match="at least one"):
         scen.subset([])
+
+
+@pytest.mark.parametrize("n, hours", [(100, 1), (48, 1), (30, 3)])
+def test_stratified_islanding_covers_every_start_hour_evenly_with_its_true_weight(n, hours):
+    case = load_case("paper")
+    scen = sample(case, n, 1, island_hours=hours, seed=4, stratified=True)
+    start = (1 - scen.connected).argmax(axis=1)
+    m = 25 - hours
+    counts = np.bincount(start, minlength=m)
+    assert len(counts) == m and counts.min() == n // m and counts.max() <= n // m + 1
+    assert scen.probability.sum() == pytest.approx(1.0)
+    # every start hour carries 1/m, the chance that an H-hour event starts there
+    assert np.bincount(start, scen.probability, minlength=m) == pytest.approx(np.full(m, 1 / m))
+    assert (1 - scen.connected).sum(axis=1).tolist() == [hours] * n
+    # forecast errors are drawn as without stratification
+    assert np.array_equal(scen.load, sample(case, n, 1, island_hours=hours, seed=4).load)
+
+
+def test_stratified_islanding_with_fewer_scenarios_than_start_hours_picks_distinct_equiprobable_hours():
+    scen = sample(load_case("paper"), 10, 1, island_hours=1, seed=4, stratified=True)
+    start = (1 - scen.connected).argmax(axis=1)
+    assert len(set(start.tolist())) == 10 and np.allclose(scen.probability, 0.1)
+    other = (1 - sample(load_case("paper"), 10, 1, island_hours=1, seed=5, stratified=True).connected).argmax(axis=1)
+    assert set(other.tolist()) != set(start.tolist())  # the order of the hours is random
