@@ -19,7 +19,7 @@ from messages.recording import Player, Recorder, Recording, RecordingWriter, sel
 from messages.transport import Bus
 
 from ..replay.as_dmo import AsDmo, dmo_steps, render
-from ..replay.resettle import ResettleError, recorded_day
+from ..replay.resettle import ResettleError, recorded_day, recorded_rule
 from .console import UsageError, print_json, progress
 from .flags import (add_bus_flags, bus_config, credentials_for, load_recording, market_day, nonneg_float,
                     recorded_day_flag, recording_path, setup_logging)
@@ -117,6 +117,7 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     """``--as-dmo``: the DMO's side of the recorded day, played to a live agent (replay/as_dmo.py)."""
     try:
         day = recorded_day(rec, args.day)
+        recorded_rule(day)  # a rule of one's own that cannot be loaded here: said now, before anything starts
     except ResettleError as exc:
         raise UsageError(str(exc)) from None
     agent = args.agent or sorted(day.awards)[0]

@@ -373,3 +373,19 @@ def test_a_recording_of_two_days_is_settled_exported_and_printed_day_by_day(tmp_
         err = capsys.readouterr().err
         assert err == f"error: --day 2031-01-01: {path} is of {DAY}, {NEXT_DAY}\n"
     assert not (tmp_path / "u").exists()
+
+
+def test_a_day_settled_by_a_rule_that_cannot_be_loaded_here_is_refused_in_one_line(tmp_path, capsys):
+    """The awards name a rule of one's own from a file this machine does not have: re-settling or playing the
+    DMO's side cannot honour it, and says so before anything starts."""
+    run_id = new_run_id()
+    day = synthetic_day(run_id, 1, K, market_day=DAY)
+    for i, (key, payload) in enumerate(day):
+        message = decode(payload)
+        if hasattr(message, "settlement_rule"):
+            day[i] = (key, encode(message.model_copy(update={"settlement_rule": "gone/rules.py:mine"})))
+    path = write(tmp_path / "day.mcap", run_id, day, {"market_day": DAY, "agents": "mg1"})
+    for verb in (["settle"], ["replay", "--as-dmo"]):
+        assert main([*verb[:1], str(path), *verb[1:]]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "gone/rules.py:mine" in err, err
