@@ -39,7 +39,8 @@ def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
                    help="real: energy costs x dt; paper: objective (1) as printed, no dt (see docs/model.md)")
     p.add_argument("--take-award", action="store_true",
                    help="the award must be taken while connected (P_M = P_sch; what cannot be absorbed is priced at "
-                        "VOLL), not only kept below (docs/model.md, \"How the award binds\")")
+                        "VOLL), not only kept below (docs/model.md, \"How the award binds\"); the transfer study "
+                        "solves both readings")
     add_method_flags(p, workers=2)
 
 

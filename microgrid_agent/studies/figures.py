@@ -129,7 +129,8 @@ def transfer_figure(frame: pd.DataFrame, paper: pd.DataFrame, cost_convention: s
         ax.set_xlabel("award P^sch as a multiple of Table I (-)")
         ax.set_xticks(ours["transfer_scale"])
         ax.set_title(_READING_TITLES.get(reading, reading), fontsize=10)
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2)  # below: points fill the axes
+    entries = {label: handle for ax in axes[0] for handle, label in zip(*ax.get_legend_handles_labels())}
+    fig.legend(entries.values(), entries.keys(), fontsize=8, loc="outside lower center", ncol=3)  # points fill the axes
     axes[0, 0].set_ylabel(cost_label(cost_convention, subperiods))
     fig.suptitle("Fig. 3: operation cost vs main grid power transfer (1-hour islanding, c = inf)")
     return fig
