@@ -19,7 +19,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from microgrid_agent.studies.paper import STUDIES  # noqa: PLC0415  (pandas: imported for this verb only)
 
     p.add_argument("name", choices=sorted(STUDIES), help="which result")
-    add_instance_flags(p, scenarios=10)
+    add_instance_flags(p, scenarios=100)  # the paper's "reduced 100 scenarios" (Section IV)
     p.add_argument("--out", default="out", help="directory for the CSV and PNG files (default: out)")
 
 
