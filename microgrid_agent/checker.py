@@ -371,8 +371,7 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSched
     take = schedule.take_award if take_award is None else take_award
     shortfall = None
     if take:
-        sch = _subperiods(np.asarray(p_sch, float), k)[None, :]
-        shortfall = np.maximum(0.0, sch * a["scenarios.connected"] - a["dispatch.p_m"])
+        shortfall = np.maximum(0.0, _subperiods(a["p_sch"], k)[None, :] * a["scenarios.connected"] - a["dispatch.p_m"])
     cost = _cost(case, a, up, down, mismatch, penalty, weight, import_price, shortfall)
     objective = cost.total
     if not _close(objective, float(schedule.objective)):

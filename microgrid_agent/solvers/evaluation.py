@@ -80,7 +80,8 @@ def estimate(costs: np.ndarray, probability: np.ndarray, stratum: np.ndarray | N
         counts = np.bincount(stratum)
         if counts.min() >= 2:
             weight = np.bincount(stratum, probability)
-            within = np.array([costs[stratum == h].var(ddof=1) for h in range(len(counts))])
+            centred = costs - (np.bincount(stratum, costs) / counts)[stratum]
+            within = np.bincount(stratum, centred ** 2) / (counts - 1)  # each stratum's sample variance
             return mean, float(math.sqrt(np.sum(weight ** 2 * within / counts)))
     return mean, float(costs.std(ddof=1) / math.sqrt(len(costs)))
 
@@ -106,7 +107,7 @@ def lower_bound(bounds, scenarios: int, seconds: float) -> LowerBound:
     bounds = np.asarray(bounds, float)
     if len(bounds) < 2:
         raise ValueError(f"a statistical lower bound needs at least 2 replications, not {len(bounds)}")
-    mean, error = float(bounds.mean()), float(bounds.std(ddof=1) / math.sqrt(len(bounds)))
+    mean, error = estimate(bounds, np.full(len(bounds), 1.0 / len(bounds)))
     low = mean - float(stats.t.ppf(ONE_SIDED, len(bounds) - 1)) * error
     return LowerBound(len(bounds), scenarios, tuple(bounds.tolist()), mean, error, low, seconds)
 
