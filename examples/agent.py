@@ -5,10 +5,14 @@ meters exactly its award in every grid-connected sub-period (0 while islanded), 
 market day is settled it prints, as one JSON line, its own reckoning of that day's bill beside the DMO's
 statement; it stays for as many days as the DMO's clock says the run has.
 
+It loses nothing to a lost message: what it sends goes again until the DMO's receipt comes, and when the DMO has
+been quiet for a while it asks for the latest of what it waits for.
+
     python examples/agent.py --id mg2 --run-id RUN --connect tcp/127.0.0.1:7447 --auth-dir DIR
 """
 
 import argparse
+import hashlib
 import json
 import queue
 import time
@@ -18,6 +22,8 @@ import zenoh
 
 FLAT_MW = 4.0
 MAX_IMPORT_MW = 10.0
+RESEND_S = 0.5  # send again what has no receipt after this long
+ASK_S = 2.0     # ask the DMO for what we wait for after this long without news
 
 
 def main() -> None:
@@ -26,39 +32,69 @@ def main() -> None:
     config.insert_json5("mode", '"client"')
     config.insert_json5("connect/endpoints", json.dumps([args.connect]))
     if args.auth_dir:  # the bundle DIR/<id>/ of the run's credentials (docs/security.md)
-        password = open(f"{args.auth_dir}/{args.id}/password").read().strip()
+        password = open(f"{args.auth_dir}/{args.id}/password").read().rstrip("\n")
         config.insert_json5("transport/auth/usrpwd/user", json.dumps(args.id))
         config.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
     prefix = f"dmosim/{args.run_id}"
+    incarnation = time.time_ns()  # this process: a restarted agent is a later one
     inbox: queue.Queue = queue.Queue()
 
     with zenoh.open(config) as session:
         session.liveliness().declare_token(f"{prefix}/alive/{args.id}")  # the DMO tracks our presence
-        for topic in ("clock", "call_for_bids", "grid", f"award/{args.id}", f"statement/{args.id}", "summary",
-                      "rejected"):
+        mine = ("clock", "call_for_bids", "grid", f"award/{args.id}", f"statement/{args.id}", "summary",
+                f"receipt/{args.id}")
+        for topic in mine:
             session.declare_subscriber(f"{prefix}/dmo/{topic}", lambda s: inbox.put(json.loads(s.payload.to_bytes())))
 
-        clock = wait_for_the_dmo(session, prefix)  # it answers once it listens; its clock tells the market day
+        clock = wait_for_the_dmo(session, prefix)  # it answers once it listens: the run's token, the market day
+        run = clock["run"]
         seq = 0
+        unreceipted = {}  # SHA-256 of each payload sent -> [key, payload, when to send it again]
 
         def send(topic: str, kind: str, day: str, **fields) -> None:
             nonlocal seq
-            message = {"kind": kind, "schema_version": 3, "sender": args.id, "market_day": day, "seq": seq,
-                       "sent_at": time.time_ns(), **fields}
-            session.put(f"{prefix}/agent/{args.id}/{topic}", json.dumps(message))
+            message = {"kind": kind, "schema_version": 4, "sender": args.id, "run": run, "incarnation": incarnation,
+                       "market_day": day, "seq": seq, "sent_at": time.time_ns(), **fields}
+            key, payload = f"{prefix}/agent/{args.id}/{topic}", json.dumps(message).encode()
+            session.put(key, payload)
+            unreceipted[hashlib.sha256(payload).hexdigest()] = [key, payload, time.monotonic() + RESEND_S]
             seq += 1
 
         send("register", "registration", clock["market_day"], case="flat", max_import_mw=MAX_IMPORT_MW,
              max_export_mw=MAX_IMPORT_MW)
         # per market day: the award, what we metered, the statement and the summary (a run may have several days)
-        awards, metered, statements, summaries = {}, {}, {}, {}
+        awards, metered, statements, summaries, bids = {}, {}, {}, {}, set()
         last_day = None  # the market day the clock says is the run's last
+        heard = time.monotonic()
         while last_day is None or last_day not in statements or last_day not in summaries:
-            msg = inbox.get(timeout=args.timeout)
+            for entry in unreceipted.values():  # no receipt yet: send it again, byte for byte
+                if entry[2] <= time.monotonic():
+                    session.put(entry[0], entry[1])
+                    entry[2] = time.monotonic() + RESEND_S
+            try:
+                msg = inbox.get(timeout=RESEND_S / 2)
+            except queue.Empty:
+                if time.monotonic() - heard > args.timeout:
+                    raise SystemExit(f"{args.id}: nothing from the DMO for {args.timeout:g} s") from None
+                if time.monotonic() - heard > ASK_S:  # a message of the DMO's may be lost: ask for the latest
+                    for topic in mine[:-1]:
+                        for reply in session.get(f"{prefix}/dmo/{topic}", timeout=1.0):
+                            if reply.ok is not None:
+                                inbox.put(json.loads(reply.ok.payload.to_bytes()))
+                continue
+            heard = time.monotonic()
             kind, day = msg["kind"], msg["market_day"]
-            if kind == "clock" and msg["day"] == msg["days"]:
+            if msg["run"] != run:
+                continue  # not of this run
+            if kind == "receipt":
+                unreceipted.pop(msg["payload_sha256"], None)
+                if not msg["accepted"]:
+                    print(f"the DMO refused my {msg['received_kind']} #{msg['received_seq']}: {msg['code']}: "
+                          f"{msg['reason']}", flush=True)
+            elif kind == "clock" and msg["day"] == msg["days"]:
                 last_day = day
-            elif kind == "call_for_bids":
+            elif kind == "call_for_bids" and day not in bids:
+                bids.add(day)
                 step = {"price_per_mwh": msg["price_cap_per_mwh"], "quantity_mw": FLAT_MW}
                 send("bid", "bid", day, hours=[[step]] * 24)
             elif kind == "award" and day not in awards:
@@ -75,8 +111,6 @@ def main() -> None:
                 statements[day] = msg
             elif kind == "day_summary":
                 summaries[day] = msg
-            elif kind == "rejection" and msg["offender"] == args.id:
-                print(f"the DMO refused my message on {msg['key']}: {msg['code']}: {msg['reason']}", flush=True)
 
     for day in sorted(statements):  # one line per day: the DMO's statement beside our own reckoning
         print(json.dumps({"agent": args.id, "market_day": day, "statement_total": statements[day]["total"],

@@ -5,21 +5,21 @@ This package imports only ``scenarios`` (for the day's hours and the naming rule
 ``microgrid_agent``: both sides of the market build on it.
 """
 
-from .codec import MAX_PAYLOAD_BYTES, MessageError, decode, encode, make_rejection
+from .codec import MAX_PAYLOAD_BYTES, MessageError, decode, encode, make_receipt, make_rejection, sha256
 from .keys import (Keys, ParsedKey, check_agent_id, check_route, check_run_id, key_pattern, new_run_id, parse_key,
                    relative_key, sender_matches_key)
 from .schemas import (DMO, HOURS, KINDS, MODELS, PHASES, REJECT_CODES, SCHEMA_VERSION, SCHEMAS, AgentTotals, Award,
                       Bid, BidStep, CallForBids, Clock, DaySummary, Envelope, GridState, Incident, Message,
-                      MeterReport, Registration, Rejection, Schedule, SettlementStatement, StatementLine,
+                      MeterReport, Receipt, Registration, Rejection, Schedule, SettlementStatement, StatementLine,
                       json_schema)
 from .transport import Bus, BusConfig, Subscription
 
 __all__ = [
-    "MAX_PAYLOAD_BYTES", "MessageError", "decode", "encode", "make_rejection",
+    "MAX_PAYLOAD_BYTES", "MessageError", "decode", "encode", "make_receipt", "make_rejection", "sha256",
     "Keys", "ParsedKey", "check_agent_id", "check_route", "check_run_id", "key_pattern", "new_run_id", "parse_key",
     "relative_key", "sender_matches_key",
     "DMO", "HOURS", "KINDS", "MODELS", "PHASES", "REJECT_CODES", "SCHEMA_VERSION", "SCHEMAS", "AgentTotals", "Award",
     "Bid", "BidStep", "CallForBids", "Clock", "DaySummary", "Envelope", "GridState", "Incident", "Message",
-    "MeterReport", "Registration", "Rejection", "Schedule", "SettlementStatement", "StatementLine", "json_schema",
+    "MeterReport", "Receipt", "Registration", "Rejection", "Schedule", "SettlementStatement", "StatementLine", "json_schema",
     "Bus", "BusConfig", "Subscription",
 ]

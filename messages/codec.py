@@ -8,7 +8,7 @@ import time
 
 from pydantic import ValidationError
 
-from .schemas import DMO, KINDS, MESSAGE_ADAPTER, SCHEMA_VERSION, Envelope, Message, Rejection
+from .schemas import DMO, KINDS, MESSAGE_ADAPTER, SCHEMA_VERSION, Envelope, Message, Receipt, Rejection
 
 MAX_PAYLOAD_BYTES = 1 << 20
 _MAX_REASON = 300
@@ -56,17 +56,19 @@ def decode(payload: bytes, expected_kind: str | None = None) -> Message:
     return msg
 
 
-# What each version added to a kind, and what an older message of that kind means by their absence.
+# What each version added to a kind ("*": to every kind), and what an older message means by their absence.
 ADDED = ((2, "clock", {"day": 1, "days": 1}),
          (3, "award", {"settlement_rule": None, "deviation_cost": None}),
-         (3, "settlement_statement", {"settlement_rule": None}))
+         (3, "settlement_statement", {"settlement_rule": None}),
+         (4, "*", {"run": "", "incarnation": 0}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
     """A message of an older schema version as this version reads it, or None if there is nothing to upgrade.
     Version 1 -> 2: a clock, which had no day, is day 1 of a one-day run. Version 2 -> 3: an award or a statement
-    names no settlement rule, which is the paper's at its penalty and credit rates. An older message that already
-    has a field of a later version is left as it is, for validation to refuse."""
+    names no settlement rule, which is the paper's at its penalty and credit rates. Version 3 -> 4: a message is
+    bound to no run token and no incarnation (empty, 0), which a live DMO refuses and a recording reader accepts.
+    An older message that already has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):
@@ -78,7 +80,7 @@ def _upgrade(payload: bytes) -> bytes | None:
         return None
     added = {}
     for since, kind, fields in ADDED:
-        if kind == data.get("kind") and version < since:
+        if kind in (data.get("kind"), "*") and version < since:
             if any(name in data for name in fields):
                 return None
             added.update(fields)
@@ -137,17 +139,37 @@ def _short(value) -> str:
     return text if len(text) <= 40 else text[:37] + "..."
 
 
-def make_rejection(key: str, payload: bytes, error: MessageError, *, market_day: str,
-                   offender: str | None = None, received_at: int | None = None) -> Rejection:
-    """The Rejection the DMO publishes for a refused payload, so the recording keeps it with its reason."""
-    kind = None
+def claimed(payload: bytes) -> tuple[str | None, int | None]:
+    """The kind and seq a payload claims, as far as it can be read (None where it cannot)."""
     try:
         data = json.loads(bytes(payload).decode("utf-8"))
-        if isinstance(data, dict) and isinstance(data.get("kind"), str):
-            kind = data["kind"][:64]
     except (ValueError, RecursionError):
-        pass
+        return None, None
+    if not isinstance(data, dict):
+        return None, None
+    kind = data["kind"][:64] if isinstance(data.get("kind"), str) else None
+    seq = data.get("seq")
+    return kind, seq if isinstance(seq, int) and not isinstance(seq, bool) and 0 <= seq < 2**63 else None
+
+
+def sha256(payload: bytes) -> str:
+    """The hex SHA-256 of a payload's bytes as received: what rejections and receipts name it by."""
+    return hashlib.sha256(payload).hexdigest()
+
+
+def make_rejection(key: str, payload: bytes, error: MessageError, *, market_day: str,
+                   offender: str | None = None, received_at: int | None = None) -> Rejection:
+    """The Rejection the DMO publishes for a refused payload (the bytes as received), so the recording keeps it with
+    its reason."""
     return Rejection(sender=DMO, market_day=market_day, key=key[:512], code=error.code, reason=error.reason,
-                     offender=offender, rejected_kind=kind, payload_size=len(payload),
-                     payload_sha256=hashlib.sha256(payload).hexdigest(),
-                     received_at=time.time_ns() if received_at is None else received_at)
+                     offender=offender, rejected_kind=claimed(payload)[0], payload_size=len(payload),
+                     payload_sha256=sha256(payload), received_at=time.time_ns() if received_at is None else received_at)
+
+
+def make_receipt(agent: str, payload: bytes, error: MessageError | None, *, market_day: str) -> Receipt:
+    """The Receipt the DMO sends ``agent`` for a payload received from it (the bytes as received): accepted when
+    ``error`` is None, else refused with its code and reason."""
+    kind, seq = claimed(payload)
+    return Receipt(sender=DMO, market_day=market_day, agent=agent, payload_sha256=sha256(payload),
+                   received_kind=kind, received_seq=seq, accepted=error is None,
+                   code=None if error is None else error.code, reason="" if error is None else error.reason)

@@ -3,7 +3,7 @@
 Layout (``<run>`` is the run id, ``<agent>`` an agent id)::
 
     dmosim/<run>/dmo/call_for_bids | clock | grid | summary | rejected
-    dmosim/<run>/dmo/award/<agent> | statement/<agent>
+    dmosim/<run>/dmo/award/<agent> | statement/<agent> | receipt/<agent>
     dmosim/<run>/agent/<agent>/register | bid | schedule | meter
     dmosim/<run>/alive/<name>            liveliness tokens: "dmo", "recorder" or an agent id
 
@@ -41,6 +41,7 @@ ROUTES: dict[str, tuple[str, str, bool]] = {
     "settlement_statement": ("dmo", "statement", True),
     "day_summary": ("dmo", "summary", False),
     "rejection": ("dmo", "rejected", False),
+    "receipt": ("dmo", "receipt", True),
     "registration": ("agent", "register", True),
     "bid": ("agent", "bid", True),
     "schedule": ("agent", "schedule", True),
@@ -96,6 +97,9 @@ class Keys:
 
     def statement(self, agent: str) -> str:
         return self._dmo("statement", agent)
+
+    def receipt(self, agent: str) -> str:
+        return self._dmo("receipt", agent)
 
     def summary(self) -> str:
         return self._dmo("summary")

@@ -20,8 +20,9 @@ from scenarios.horizon import HOURS
 from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
 
 # 2: the clock says which day of how many (a run of several market days); 3: awards and statements name their
-# settlement rule, and awards carry its price of a deviation
-SCHEMA_VERSION = 3
+# settlement rule, and awards carry its price of a deviation; 4: every message is bound to its run (``run``) and
+# its sender's process (``incarnation``), and the DMO answers every agent message with a receipt
+SCHEMA_VERSION = 4
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -55,12 +56,16 @@ Phase = Literal["registration", "bidding", "clearing", "scheduling", "realtime",
 PHASES: tuple[str, ...] = get_args(Phase)
 # Why a payload was refused: codec.decode and keys.check_route give the first eight, the DMO the rest.
 RejectCode = Literal["oversize", "not_json", "not_object", "unknown_kind", "unsupported_version", "invalid",
-                     "wrong_key", "unauthorised", "late", "duplicate", "wrong_day", "unregistered"]
+                     "wrong_key", "unauthorised", "late", "duplicate", "wrong_day", "unregistered", "wrong_run",
+                     "stale"]
 REJECT_CODES: tuple[str, ...] = get_args(RejectCode)
 Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 Piece = tuple[Float, Float]
 RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]
+# The run's token: 32 hex digits the DMO draws when a run starts (empty in messages older than version 4).
+RUN_TOKEN_PATTERN = r"^([0-9a-f]{32})?$"
+Sha256 = Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$")]
 SETTLEMENT_RULE = ("the settlement rule the day is settled by, with every parameter, as docs/settlement.md names it "
                    "(e.g. \"paper:penalty=150,credit=0\"); null: the paper rule at penalty_per_mwh and credit_per_mwh "
                    "(as every day was settled before version 3)")
@@ -86,10 +91,21 @@ class Envelope(_WireModel):
         "settlement rule, as settled by the paper rule)"))] = SCHEMA_VERSION
     sender: Annotated[Name, Field(description=(
         "\"dmo\" or the agent id; must be the owner of the key the message travels on"))]
+    run: Annotated[str, Strict(), Field(pattern=RUN_TOKEN_PATTERN), Field(description=(
+        "the run's token, 32 hex digits: the DMO draws it when the run starts and announces it on every message "
+        "(its clock first); every other process copies it into each message it sends, and the DMO refuses a "
+        "message with another (wrong_run): one recorded in another run, even under the same run id. Empty only "
+        "in messages older than version 4"))] = ""
+    incarnation: Annotated[Timestamp, Field(description=(
+        "which process of the sender wrote the message: its start time, ns since the Unix epoch, the same on every "
+        "message of one process. A restarted agent has a later one, so the DMO takes its new registration as a "
+        "rejoin and refuses what an earlier process sent (stale). 0 only in messages older than version 4"))] = 0
     market_day: Annotated[MarketDay, Field(description="the market day the message belongs to, an ISO date YYYY-MM-DD")]
     seq: Annotated[Count, Field(description=(
-        "the sender's sequence number: 0, 1, 2, ... over all its messages of the run, stamped when sent; the "
-        "DMO refuses a number it has accepted, or one older than the latest it accepted"))] = 0
+        "the sender's sequence number: 0, 1, 2, ... over all messages of its process (its incarnation), stamped "
+        "when sent; a message sent again (not acknowledged) keeps its number. The DMO takes an exact copy of a "
+        "message it accepted as that message again (a receipt, nothing more), and refuses another payload under a "
+        "number it has accepted (duplicate) or one older than the latest it accepted (late)"))] = 0
     sent_at: Annotated[Timestamp, Field(description=(
         "the sender's clock when sending, ns since the Unix epoch, stamped when sent"))] = 0
 
@@ -283,7 +299,7 @@ class GridState(_FromDmo):
     kind: Annotated[Literal["grid_state"], Field(description=KIND)] = "grid_state"
     hour: Annotated[Hour, Field(description="the hour this state holds for, 1..24")]
     subperiods: Annotated[Subperiods, Field(description="K: sub-periods per hour")]
-    connected: Annotated[tuple[Bool, ...], Field(description=(
+    connected: Annotated[tuple[Bool, ...], Field(min_length=1, max_length=MAX_SUBPERIODS), Field(description=(
         "K booleans, one per sub-period: true grid-connected, false islanded (U = 0: P_M must be 0)"))]
 
     @model_validator(mode="after")
@@ -299,10 +315,11 @@ class MeterReport(_FromAgent):
     hour: Annotated[Hour, Field(description=(
         "the hour metered, 1..24: the hour the DMO's clock and grid state announced"))]
     subperiods: Annotated[Subperiods, Field(description="K, as in the award")]
-    p_m_mw: Annotated[tuple[Float, ...], Field(description=(
+    p_m_mw: Annotated[tuple[Float, ...], Field(min_length=1, max_length=MAX_SUBPERIODS), Field(description=(
         "K metered transfers P_M, MW, one per sub-period; positive imports; none above the registered "
-        "max_import_mw"))]
-    deviation_mw: Annotated[tuple[Float, ...], Field(description=(
+        "max_import_mw nor below -max_export_mw, and 0 in every sub-period the hour's grid state says is islanded "
+        "(each within 1e-9 MW)"))]
+    deviation_mw: Annotated[tuple[Float, ...], Field(min_length=1, max_length=MAX_SUBPERIODS), Field(description=(
         "K deviations P_M - P_sch, MW; informative: settlement reads p_m_mw"))]
 
     @model_validator(mode="after")
@@ -419,7 +436,7 @@ class DaySummary(_FromDmo):
 
 
 class Rejection(_FromDmo):
-    """DMO -> recorder: a received payload was refused; says which, where and why, so the recording keeps it."""
+    """DMO -> all: a received payload was refused; says which, where and why, so the recording keeps it."""
 
     kind: Annotated[Literal["rejection"], Field(description=KIND)] = "rejection"
     key: Annotated[str, Strict(), Field(min_length=1, max_length=512), Field(description=(
@@ -430,20 +447,46 @@ class Rejection(_FromDmo):
     rejected_kind: Annotated[Annotated[str, Strict(), Field(max_length=64)] | None, Field(description=(
         "the kind the payload claimed, or null"))] = None
     payload_size: Annotated[Count, Field(description="the payload's size, bytes")]
-    payload_sha256: Annotated[str, Strict(), Field(pattern=r"^[0-9a-f]{64}$"), Field(description=(
-        "the payload's SHA-256, hex"))]
+    payload_sha256: Annotated[Sha256, Field(description=(
+        "SHA-256, hex, of the payload's bytes exactly as the DMO received them"))]
     received_at: Annotated[Timestamp, Field(description="the DMO's clock on receipt, ns since the Unix epoch")]
+
+
+class Receipt(_FromDmo):
+    """DMO -> one agent: what became of one payload it received from that agent, accepted or refused. An agent sends
+    each registration, bid, schedule and meter report again until its receipt comes (docs/protocol.md)."""
+
+    kind: Annotated[Literal["receipt"], Field(description=KIND)] = "receipt"
+    agent: Annotated[AgentId, Field(description="the agent whose payload this is (the key names it too)")]
+    payload_sha256: Annotated[Sha256, Field(description=(
+        "SHA-256, hex, of the payload's bytes exactly as the DMO received them: the sender matches it against "
+        "what it sent"))]
+    received_kind: Annotated[Annotated[str, Strict(), Field(max_length=64)] | None, Field(description=(
+        "the kind the payload claimed, or null if it could not be read"))]
+    received_seq: Annotated[Count | None, Field(description="the payload's seq, or null if it could not be read")]
+    accepted: Annotated[Bool, Field(description=(
+        "true: accepted (or an exact copy of a payload accepted before: nothing more happens); false: refused, "
+        "for good: sending it again changes nothing, a corrected message with a new seq may be sent while its "
+        "phase (or hour) is open"))]
+    code: Annotated[RejectCode | None, Field(description="why it was refused, as a category; null if accepted")]
+    reason: Annotated[Text, Field(description="why it was refused, one line; empty if accepted")]
+
+    @model_validator(mode="after")
+    def _outcome(self):
+        if self.accepted != (self.code is None):
+            raise ValueError("a receipt has a code if and only if the payload was refused")
+        return self
 
 
 MODELS: dict[str, type[Envelope]] = {
     model.model_fields["kind"].default: model
     for model in (Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport,
-                  SettlementStatement, DaySummary, Rejection)
+                  SettlementStatement, DaySummary, Rejection, Receipt)
 }
 KINDS = tuple(MODELS)
 
 Message = Annotated[Union[Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport,
-                          SettlementStatement, DaySummary, Rejection], Field(discriminator="kind")]
+                          SettlementStatement, DaySummary, Rejection, Receipt], Field(discriminator="kind")]
 MESSAGE_ADAPTER: TypeAdapter[Message] = TypeAdapter(Message)
 
 

@@ -10,13 +10,21 @@ from __future__ import annotations
 
 from messages import PHASES, MeterReport, Registration
 
+from .settlement import READING_TOLERANCE_MW
+
 Refusal = tuple[str, str]
 
 PHASE_ORDER = {phase: i for i, phase in enumerate(PHASES)}  # the clock's phases, in the order of the day
 # The phase in which each kind an agent sends is due.
 ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}
-# A reading may pass a registered limit by this much (MW) before it is refused: float noise, not energy.
-IMPORT_TOLERANCE_MW = 1e-9
+
+
+def check_run(msg, run_token: str) -> Refusal | None:
+    """A message not bound to this run (recorded in another, or older than version 4) is refused."""
+    if msg.run != run_token:
+        return "wrong_run", (f"{msg.kind} #{msg.seq} from {msg.sender} carries run token {msg.run or 'none'!r}, "
+                             "not this run's: sent to another run, or replayed from one")
+    return None
 
 
 def check_day(msg, market_day: str) -> Refusal | None:
@@ -49,19 +57,25 @@ def repeated(what: str, sender: str) -> Refusal:
     return "duplicate", f"second {what} from {sender}; the first one stands"
 
 
-def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported,
-                       registration: Registration) -> Refusal | None:
+def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported, registration: Registration,
+                       connected: tuple[bool, ...] | None = None) -> Refusal | None:
     """A meter report is accepted in real-time hour ``hour`` (1..24) if it is for this hour, at the day's
-    ``subperiods``, the first for the hour (``reported`` holds the agent's hour indices 0..23 already taken) and
-    has every reading within the agent's registered limits, -max_export_mw <= P_M <= max_import_mw."""
+    ``subperiods``, the first for the hour (``reported`` holds the agent's hour indices 0..23 already taken), has
+    every reading within the agent's registered limits, -max_export_mw <= P_M <= max_import_mw, and reads 0 in every
+    sub-period the hour's grid state ``connected`` says is islanded (U = 0 forces P_M = 0, constraint (18)); each
+    within ``READING_TOLERANCE_MW``."""
     if msg.subperiods != subperiods:
         return "invalid", f"{msg.subperiods} sub-periods, the day has {subperiods}"
     if msg.hour != hour:
         return ("late" if msg.hour < hour else "invalid"), f"meter report for hour {msg.hour} during hour {hour}"
     if hour - 1 in reported:
         return "duplicate", f"second meter report for hour {hour}"
-    if max(msg.p_m_mw) > registration.max_import_mw + IMPORT_TOLERANCE_MW:
+    if max(msg.p_m_mw) > registration.max_import_mw + READING_TOLERANCE_MW:
         return "invalid", f"P_M {max(msg.p_m_mw)} MW above registered max import {registration.max_import_mw}"
-    if min(msg.p_m_mw) < -registration.max_export_mw - IMPORT_TOLERANCE_MW:
+    if min(msg.p_m_mw) < -registration.max_export_mw - READING_TOLERANCE_MW:
         return "invalid", f"P_M {min(msg.p_m_mw)} MW below registered max export -{registration.max_export_mw}"
+    islanded = [k for k, up in enumerate(connected or ()) if not up and abs(msg.p_m_mw[k]) > READING_TOLERANCE_MW]
+    if islanded:
+        k = islanded[0]
+        return "invalid", f"P_M {msg.p_m_mw[k]} MW in sub-period {k + 1}, which is islanded: P_M must be 0"
     return None

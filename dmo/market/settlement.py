@@ -24,6 +24,9 @@ from .rules import BUILT_IN, Charges, DeviationRule, Meter, Rule, SettlementDay
 # The version of the statement's form, announced in every award: a recording names it, and ``dmosim settle``
 # refuses a version it does not implement. The rule itself is named beside it (docs/settlement.md).
 RULES_VERSION = 1
+# A reading may pass a registered limit by this much (MW), and read this far from 0 while islanded: float noise,
+# not energy. The one tolerance by which the DMO accepts a meter report (acceptance.py) and settlement reads it.
+READING_TOLERANCE_MW = 1e-9
 RULES = ("energy charge = clearing price x award per hour; penalty = c x max(P_M - P_sch, 0) x dt per sub-period; "
          "under-import credited at the credit rate (default 0); a missing sub-period is settled at P_M = the "
          "agent's registered max import with no credit (docs/market.md)")
@@ -190,10 +193,10 @@ def _check_meter(meter: Meter, day: SettlementDay) -> None:
                     continue
                 if isinstance(p, bool) or not isinstance(p, numbers.Real) or not math.isfinite(p):
                     raise ValueError(f"meter of {agent}, hour index {h}: reading {p!r} is not a finite number")
-                if p > day.max_import[agent]:
+                if p > day.max_import[agent] + READING_TOLERANCE_MW:
                     raise ValueError(f"meter of {agent}, hour index {h}: reading {p} MW above "
                                      f"p_m_max {day.max_import[agent]} MW")
-                if p < -day.max_export[agent]:
+                if p < -day.max_export[agent] - READING_TOLERANCE_MW:
                     raise ValueError(f"meter of {agent}, hour index {h}: reading {p} MW below -p_m_min "
                                      f"{day.max_export[agent]} MW")
 

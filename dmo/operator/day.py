@@ -14,12 +14,14 @@ from __future__ import annotations
 import copy
 import logging
 import queue
+import secrets
 import time
 from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
-from messages import PHASES, Bid, GridState, MeterReport, Registration, Schedule, encode, make_rejection
+from messages import (PHASES, Bid, GridState, MeterReport, Registration, Schedule, make_receipt, make_rejection,
+                      sha256)
 from messages.codec import MessageError
 from messages.transport import Bus
 from scenarios.horizon import HOURS
@@ -29,7 +31,7 @@ from ..market import acceptance
 from ..market.acceptance import PHASE_ORDER, Refusal
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
 from ..market.settlement import DayTotals, Statement, settlement_day
-from . import outbox, rejoin
+from . import intake, outbox, rejoin
 from .config import DayConfig
 from .history import DayHistory
 from .journal import Journal, restore
@@ -49,6 +51,7 @@ class DayResult:
     totals: DayTotals
     state: DayState
     phase_s: dict[str, float]
+    locked_out: tuple[str, ...] = ()  # agents whose latest process spoke and was not admitted, as the day closed
 
     def report(self) -> dict:
         """The day as JSON: prices, awards, each agent's settlement, incidents and counts."""
@@ -68,7 +71,7 @@ class DayResult:
             "day_summary": self.totals.as_dict(),
             "expected_cost": {a: m.expected_cost for a, m in s.schedules.items()},
             "rejected_messages": s.rejected, "rejected_by_code": dict(s.rejected_by_code),
-            "accepted_messages": dict(s.accepted),
+            "accepted_messages": dict(s.accepted), "received_again": s.again, "locked_out": list(self.locked_out),
             "incidents": [i.model_dump() for i in s.incidents],
             "phase_s": self.phase_s,
         }
@@ -105,6 +108,8 @@ class RunResult:
                 "rejected_messages": sum(d["rejected_messages"] for d in days),
                 "rejected_by_code": dict(sum((Counter(d["rejected_by_code"]) for d in days), Counter())),
                 "accepted_messages": dict(sum((Counter(d["accepted_messages"]) for d in days), Counter())),
+                "received_again": sum(d["received_again"] for d in days),
+                "locked_out": sorted({a for d in days for a in d["locked_out"]}),
                 "incidents": [{**i, "market_day": d["market_day"]} for d in days for i in d["incidents"]]}
 
 
@@ -164,6 +169,11 @@ class MarketDay:
             if self._resumed is not None:
                 log.warning("resuming the run from %s: day %d %s, %d accepted messages", self.journal.path, s.day,
                             _when(*self._resumed), sum(s.accepted.values()))
+        if not s.run_token:  # a new run (a resumed one keeps the token its journal holds)
+            s.run_token = secrets.token_hex(16)
+            if self.journal is not None:
+                self.journal.run_token(s.run_token)
+        self.bus.run_token = s.run_token
         self.history = DayHistory(self.journal)
         self._listen()
         if before_start is not None:
@@ -196,8 +206,9 @@ class MarketDay:
             out = steps[phase]()
             timings[phase] = time.monotonic() - start
         self._resumed = None
-        statements, totals = out
-        return DayResult(day, s.market_day, c.islanded(day), self.clearing, statements, totals, copy.copy(s), timings)
+        statements, totals, locked_out = out
+        return DayResult(day, s.market_day, c.islanded(day), self.clearing, statements, totals, copy.copy(s), timings,
+                         locked_out)
 
     def _settled_again(self, closed: DayState) -> DayResult:
         """A day finished before the DMO restarted, settled again from its journal (nothing is published)."""
@@ -210,11 +221,9 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("registration", c.registration_s)
 
-        def accept(key, msg):
+        def accept(msg):
             if not isinstance(msg, Registration):
-                return self._refuse(key, msg, acceptance.out_of_phase(msg, s.phase))
-            if msg.sender in s.registered:
-                return self._refuse(key, msg, acceptance.repeated("registration", msg.sender))
+                return acceptance.out_of_phase(msg, s.phase)
             s.registered[msg.sender] = msg
             s.meter[msg.sender] = {}
             log.info("registered %s (%d/%d)", msg.sender, len(s.registered), c.agents)
@@ -257,24 +266,28 @@ class MarketDay:
             self._grid = outbox.grid_state(c, s.day, hour)
             self._publish(self._grid)
 
-            def accept(key, msg, hour=hour):
+            def accept(msg, hour=hour, grid=self._grid):
                 if not isinstance(msg, MeterReport):
-                    return self._refuse(key, msg, acceptance.out_of_phase(msg, s.phase))
+                    return acceptance.out_of_phase(msg, s.phase)
                 refusal = acceptance.check_meter_report(msg, hour, c.subperiods, s.meter[msg.sender],
-                                                        s.registered[msg.sender])
+                                                        s.registered[msg.sender], grid.connected)
                 if refusal:
-                    return self._refuse(key, msg, refusal)
+                    return refusal
                 s.meter[msg.sender][hour - 1] = msg.p_m_mw
+                return None
 
             self._wait(time.monotonic() + c.hour_s, lambda: [a for a in s.live() if (hour - 1) not in s.meter[a]],
                        f"meter report for hour {hour}", accept)
 
-    def _settlement(self) -> tuple[dict[str, Statement], DayTotals]:
+    def _settlement(self) -> tuple[dict[str, Statement], DayTotals, tuple[str, ...]]:
         s, c = self.state, self.config
         self._clock("settlement", c.hour_s)
         while not self.events.empty():  # what arrived since the last hour closed is late, and recorded as such
-            self._handle(self.events.get_nowait(),
-                         lambda key, msg: self._refuse(key, msg, acceptance.out_of_phase(msg, s.phase)))
+            self._handle(self.events.get_nowait(), lambda msg: acceptance.out_of_phase(msg, s.phase))
+        locked_out = tuple(s.guard.locked_out())
+        for agent in locked_out:
+            self._incident(agent, "locked out: a process of it spoke to the DMO, which did not admit it (its "
+                                  "registration was refused, or never came)")
         for incident in s.log.close(s.phase, s.hour):
             log.warning("settlement: %s", incident.reason)
         statements, totals = settlement_of(c, s, self.clearing)
@@ -282,18 +295,18 @@ class MarketDay:
             self._publish(outbox.statement_message(st, s.market_day, *c.rates, c.rule.label))
         self._publish(outbox.day_summary(s.market_day, s.registered, self.clearing.price, statements, s.rejected,
                                          s.incidents))
-        return statements, totals
+        return statements, totals, locked_out
 
     def _first_of_each(self, kind, store: dict, what: str):
         """Accept the first ``kind`` message of each agent into ``store``; refuse repeats and other kinds."""
 
-        def accept(key, msg):
+        def accept(msg):
             if not isinstance(msg, kind):
-                self._refuse(key, msg, acceptance.out_of_phase(msg, self.state.phase))
-            elif msg.sender in store:
-                self._refuse(key, msg, acceptance.repeated(what, msg.sender))
-            else:
-                store[msg.sender] = msg
+                return acceptance.out_of_phase(msg, self.state.phase)
+            if msg.sender in store:
+                return acceptance.repeated(what, msg.sender)
+            store[msg.sender] = msg
+            return None
 
         return accept
 
@@ -327,18 +340,12 @@ class MarketDay:
     def _left(self, name: str) -> None:
         s = self.state
         if name in s.registered and name not in s.gone:
+            if name in self.bus.present(timeout_s=PRESENCE_CHECK_S):
+                return  # an earlier process of it left; a restarted one is here (their tokens share the key)
             s.gone.add(name)
             s.vanished[name] = (s.phase, s.hour)
             self._incident(name, "vanished (liveliness lost); what it does not report is settled by the "
                                  "missing-data rule")
-
-    def _rejoin(self, key: str, msg: Registration) -> None:
-        """A registered agent registers again: after vanishing (its process restarted), it rejoins the day."""
-        refusal = rejoin.rejoin_refusal(self.state, msg)
-        if refusal:
-            return self._refuse(key, msg, refusal)
-        rejoin.readmit(self.state, msg.sender)
-        self._incident(msg.sender, f"rejoined after vanishing (registered again); sent {self._resend(msg.sender)}")
 
     def _resend(self, agent: str) -> str:
         """Send an agent that comes back what it needs to go on; say what was sent."""
@@ -356,7 +363,8 @@ class MarketDay:
     # --- plumbing ---------------------------------------------------------------------------------------------
 
     def _listen(self) -> None:
-        self.bus.subscribe(f"{self.bus.keys.prefix}/agent/**", lambda k, m, t: self.events.put(("msg", k, m, t)))
+        self.bus.subscribe(f"{self.bus.keys.prefix}/agent/**", lambda k, m, t, p: self.events.put(("msg", k, m, p)),
+                           payload=True)
         self.bus.watch_presence(lambda name: self.events.put(("join", name)),
                                 lambda name: self.events.put(("leave", name)))
         self.bus.serve(self.bus.keys.everything(), self.history.answer)
@@ -386,6 +394,8 @@ class MarketDay:
                     incident.reason)
 
     def _reject(self, key: str, payload: bytes, err: MessageError, offender: str | None) -> None:
+        """A payload refused: counted, listed, published as a Rejection, and its sender (the agent the key names)
+        gets the refusal as its receipt."""
         listed = self.state.log.count_rejection(err.code)
         if self.journal is not None:
             self.journal.rejected(err.code)
@@ -394,10 +404,8 @@ class MarketDay:
         else:
             log.info("rejected message on %s: %s: %s", key, err.code, err.reason)
         self._publish(make_rejection(key, payload, err, market_day=self.state.market_day, offender=offender))
-
-    def _refuse(self, key: str, msg, refusal: Refusal) -> None:
-        code, reason = refusal
-        self._reject(key, encode(msg), MessageError(reason, code), msg.sender)
+        if offender is not None:
+            self._publish(make_receipt(offender, payload, err, market_day=self.state.market_day))
 
     def _wait(self, deadline: float, waiting_for: Callable[[], list[str]], what: str, accept,
               name_late: bool = True) -> None:
@@ -432,37 +440,22 @@ class MarketDay:
         elif kind == "leave":
             self._left(event[1])
         else:
-            self._received(event[1], event[2], accept)
+            self._received(event[1], event[2], event[3], accept)
 
-    def _received(self, key: str, msg, accept) -> None:
-        """A valid message from an agent: admitted (its day, its sender, its sequence number), then handled."""
-        s = self.state
-        refusal = self._admission(msg)
-        if refusal:
-            return self._refuse(key, msg, refusal)
-        before = s.rejected
-        if isinstance(msg, Registration) and msg.sender in s.registered:
-            self._rejoin(key, msg)
-        elif isinstance(msg, Schedule) and msg.sender in s.rescheduling:
-            s.schedules[msg.sender] = msg
-            s.rescheduling.discard(msg.sender)
-            log.info("%s rescheduled after rejoining", msg.sender)
-        else:
-            accept(key, msg)
-        if s.rejected == before:
-            s.count_accepted(msg)
-            if self.journal is not None:
-                self.journal.accepted(key, msg)
-
-    def _admission(self, msg) -> Refusal | None:
-        s = self.state
-        refusal = acceptance.check_day(msg, s.market_day) or acceptance.check_registered(msg, s.registered)
-        if refusal:
-            return refusal
-        # A restarted agent numbers its messages from 0 again: its re-registration after vanishing is let through.
-        if isinstance(msg, Registration) and msg.sender in s.vanished:
-            return None
-        return s.guard.check(msg.sender, msg.seq)
+    def _received(self, key: str, msg, payload: bytes, accept) -> None:
+        """A valid message from an agent, with the bytes it arrived as, decided by ``intake.receive``: what it took
+        is journaled before its receipt goes (what is receipted survives a restart), a refusal is published, a
+        rejoin is met with what the agent needs; every message gets its receipt."""
+        outcome = intake.receive(self.state, msg, sha256(payload), accept)
+        if outcome.what == intake.REFUSED:
+            code, reason = outcome.refusal
+            return self._reject(key, payload, MessageError(reason, code), msg.sender)
+        if outcome.taken and self.journal is not None:
+            self.journal.accepted(key, payload)
+        self._publish(make_receipt(msg.sender, payload, None, market_day=self.state.market_day))
+        if outcome.what == intake.REJOINED:
+            self._incident(msg.sender, f"rejoined: a restarted process of it registered again; sent "
+                                       f"{self._resend(msg.sender)}")
 
     def _linger(self) -> None:
         """Stay until the live agents have left (they leave once they have the summary), at most ``linger_s``:
@@ -476,6 +469,9 @@ class MarketDay:
                 break
             if event[0] == "leave":
                 waiting.discard(event[1])
+
+
+PRESENCE_CHECK_S = 0.5  # how long a presence check may hold the DMO up (an answer on one host takes milliseconds)
 
 
 def _when(phase: str, hour: int | None) -> str:

@@ -1,7 +1,7 @@
 """The DMO's journal of its day, and how a restarted DMO rebuilds the day from it (docs/faults.md).
 
-One JSON object a line, written as it goes: every clock step, every message the DMO accepted, every incident and
-rejection, and its traffic (every payload sent or received, for late joiners: history.py). Each line reaches the
+One JSON object a line, written as it goes: the run's token, every clock step, every payload the DMO accepted (as
+received), every incident and rejection, and its traffic (every payload sent or received, for late joiners: history.py). Each line reaches the
 OS at once, so a DMO killed with SIGKILL loses nothing it had acted on. A DMO restarted on the same journal, run
 and market day reads it back (``restore``, ``traffic``) and runs again the phase, or the real-time hour, it had
 reached; a journal of another run or day is started afresh.
@@ -15,7 +15,7 @@ import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, encode
+from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, sha256
 
 from .state import DayState
 
@@ -51,8 +51,12 @@ class Journal:
     def clock(self, phase: str, hour: int | None, day: int = 1, market_day: str | None = None) -> None:
         self.write({"clock": phase, "hour": hour, "day": day, "market_day": market_day})
 
-    def accepted(self, key: str, msg) -> None:
-        self.write({"accepted": key, "message": encode(msg).decode()})
+    def run_token(self, token: str) -> None:
+        self.write({"run_token": token})
+
+    def accepted(self, key: str, payload: bytes) -> None:
+        """A payload the DMO accepted, as it received it (valid JSON, so UTF-8 text)."""
+        self.write({"accepted": key, "message": bytes(payload).decode()})
 
     def incident(self, incident: Incident) -> None:
         self.write({"incident": incident.model_dump()})
@@ -82,7 +86,9 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
     if it had not started), and the states of the days it had finished, to give their results again."""
     clock, finished = None, []
     for entry in entries:
-        if "clock" in entry:
+        if "run_token" in entry:
+            state.run_token = entry["run_token"]
+        elif "clock" in entry:
             day, market_day = entry.get("day", 1), entry.get("market_day") or state.market_day
             if day > state.day:
                 finished.append(state.start_day(day, market_day))
@@ -93,10 +99,9 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
         elif "rejected" in entry:
             state.log.count_rejection(entry["rejected"])
         elif "accepted" in entry:
-            msg = decode(entry["message"].encode())
-            if isinstance(msg, Registration):
-                if msg.sender in state.registered:  # it rejoined: a new process, numbering from 0
-                    state.guard.forget(msg.sender)
+            payload = entry["message"].encode()
+            msg = decode(payload)
+            if isinstance(msg, Registration):  # a second one is a rejoin: count_accepted admits its process
                 state.registered.setdefault(msg.sender, msg)
                 state.meter.setdefault(msg.sender, {})
             elif isinstance(msg, Bid):
@@ -105,7 +110,7 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
                 state.schedules[msg.sender] = msg
             elif isinstance(msg, MeterReport):
                 state.meter[msg.sender][msg.hour - 1] = msg.p_m_mw
-            state.count_accepted(msg)
+            state.count_accepted(msg, sha256(payload))
     if clock is not None:
         state.phase, state.hour = clock
     return clock, finished

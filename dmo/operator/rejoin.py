@@ -1,5 +1,6 @@
 """Agents that come back: one that vanished (liveliness lost) and reappears, reconnected or restarted, is sent
-again what it needs to go on; one restarted registers again and, if nothing about it changed, rejoins the day.
+again what it needs to go on; one restarted (a later incarnation of it registers) rejoins the run, if nothing about
+it changed, whatever the DMO saw of its presence and whichever phase the day is in.
 
 Pure decisions on the DMO's state; ``MarketDay`` publishes what they name. Agents take what they already have as
 a no-op, so a message sent again harms no one. Hours an agent does not report are settled by the missing-data
@@ -17,26 +18,25 @@ CALL_FOR_BIDS, AWARD, GRID_STATE = "call_for_bids", "award", "grid_state"
 
 
 def rejoin_refusal(state: DayState, msg: Registration) -> Refusal | None:
-    """Whether a registered agent's new registration is refused: it must have vanished first, register with the
-    same case and limits as at first, and come before settlement."""
+    """Whether a registered agent's new registration is refused: from the process already admitted it is a repeat;
+    from a later one (a restart) it must name the same case and limits as at first."""
     agent = msg.sender
-    if agent not in state.vanished:
+    if msg.incarnation == state.guard.incarnation.get(agent):
         return repeated("registration", agent)
     first = state.registered[agent]
     if (msg.case, msg.max_import_mw, msg.max_export_mw) != (first.case, first.max_import_mw, first.max_export_mw):
         return "invalid", (f"{agent} cannot rejoin: it registered again with another case or other limits than "
                            "at first")
-    if state.phase == "settlement":
-        return "late", f"{agent} cannot rejoin: the day is being settled"
     return None
 
 
-def readmit(state: DayState, agent: str) -> None:
-    """Take a rejoining agent back: live again, numbering its messages from 0, and (once awards are out) owing a
-    new schedule, which is accepted even though it sent one before."""
-    del state.vanished[agent]
+def readmit(state: DayState, msg: Registration) -> None:
+    """Take a restarted agent back: live, its new process admitted (numbering its messages from 0), and (once
+    awards are out, before settlement) owing a new schedule, which is accepted even though it sent one before."""
+    agent = msg.sender
+    state.vanished.pop(agent, None)
     state.gone.discard(agent)
-    state.guard.forget(agent)
+    state.guard.admit(agent, msg.incarnation)
     if state.phase in ("scheduling", "realtime"):
         state.rescheduling.add(agent)
 

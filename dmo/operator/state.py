@@ -16,6 +16,8 @@ from .incidents import IncidentLog
 class DayState:
     """The accepted answers of each agent, presence, the replay guard and the incident log.
 
+    ``run_token`` is the run's token, drawn when the run starts (kept in the journal for a resumed DMO): every
+    message of the run carries it.
     ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``vanished`` maps an agent whose liveliness
     was lost to the (phase, hour) it vanished in (it may come back); ``gone`` holds the agents not live now.
     Registrations, presence and the replay guard belong to the run; the answers, incidents and counts to the
@@ -32,6 +34,8 @@ class DayState:
     guard: SequenceGuard = field(default_factory=SequenceGuard)
     vanished: dict[str, tuple[str, int | None]] = field(default_factory=dict)
     rescheduling: set[str] = field(default_factory=set)  # rejoined agents whose new schedule is awaited
+    again: int = 0  # exact copies of accepted messages received (sent again for want of a receipt), this day
+    run_token: str = ""
     phase: str = "registration"
     hour: int | None = None
     day: int = 1
@@ -44,15 +48,18 @@ class DayState:
         self.day, self.market_day, self.phase, self.hour = day, market_day, "bidding", None
         self.bids, self.schedules, self.rescheduling = {}, {}, set()
         self.meter = {agent: {} for agent in self.registered}
-        self.log, self.accepted = IncidentLog(), collections.Counter()
+        self.log, self.accepted, self.again = IncidentLog(), collections.Counter(), 0
         return closed
 
     def live(self) -> list[str]:
         return sorted(a for a in self.registered if a not in self.gone)
 
-    def count_accepted(self, msg) -> None:
-        """An accepted message: a copy of it, or anything older from its sender, is refused from now on."""
-        self.guard.accept(msg.sender, msg.seq)
+    def count_accepted(self, msg, sha256: str) -> None:
+        """An accepted message, whose payload hashes to ``sha256``: from now on a copy of it is that message again,
+        and anything older from its sender, or another payload under its number, is refused."""
+        if isinstance(msg, Registration) and self.guard.incarnation.get(msg.sender) != msg.incarnation:
+            self.guard.admit(msg.sender, msg.incarnation)  # its first registration, or its rejoin
+        self.guard.accept(msg.sender, msg.seq, sha256)
         self.accepted[msg.kind] += 1
 
     @property

@@ -4,9 +4,10 @@
 It stands in for the recorded DMO step by step: the recorded clock, call for bids, the agent's recorded award and
 each hour's recorded grid state, each step sent once the live agent has answered the one before (its
 registration, bid, schedule, the hour's meter report) or the timeout has passed. The agent's answers are accepted
-by the same rules as the live DMO's (market/acceptance.py) and settled as the DMO settles (the award's penalty,
-credit and sub-periods, its registration's max import for missing data); the new statement and a day summary are
-sent to it.
+by the same rules as the live DMO's (market/acceptance.py), bound to the recorded run's token, each answered with
+a receipt, and settled as the DMO settles (the award's penalty, credit and sub-periods, its registration's max
+import for missing data); the new statement and a day summary are sent to it. Like the DMO, it answers queries
+with the latest message it sent on each key (the agent asks for the clock before it registers).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import queue
 import threading
 import time
 
-from messages import Bid, MeterReport, Registration, Schedule, decode, encode, make_rejection
+from messages import Bid, MeterReport, Registration, Schedule, decode, encode, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.recording import Player, RecordedMessage, Recording
 from messages.transport import Bus
@@ -26,6 +27,7 @@ from messages.transport import Bus
 from ..market import acceptance
 from ..market.acceptance import Refusal
 from ..market.settlement import settlement_day
+from ..operator.history import DayHistory
 from ..operator.outbox import day_summary
 from .resettle import RecordedDay, as_message, recorded_rule
 
@@ -49,10 +51,18 @@ class AsDmo:
         self.incidents: list[str] = []
         self.rejected = 0
         self.phase, self.hour = "registration", None
+        self.grid: tuple[bool, ...] | None = None  # the hour's recorded grid state
+        self.taken: set[str] = set()  # SHA-256 of each payload accepted: a copy of one is receipted again
+        self.history = DayHistory()
+        self.run_token = steps[0][0].run if steps else ""
+        bus.run_token = self.run_token
+        bus.tap = self.history.record
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
 
     def run(self, stop: threading.Event) -> dict:
-        self.bus.subscribe(self.bus.keys.agent_all(self.agent), lambda k, m, t: self.events.put(("msg", k, m)))
+        self.bus.subscribe(self.bus.keys.agent_all(self.agent), lambda k, m, t, p: self.events.put(("msg", k, m, p)),
+                           payload=True)
+        self.bus.serve(self.bus.keys.everything(), self.history.answer)
         with self.player:
             for clock, messages in self.steps:
                 if stop.is_set():
@@ -62,6 +72,9 @@ class AsDmo:
                     break
                 for m in messages:
                     self.player.publish(m)
+                    self.history.record(self.player.key(m), m.payload, time.time_ns())
+                    if m.kind == "grid_state":
+                        self.grid = decode(m.payload).connected
                 self._await_answer(stop)
                 if clock.phase == "registration" and self.registration is None:
                     raise RuntimeError(f"agent {self.agent} did not register within {self.timeout_s:g} s")
@@ -106,11 +119,17 @@ class AsDmo:
             _, key, payload, err = event
             self._reject(key, payload, err)
             return
-        _, key, msg = event
+        _, key, msg, payload = event
+        if sha256(payload) in self.taken:  # sent again for want of a receipt
+            self.bus.publish(make_receipt(self.agent, payload, None, market_day=self.day.market_day))
+            return
         refusal = self.refusal(msg)
         if refusal:
-            self._refuse(key, msg, refusal)
-        elif isinstance(msg, Registration):
+            code, reason = refusal
+            return self._reject(key, payload, MessageError(reason, code))
+        self.taken.add(sha256(payload))
+        self.bus.publish(make_receipt(self.agent, payload, None, market_day=self.day.market_day))
+        if isinstance(msg, Registration):
             self.registration = msg
             self.answered.add("registration")
         elif isinstance(msg, MeterReport):
@@ -120,7 +139,7 @@ class AsDmo:
 
     def refusal(self, msg) -> Refusal | None:
         """The live DMO's rules (market/acceptance.py), for the one agent of this day."""
-        refusal = acceptance.check_day(msg, self.day.market_day)
+        refusal = acceptance.check_run(msg, self.run_token) or acceptance.check_day(msg, self.day.market_day)
         if refusal:
             return refusal
         if isinstance(msg, Registration) and self.registration is not None:
@@ -131,7 +150,7 @@ class AsDmo:
             return refusal
         if self.phase == "realtime" and isinstance(msg, MeterReport):
             return acceptance.check_meter_report(msg, self.hour, self.day.terms.subperiods, self.meter,
-                                                 self.registration)
+                                                 self.registration, self.grid)
         kind, what = _EXPECTED.get(self.phase, (None, None))
         if kind is not None and isinstance(msg, kind):
             return acceptance.repeated(what, msg.sender) if what in self.answered else None
@@ -140,15 +159,12 @@ class AsDmo:
     def _when(self) -> str:
         return f"{self.phase}{f' hour {self.hour}' if self.hour else ''}"
 
-    def _refuse(self, key: str, msg, refusal: Refusal) -> None:
-        code, reason = refusal
-        self._reject(key, encode(msg), MessageError(reason, code))
-
     def _reject(self, key: str, payload: bytes, err: MessageError) -> None:
         self.rejected += 1
         self.incidents.append(f"{self._when()}: rejected message on {key.split('/', 2)[-1]}: {err.reason}")
         log.warning(self.incidents[-1])
         self.bus.publish(make_rejection(key, payload, err, market_day=self.day.market_day, offender=self.agent))
+        self.bus.publish(make_receipt(self.agent, payload, err, market_day=self.day.market_day))
 
     def _settle(self) -> dict:
         day, terms, agent = self.day, self.day.terms, self.agent

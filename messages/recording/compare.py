@@ -8,22 +8,25 @@ import json
 
 from .reader import Recording
 
-_TIMESTAMPS = ("sent_at", "received_at")
+# What differs between two runs of one experiment: clocks, the run's token and processes, and so the numbering and
+# the hashes of what was sent (a message sent again for want of a receipt shifts its sender's later numbers).
+_STAMPS = ("sent_at", "received_at", "run", "incarnation", "seq", "payload_sha256")
 
 
-def content_signature(rec: Recording) -> dict[str, collections.Counter[str]]:
-    """What a recording says, apart from timestamps: per key relative to the run prefix, the multiset of its
-    payloads with ``sent_at`` (and a rejection's ``received_at``) removed, as canonical JSON. Two runs of the same
-    configuration and seed give equal signatures; run ids and clocks differ, contents do not."""
-    out: dict[str, collections.Counter[str]] = collections.defaultdict(collections.Counter)
+def content_signature(rec: Recording) -> dict[str, set[str]]:
+    """What a recording says, apart from what differs between runs: per key relative to the run prefix, the set
+    of its payloads without their stamps (time, run token, incarnation, sequence number, the hash a receipt or a
+    rejection names), as canonical JSON. A message sent again says nothing new. Two runs of the same configuration
+    and seed give equal signatures; run ids, clocks and retransmissions differ, contents do not."""
+    out: dict[str, set[str]] = collections.defaultdict(set)
     for m in rec.messages:
         try:
             data = json.loads(m.payload)
         except (ValueError, RecursionError):
-            out[m.relative_key][base64.b64encode(m.payload).decode()] += 1
+            out[m.relative_key].add(base64.b64encode(m.payload).decode())
             continue
         if isinstance(data, dict):
-            for name in _TIMESTAMPS:
+            for name in _STAMPS:
                 data.pop(name, None)
-        out[m.relative_key][json.dumps(data, sort_keys=True)] += 1
+        out[m.relative_key].add(json.dumps(data, sort_keys=True))
     return dict(out)

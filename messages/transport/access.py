@@ -37,6 +37,7 @@ READERS = ("recorder",)              # processes that may hear everything of the
 # What the DMO says to every agent. A rejection carries the key, code and reason of a refused message (never its
 # payload); it is public so an agent learns why its own message was refused, e.g. a refused rejoin.
 PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "summary", "rejected")
+PRIVATE_TOPICS = ("award", "statement", "receipt")  # what the DMO says to one agent, each on dmo/<topic>/<id>
 AGENT_TOPICS = ("register", "bid", "schedule", "meter")        # what an agent says, each on agent/<id>/<topic>
 
 _ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -58,7 +59,7 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
     - a reader (the recorder): subscribe to everything of the run and query it (the DMO's history of the day),
       publish nothing, announce only itself.
     - agent X: publish only its own ``agent/X/{register,bid,schedule,meter}``; subscribe to, receive and query
-      only the public DMO topics and ``dmo/award/X``, ``dmo/statement/X``; announce ``alive/X``; see the DMO's
+      only the public DMO topics and ``dmo/award/X``, ``dmo/statement/X``, ``dmo/receipt/X``; announce ``alive/X``; see the DMO's
       presence.
 
     Subjects are usernames (``transport/auth/usrpwd``); with ``tls`` a subject must also present a client
@@ -97,8 +98,8 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
               ("watch", ("ingress",), ("declare_liveliness_subscriber", "liveliness_query"), (f"{alive}/*",)),
               ("see", ("egress",), ("liveliness_token",), (f"{alive}/*",)))
     for agent in agents:
-        hears = [f"{prefix}/dmo/{topic}" for topic in PUBLIC_TOPICS] + [f"{prefix}/dmo/award/{agent}",
-                                                                        f"{prefix}/dmo/statement/{agent}"]
+        hears = ([f"{prefix}/dmo/{topic}" for topic in PUBLIC_TOPICS]
+                 + [f"{prefix}/dmo/{topic}/{agent}" for topic in PRIVATE_TOPICS])
         grant(agent,
               ("publish", ("ingress",), ("put",), [f"{prefix}/agent/{agent}/{topic}" for topic in AGENT_TOPICS]),
               ("subscribe", ("ingress",), ("declare_subscriber",), hears),

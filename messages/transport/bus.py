@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 MODES = ("peer", "client", "router")
 
 Handler = Callable[[str, Message, int], None]             # (key, message, received_at ns)
+PayloadHandler = Callable[[str, Message, int, bytes], None]  # ... and the payload's bytes as they arrived
 RawHandler = Callable[[str, bytes, int], None]            # (key, payload, received_at ns)
 RejectHook = Callable[[str, bytes, MessageError], None]   # (key, payload, error: str(error) is the reason)
 Tap = Callable[[str, bytes, int], None]                   # (key, payload, ns): each payload sent or received
@@ -125,7 +126,10 @@ class Subscription:
 
 class Bus:
     """One process's Zenoh session for one run. Use as a context manager; everything declared on it is closed
-    with it. ``name`` is this process's sender id ("dmo", "recorder" or an agent id) and its liveliness name."""
+    with it. ``name`` is this process's sender id ("dmo", "recorder" or an agent id) and its liveliness name.
+
+    Every message it publishes carries ``run_token`` (the run's token: the DMO draws it, the others learn it from the
+    DMO's clock and set it here) and ``incarnation`` (this process: its bus's creation time, ns)."""
 
     def __init__(self, run_id: str, name: str, config: BusConfig | None = None, *,
                  on_reject: RejectHook | None = None, announce: bool = True):
@@ -141,6 +145,8 @@ class Bus:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._subscriptions: list[Subscription] = []
         self._seq = 0
+        self.incarnation = time.time_ns()
+        self.run_token = ""
         self._send_lock = threading.RLock()  # also guards the publisher cache
         self._state_lock = threading.Lock()
         self._published = 0
@@ -212,12 +218,14 @@ class Bus:
     # --- sending -----------------------------------------------------------------------------------------
 
     def publish(self, msg: Envelope, key: str | None = None) -> Message:
-        """Stamp ``seq`` (this sender's next number) and ``sent_at`` (now, ns), and put the message on its key
-        (``keys.for_message`` unless given; a given key must fit the message). Returns the stamped message."""
+        """Stamp ``run`` (the run's token), ``incarnation``, ``seq`` (this sender's next number) and ``sent_at`` (now,
+        ns), and put the message on its key (``keys.for_message`` unless given; a given key must fit the message).
+        Returns the stamped message; ``encode`` of it is the payload sent."""
         if msg.sender != self.name:
             raise ValueError(f"bus {self.name!r} cannot publish a message from {msg.sender!r}")
         with self._send_lock:
-            stamped = msg.model_copy(update={"seq": self._seq, "sent_at": time.time_ns()})
+            stamped = msg.model_copy(update={"run": self.run_token, "incarnation": self.incarnation,
+                                             "seq": self._seq, "sent_at": time.time_ns()})
             key = key or self.keys.for_message(stamped)
             check_route(key, stamped, self.keys.run_id)
             payload = encode(stamped)
@@ -228,6 +236,16 @@ class Bus:
             self._seq += 1
             self._published += 1
         return stamped
+
+    def republish(self, key: str, payload: bytes) -> None:
+        """Put a payload this bus published before again, as it was (same seq): through the faults like any
+        publication, since a message sent again crosses the same network."""
+        self._own(key)
+        with self._send_lock:
+            if self.faults is None:
+                self._put(key, payload)
+            else:
+                self.faults.send(key, payload, self._put)
 
     def publish_raw(self, key: str, payload: bytes) -> None:
         """Put bytes as they are (replay, fault injection); no stamping, no checks beyond the run prefix."""
@@ -275,26 +293,28 @@ class Bus:
 
     # --- receiving ---------------------------------------------------------------------------------------
 
-    def subscribe(self, pattern: str, handler: Handler) -> Subscription:
-        """Deliver each valid message on keys matching ``pattern`` as handler(key, message, received_at_ns).
-        Payloads that do not decode, or do not belong on their key, go to ``on_reject`` instead."""
+    def subscribe(self, pattern: str, handler: Handler | PayloadHandler, *, payload: bool = False) -> Subscription:
+        """Deliver each valid message on keys matching ``pattern`` as handler(key, message, received_at_ns), and with
+        ``payload`` also the bytes as they arrived (handler(key, message, received_at_ns, payload)). Payloads that do
+        not decode, or do not belong on their key, go to ``on_reject`` instead."""
+        deliver = handler if payload else (lambda key, msg, at, _: handler(key, msg, at))
 
         def on_sample(sample: zenoh.Sample) -> None:
             received_at = time.time_ns()
             if sample.kind != zenoh.SampleKind.PUT:
                 return
-            key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            self._tapped(key, payload, received_at)
+            key, data = str(sample.key_expr), sample.payload.to_bytes()
+            self._tapped(key, data, received_at)
             try:
-                msg = decode(payload, expected_kind=parse_key(key).kind)
+                msg = decode(data, expected_kind=parse_key(key).kind)
                 check_route(key, msg, self.keys.run_id)
             except MessageError as err:
-                self._reject(key, payload, err)
+                self._reject(key, data, err)
                 return
             with self._state_lock:
                 self._received += 1
             try:
-                handler(key, msg, received_at)
+                deliver(key, msg, received_at, data)
             except Exception:
                 with self._state_lock:
                     self._handler_errors += 1

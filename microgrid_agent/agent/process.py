@@ -7,16 +7,18 @@ and its own statement (if the summary comes first, it asks the DMO for the state
 then says it gave up); the run ends with the last day the DMO's clock announces, or when the agent hears nothing
 for ``idle_s``.
 
-What the DMO sends is handled idempotently: a repeated call for bids or award, or the grid state of an hour
-already operated, changes nothing. A grid state after a gap (the agent restarted, or lost the DMO for a while)
-first brings the day up to that hour, unreported. The DMO's rejections of the agent's own messages are logged
-with their reason, and a refused registration ends the agent with that reason (exit 1).
+Nothing is waited out for want of one message (docs/protocol.md, "Receipts and sending again"): what the agent
+sends goes again until the DMO's receipt comes (delivery.py), and when the DMO has been silent for a while the
+agent asks it for the latest of what it is waiting for (its clock, the call for bids, the award, the grid state,
+the statement and summary). What the DMO sends is handled idempotently: a repeated call for bids or award, or the
+grid state of an hour already operated, changes nothing. A grid state after a gap (the agent restarted, or lost
+the DMO for a while) first brings the day up to that hour, unreported. A refusal in a receipt is logged with its
+reason, and a refused registration ends the agent with that reason (exit 1).
 """
 
 from __future__ import annotations
 
 import collections
-import hashlib
 import json
 import logging
 import queue
@@ -26,7 +28,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
-                      Registration, Rejection, Schedule, SettlementStatement, check_route, decode, encode)
+                      Receipt, Registration, Schedule, SettlementStatement, check_route, decode, encode)
+from messages.keys import parse_key
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
@@ -35,6 +38,7 @@ from scenarios.horizon import HOURS
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
 from .bidding import bid_curve
+from .delivery import Delivery
 from .realtime import Operator
 
 log = logging.getLogger("dmosim.agent")
@@ -80,11 +84,8 @@ class MicrogridAgent:
         self.events: queue.Queue = queue.Queue()
         self.compute: list[dict] = []  # per message handled: kind, hour, wall_s, cpu_s (read by dmosim bench day)
         self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
-        self._sent: dict[str, tuple[str, int]] = {}  # sha256 of each payload published -> (kind, seq)
-        # (market day, phase, hour) -> (key, payload) of each answer, and the clock steps seen
-        self._answers: dict[tuple[str, str, int | None], tuple[str, bytes]] = {}
-        self._clocks: set[tuple[str, str, int | None]] = set()
-        self.resent = 0
+        self.delivery = Delivery(bus.republish)
+        self.asked = 0  # messages the agent asked the DMO for (it had heard nothing for a while) and handled
         self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
         self._ahead: list = []  # messages of a later market day than the one being run, kept for it
         self._start_day()
@@ -107,11 +108,18 @@ class MicrogridAgent:
         return self.bus.name
 
     def run(self) -> DaySummary:
+        try:
+            return self._run()
+        finally:
+            self.delivery.close()
+
+    def _run(self) -> DaySummary:
         k = self.bus.keys
         put = lambda key, msg, t: self.events.put(msg)  # noqa: E731
         for pattern in (k.clock(), k.call_for_bids(), k.award(self.id), k.grid(), k.statement(self.id),
-                        k.summary(), k.rejected()):
+                        k.summary()):
             self.bus.subscribe(pattern, put)
+        self.bus.subscribe(k.receipt(self.id), self._receipt_arrived)
         self.bus.wait_for_subscribers(k.register(self.id), self.config.idle_s)
         self._join_where_the_run_is()
         grid = self.case.grid
@@ -133,31 +141,93 @@ class MicrogridAgent:
     def _run_day(self) -> None:
         """Handle what comes until the day's summary."""
         while self.summary is None:
-            try:
-                msg = self.events.get(timeout=self.config.idle_s)
-            except queue.Empty:
-                raise AgentTimeout(f"{self.id}: nothing from the DMO for {self.config.idle_s:g} s") from None
+            msg = self._next_message()
+            if isinstance(msg, tuple):  # a refusal in a receipt: no computation to account for
+                self._handle(msg)
+                continue
             started, self._answering = (time.perf_counter(), time.process_time()), None
             self._handle(msg)
             ended = self._answering or (time.perf_counter(), time.process_time())
             self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None), "day": self.day,
                                  "wall_s": ended[0] - started[0], "cpu_s": ended[1] - started[1]})
 
-    def _join_where_the_run_is(self) -> None:
-        """Ask the DMO for its clock (docs/protocol.md, "Asking the DMO"): an agent started, or restarted, after
-        the run began joins its current day. A DMO not up yet answers nothing: the day is the one given."""
-        for key, payload, _ in self.bus.fetch(self.bus.keys.clock(), timeout_s=2.0):
+    def _next_message(self):
+        """The next message from the DMO. When it has been silent for a while, ask it for the latest of what this
+        agent waits for (a message of it may have been lost), then again at doubling intervals; give up after
+        ``idle_s`` of silence."""
+        silent_since, wait = time.monotonic(), ASK_AFTER_S
+        while True:
             try:
-                clock = decode(payload, expected_kind="clock")
-                check_route(key, clock, self.bus.keys.run_id)
-            except MessageError:
-                continue
-            self.days, self.market_day = clock.days, clock.market_day  # the DMO's day, whatever we were told
-            if clock.day > 1:
-                self.day = clock.day
-                self.case = self._day_case(self.base, clock.day)
-                log.warning("%s: the run is at day %d of %d (%s): joining it there, from the case's own initial "
-                            "state", self.id, clock.day, clock.days, clock.market_day)
+                return self.events.get(timeout=wait)
+            except queue.Empty:
+                pass
+            if time.monotonic() - silent_since >= self.config.idle_s:
+                raise AgentTimeout(f"{self.id}: nothing from the DMO for {self.config.idle_s:g} s")
+            self._ask_the_dmo()
+            wait = min(2 * wait, ASK_AT_MOST_S, max(0.05, silent_since + self.config.idle_s - time.monotonic()))
+
+    def _ask_the_dmo(self) -> None:
+        """Ask the DMO (docs/protocol.md, "Asking the DMO") for the latest message on each key this agent waits on,
+        and handle the answers as if they had come: what was handled already is a no-op."""
+        k = self.bus.keys
+        keys = [k.clock()]
+        if not self._bid_sent:
+            keys.append(k.call_for_bids())
+        if self.award is None:
+            keys.append(k.award(self.id))
+        elif self.operator is not None and self.operator.next_hour <= HOURS:
+            keys.append(k.grid())
+        if self.statement is None:
+            keys += [k.statement(self.id), k.summary()]
+        for msg in self._latest(keys):
+            if msg.kind == "clock" or (msg.market_day == self.market_day and self._new(msg)):
+                self.asked += 1
+                self.events.put(msg)
+
+    def _new(self, msg) -> bool:
+        """Whether an answer of the DMO's tells this agent something it has not handled yet."""
+        if isinstance(msg, CallForBids):
+            return not self._bid_sent
+        if isinstance(msg, Award):
+            return self.award is None
+        if isinstance(msg, GridState):
+            return self.operator is None or msg.hour >= self.operator.next_hour
+        if isinstance(msg, SettlementStatement):
+            return self.statement is None
+        return isinstance(msg, DaySummary) and self.summary is None
+
+    def _latest(self, keys: list[str]) -> list:
+        """The DMO's latest valid message of this run on each of ``keys`` (none where it answers nothing)."""
+        out = []
+        for key in keys:
+            for found, payload, _ in self.bus.fetch(key, timeout_s=2.0):
+                try:
+                    msg = decode(payload, expected_kind=parse_key(found).kind)
+                    check_route(found, msg, self.bus.keys.run_id)
+                except MessageError as err:
+                    log.warning("%s: the DMO's answer on %s is refused: %s", self.id, found, err)
+                    continue
+                if msg.run == self.bus.run_token or not self.bus.run_token:
+                    out.append(msg)
+        return out
+
+    def _join_where_the_run_is(self) -> None:
+        """Ask the DMO for its clock (docs/protocol.md, "Asking the DMO") until it answers, at most ``idle_s``: its
+        answer gives the run's token, which every message carries, and where the run is. An agent started, or
+        restarted, after the run began joins its current day."""
+        deadline = time.monotonic() + self.config.idle_s
+        while not (clocks := self._latest([self.bus.keys.clock()])):
+            if time.monotonic() >= deadline:
+                raise AgentTimeout(f"{self.id}: the DMO did not answer for {self.config.idle_s:g} s")
+            time.sleep(ASK_AFTER_S / 4)  # a DMO not up yet answers nothing, at once
+        clock = clocks[0]
+        self.bus.run_token = clock.run
+        self.days, self.market_day = clock.days, clock.market_day  # the DMO's day, whatever we were told
+        if clock.day > 1:
+            self.day = clock.day
+            self.case = self._day_case(self.base, clock.day)
+            log.warning("%s: the run is at day %d of %d (%s): joining it there, from the case's own initial "
+                        "state", self.id, clock.day, clock.days, clock.market_day)
 
     def _next_day(self) -> None:
         """Carry the microgrid across midnight: the next day's case starts where the realised operation ended."""
@@ -192,7 +262,7 @@ class MicrogridAgent:
                 continue
             self.events.put(msg)
         deadline = time.monotonic() + self.config.statement_s
-        while self.statement is None and (left := deadline - time.monotonic()) > 0:
+        while self.statement is None and (left := deadline - time.monotonic()) > 0:  # receipts may still come
             try:
                 self._handle(self.events.get(timeout=left))
             except queue.Empty:
@@ -204,17 +274,23 @@ class MicrogridAgent:
     def message_counts(self) -> dict:
         """What the agent received and refused (transport), handled as no-ops, and injected as faults."""
         faults = self.bus.faults.summary() if getattr(self.bus, "faults", None) is not None else {}
-        return {"transport": self.bus.stats(), "ignored": dict(self.ignored), "answers_sent_again": self.resent,
+        return {"transport": self.bus.stats(), "ignored": dict(self.ignored), "sent_again": self.delivery.resent,
+                "asked": self.asked,
                 "faults_injected": faults}
 
     def _publish(self, msg) -> None:
+        """Publish, and send again until the DMO's receipt comes."""
         stamped = self.bus.publish(msg)
-        payload = encode(stamped)
-        self._sent[hashlib.sha256(payload).hexdigest()] = (stamped.kind, stamped.seq)
-        phase = _ANSWERS.get(stamped.kind)
-        if phase is not None:
-            step = (stamped.market_day, phase, getattr(stamped, "hour", None))
-            self._answers[step] = (self.bus.keys.for_message(stamped), payload)
+        self.delivery.sent(self.bus.keys.for_message(stamped), encode(stamped), stamped.kind, stamped.seq)
+
+    def _receipt_arrived(self, key: str, receipt: Receipt, received_at: int) -> None:
+        """On Zenoh's thread: stop sending the payload again at once (the main thread may be solving), then let the
+        main thread see a refusal."""
+        if receipt.run != self.bus.run_token:
+            return
+        mine = self.delivery.receipt(receipt)
+        if mine is not None and not receipt.accepted:
+            self.events.put((receipt, mine))
 
     def _answer(self, msg) -> None:
         """Publish the answer to the message being handled. Its computation ends as it goes out: sending it is the
@@ -223,14 +299,18 @@ class MicrogridAgent:
         self._publish(msg)
 
     def _handle(self, msg) -> None:
+        if isinstance(msg, tuple):  # a refusal in a receipt, with what it refused
+            return self._refused(*msg)
+        if msg.run != self.bus.run_token:
+            self.ignored["wrong_run"] += 1
+            log.warning("%s: ignoring %s of another run (token %r)", self.id, msg.kind, msg.run)
+            return
         if (self.day < self.days and msg.market_day == market_days(self.market_day, 2)[1]
                 and len(self._ahead) < MAX_AHEAD):
             self._ahead.append(msg)  # the DMO has started the next day while this one waits for its statement
         elif msg.market_day != self.market_day:
             self.ignored["wrong_day"] += 1
             log.warning("%s: ignoring %s for market day %s", self.id, msg.kind, msg.market_day)
-        elif isinstance(msg, Rejection):
-            self._rejected(msg)
         elif isinstance(msg, Clock):
             self._clock(msg)
         elif isinstance(msg, CallForBids):
@@ -285,28 +365,15 @@ class MicrogridAgent:
                                     connected=connected))
 
     def _clock(self, clock: Clock) -> None:
-        """A clock step seen before, and answered, means that the DMO restarted and runs that step again: the
-        answer it may have missed goes again, byte for byte (same seq), so the DMO takes it at most once. (Only a
-        repeat counts: messages on different keys may overtake each other, so an answer can precede its clock.)"""
+        """The clock says how many days the run has. (An answer the DMO lost, restarting, needs nothing here: it
+        had no receipt, so it is still being sent.)"""
         self.days = clock.days
-        step = (clock.market_day, clock.phase, clock.hour)
-        answer = self._answers.get(step) if step in self._clocks else None
-        self._clocks.add(step)
-        if answer is not None:
-            self.bus.publish_raw(*answer)
-            self.resent += 1
-            log.warning("%s: the DMO runs %s%s again (restarted?): sent my answer again", self.id, clock.phase,
-                        f" hour {clock.hour}" if clock.hour else "")
 
-    def _rejected(self, rejection: Rejection) -> None:
-        mine = self._sent.get(rejection.payload_sha256) if rejection.offender == self.id else None
-        if mine is None:  # someone else's message, or one published in this agent's name by someone else
-            self.ignored["rejection_of_another_message"] += 1
-            return
+    def _refused(self, receipt: Receipt, mine: tuple[str, int]) -> None:
         kind, seq = mine
-        log.warning("%s: the DMO rejected my %s #%d (%s): %s", self.id, kind, seq, rejection.code, rejection.reason)
-        if kind == "registration" and rejection.code != "duplicate":
-            raise AgentRefused(f"{self.id}: the DMO refused the registration ({rejection.code}): {rejection.reason}")
+        log.warning("%s: the DMO refused my %s #%d (%s): %s", self.id, kind, seq, receipt.code, receipt.reason)
+        if kind == "registration" and receipt.code != "duplicate":
+            raise AgentRefused(f"{self.id}: the DMO refused the registration ({receipt.code}): {receipt.reason}")
 
     def _operate(self, grid: GridState) -> None:
         if grid.subperiods != (self.award.subperiods if self.award else grid.subperiods):
@@ -344,7 +411,8 @@ class MicrogridAgent:
 
 
 MAX_AHEAD = 1000  # messages of the next day kept while this one ends (the DMO sends a few dozen a day)
-_ANSWERS = {"bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}  # answer kind -> its phase
+ASK_AFTER_S = 1.0     # silence after which the agent asks the DMO for what it waits for ...
+ASK_AT_MOST_S = 8.0   # ... then at doubling intervals up to this
 
 
 def _terms(award: Award) -> dict:

@@ -18,20 +18,21 @@ from dmo.operator.incidents import IncidentLog
 from dmo.operator.journal import Journal, restore, traffic
 from dmo.operator.rejoin import AWARD, CALL_FOR_BIDS, GRID_STATE, readmit, rejoin_refusal, resend_plan
 from dmo.operator.state import DayState
-from messages import Bid, MeterReport, Registration, decode, encode
+from messages import Bid, MeterReport, Registration, decode, encode, sha256
 from scenarios.horizon import HOURS
 
 DAY = "2026-07-01"
 K = 2
 
 
-def registration(agent="mg1", case="paper", cap=10.0, seq=0):
-    return Registration(sender=agent, market_day=DAY, case=case, max_import_mw=cap, max_export_mw=cap, seq=seq)
+def registration(agent="mg1", case="paper", cap=10.0, seq=0, incarnation=1):
+    return Registration(sender=agent, market_day=DAY, case=case, max_import_mw=cap, max_export_mw=cap, seq=seq,
+                        incarnation=incarnation)
 
 
-def meter(agent="mg1", hour=1, p_m=(1.0, 2.0), seq=0):
+def meter(agent="mg1", hour=1, p_m=(1.0, 2.0), seq=0, incarnation=1):
     return MeterReport(sender=agent, market_day=DAY, hour=hour, subperiods=len(p_m), p_m_mw=p_m,
-                       deviation_mw=tuple(p - 1.0 for p in p_m), seq=seq)
+                       deviation_mw=tuple(p - 1.0 for p in p_m), seq=seq, incarnation=incarnation)
 
 
 def config(**kw):
@@ -42,16 +43,41 @@ def config(**kw):
 
 # --- replay guard ------------------------------------------------------------------------------------------------
 
-def test_guard_refuses_copies_and_overtaken_messages_until_the_sender_restarts():
+def test_guard_takes_copies_as_the_message_again_and_refuses_replays_overtaken_and_earlier_processes():
     guard = SequenceGuard()
+    assert guard.check("mg1", 1, 0, registration=True) is None
+    guard.admit("mg1", 1)
     for seq in (0, 1, 3):
-        assert guard.check("mg1", seq) is None
-        guard.accept("mg1", seq)
-    assert guard.check("mg1", 1)[0] == "duplicate"
-    assert guard.check("mg1", 2)[0] == "late"  # older than #3, which is accepted
-    assert guard.check("mg1", 4) is None and guard.check("mg2", 0) is None  # senders are separate
-    guard.forget("mg1")  # restarted: numbers from 0 again
-    assert guard.check("mg1", 0) is None and guard.check("mg1", 1) is None
+        assert guard.check("mg1", 1, seq, registration=False) is None
+        guard.accept("mg1", seq, f"sha{seq}")
+    assert guard.again("mg1", 1, 1, "sha1") and not guard.again("mg1", 1, 1, "other")  # a copy, or not
+    assert not guard.again("mg1", 2, 1, "sha1")  # the same bytes are never another process's
+    assert guard.check("mg1", 1, 1, registration=False)[0] == "duplicate"  # other content under #1: a replay
+    assert guard.check("mg1", 1, 2, registration=False)[0] == "late"  # older than #3, which is accepted
+    assert guard.check("mg1", 1, 4, registration=False) is None and guard.check("mg2", 5, 0, False) is None
+    assert guard.locked_out() == []
+    # a restarted process (a later incarnation) must register before anything else; an earlier one is stale
+    guard.heard("mg1", 2)
+    assert guard.check("mg1", 2, 0, registration=False)[0] == "unregistered"
+    assert guard.check("mg1", 2, 0, registration=True) is None
+    assert guard.locked_out() == ["mg1"]  # heard, not admitted
+    guard.admit("mg1", 2)  # numbers from 0 again
+    assert guard.locked_out() == [] and guard.check("mg1", 2, 0, registration=False) is None
+    assert guard.check("mg1", 1, 4, registration=False)[0] == "stale"
+    assert not guard.again("mg1", 1, 1, "sha1")  # what the old process sent is not taken again either
+    guard.heard("mg9", 7)  # a stranger that spoke and was never admitted is not of the market
+    assert guard.locked_out() == []
+
+
+def test_the_guard_remembers_a_bounded_window_of_accepted_messages(monkeypatch):
+    monkeypatch.setattr("dmo.operator.guard.REMEMBERED", 4)
+    guard = SequenceGuard()
+    guard.admit("mg1", 1)
+    for seq in range(10):
+        guard.accept("mg1", seq, f"sha{seq}")
+    assert guard.again("mg1", 1, 9, "sha9") and guard.again("mg1", 1, 6, "sha6")
+    assert not guard.again("mg1", 1, 5, "sha5") and guard.check("mg1", 1, 5, registration=False)[0] == "late"
+    assert len(guard.accepted["mg1"]) == 4
 
 
 # --- incidents ---------------------------------------------------------------------------------------------------
@@ -77,14 +103,16 @@ def test_rejections_are_listed_up_to_a_cap_then_counted_and_the_list_is_capped(m
 def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
     path = tmp_path / "dmo.journal"
     journal = Journal(path, "run1", DAY)
+    journal.run_token("ab" * 16)
     journal.clock("registration", None)
     for msg in (registration("mg1"), registration("mg2", seq=0)):
-        journal.accepted(f"dmosim/run1/agent/{msg.sender}/register", msg)
+        journal.accepted(f"dmosim/run1/agent/{msg.sender}/register", encode(msg))
     journal.clock("bidding", None)
-    bid = Bid(sender="mg1", market_day=DAY, hours=((),) * HOURS, seq=1)
-    journal.accepted("dmosim/run1/agent/mg1/bid", bid)
+    bid = Bid(sender="mg1", market_day=DAY, hours=((),) * HOURS, seq=1, incarnation=1)
+    as_received = encode(bid).replace(b'"hours":', b'"hours" :')  # the bytes as they came, not re-encoded
+    journal.accepted("dmosim/run1/agent/mg1/bid", as_received)
     journal.clock("realtime", 3)
-    journal.accepted("dmosim/run1/agent/mg2/meter", meter("mg2", hour=3, seq=2))
+    journal.accepted("dmosim/run1/agent/mg2/meter", encode(meter("mg2", hour=3, seq=2)))
     journal.incident(IncidentLog().add("mg1", "realtime", 3, "late: no meter report for hour 3 by the deadline"))
     journal.rejected("duplicate")
     journal.close()
@@ -95,23 +123,24 @@ def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
     state = DayState()
     assert restore(state, again.entries) == (("realtime", 3), [])
     again.close()
-    assert (state.phase, state.hour) == ("realtime", 3)
+    assert (state.phase, state.hour) == ("realtime", 3) and state.run_token == "ab" * 16
     assert sorted(state.registered) == ["mg1", "mg2"] and state.bids["mg1"] == bid
     assert state.meter == {"mg1": {}, "mg2": {2: (1.0, 2.0)}}
     assert state.accepted == {"registration": 2, "bid": 1, "meter_report": 1}
-    assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg2", 1)[0] == "late"
+    assert state.guard.again("mg1", 1, 1, sha256(as_received))  # the bid sent again is known for what it is
+    assert state.guard.check("mg1", 1, 1, False)[0] == "duplicate" and state.guard.check("mg2", 1, 1, False)[0] == "late"
     assert [i.reason[:4] for i in state.incidents] == ["late"] and state.rejected_by_code == {"duplicate": 1}
 
 
 def test_a_journal_of_several_days_restores_the_finished_days_and_the_one_under_way(tmp_path):
     journal = Journal(tmp_path / "dmo.journal", "run1", DAY)
     journal.clock("registration", None)
-    journal.accepted("dmosim/run1/agent/mg1/register", registration("mg1"))
+    journal.accepted("dmosim/run1/agent/mg1/register", encode(registration("mg1")))
     journal.clock("realtime", 24, day=1, market_day=DAY)
-    journal.accepted("dmosim/run1/agent/mg1/meter", meter("mg1", hour=24, seq=1))
+    journal.accepted("dmosim/run1/agent/mg1/meter", encode(meter("mg1", hour=24, seq=1)))
     journal.incident(IncidentLog().add("mg1", "realtime", 24, "late: day one"))
     journal.clock("bidding", None, day=2, market_day="2026-07-02")
-    journal.accepted("dmosim/run1/agent/mg1/meter", meter("mg1", hour=1, seq=2))
+    journal.accepted("dmosim/run1/agent/mg1/meter", encode(meter("mg1", hour=1, seq=2)))
     journal.close()
     state = DayState()
     clock, finished = restore(state, Journal(tmp_path / "dmo.journal", "run1", DAY).entries)
@@ -120,7 +149,7 @@ def test_a_journal_of_several_days_restores_the_finished_days_and_the_one_under_
     assert (first.day, first.market_day) == (1, DAY) and set(first.meter["mg1"]) == {23}
     assert [i.reason for i in first.incidents] == ["late: day one"] and state.incidents == []
     assert set(state.meter["mg1"]) == {0} and sorted(state.registered) == ["mg1"]  # registration carried over
-    assert state.guard.check("mg1", 1)[0] == "duplicate"  # and so did the replay guard
+    assert state.guard.check("mg1", 1, 1, False)[0] == "duplicate"  # and so did the replay guard
 
 
 def test_a_journal_of_another_run_or_day_is_started_afresh(tmp_path):
@@ -139,9 +168,11 @@ def test_a_journal_of_another_run_or_day_is_started_afresh(tmp_path):
 def test_restoring_a_rejoined_agent_numbers_its_messages_from_zero():
     state = DayState()
     entries = [{"accepted": "k", "message": encode(m).decode()}
-               for m in (registration(seq=0), meter(hour=1, seq=5), registration(seq=0), meter(hour=2, seq=1))]
+               for m in (registration(seq=0), meter(hour=1, seq=5), registration(seq=0, incarnation=2),
+                         meter(hour=2, seq=1, incarnation=2))]
     assert restore(state, entries) == (None, [])  # no clock: the day had not started
-    assert state.guard.check("mg1", 1)[0] == "duplicate" and state.guard.check("mg1", 2) is None
+    assert state.guard.incarnation["mg1"] == 2 and state.guard.check("mg1", 1, 5, False)[0] == "stale"
+    assert state.guard.check("mg1", 2, 1, False)[0] == "duplicate" and state.guard.check("mg1", 2, 2, False) is None
     assert set(state.meter["mg1"]) == {0, 1}
 
 
@@ -170,19 +201,19 @@ def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_surv
 
 # --- agents that come back ---------------------------------------------------------------------------------------
 
-def test_only_a_vanished_agent_with_the_same_case_and_limits_may_rejoin_before_settlement():
-    state = DayState(registered={"mg1": registration()}, phase="realtime", hour=4)
-    assert rejoin_refusal(state, registration())[0] == "duplicate"  # it never vanished
-    state.vanished["mg1"], state.gone = ("realtime", 2), {"mg1"}
-    assert rejoin_refusal(state, registration(case="other"))[0] == "invalid"
-    assert rejoin_refusal(state, registration(cap=11.0))[0] == "invalid"
-    assert rejoin_refusal(state, registration()) is None
-    state.guard.accept("mg1", 7)
-    readmit(state, "mg1")
-    assert "mg1" not in state.vanished and state.live() == ["mg1"] and state.rescheduling == {"mg1"}
-    assert state.guard.check("mg1", 0) is None
-    state.vanished["mg1"], state.phase = ("realtime", 24), "settlement"
-    assert rejoin_refusal(state, registration())[0] == "late"
+@pytest.mark.parametrize("phase", ["registration", "bidding", "scheduling", "realtime", "settlement"])
+def test_a_restarted_agent_with_the_same_case_and_limits_rejoins_whatever_the_dmo_saw_of_its_presence(phase):
+    state = DayState(registered={"mg1": registration()}, phase=phase, hour=4 if phase == "realtime" else None)
+    state.count_accepted(registration(), "sha0")
+    state.guard.accept("mg1", 7, "sha7")
+    assert rejoin_refusal(state, registration(seq=3))[0] == "duplicate"  # the same process registering again
+    assert rejoin_refusal(state, registration(case="other", incarnation=2))[0] == "invalid"
+    assert rejoin_refusal(state, registration(cap=11.0, incarnation=2))[0] == "invalid"
+    assert rejoin_refusal(state, registration(incarnation=2)) is None  # not seen to vanish: taken all the same
+    readmit(state, registration(incarnation=2))
+    assert state.live() == ["mg1"] and state.guard.incarnation["mg1"] == 2
+    assert state.rescheduling == ({"mg1"} if phase in ("scheduling", "realtime") else set())
+    assert state.guard.check("mg1", 2, 0, False) is None and state.guard.check("mg1", 1, 8, False)[0] == "stale"
 
 
 @pytest.mark.parametrize("phase, hour, has_bid, cleared, grid, sent", [

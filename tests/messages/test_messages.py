@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, Award, Bid, BidStep, BusConfig,
                       CallForBids, Clock, DaySummary, GridState, Incident, Keys, MessageError, MeterReport,
                       Registration, Schedule, SettlementStatement, StatementLine, check_route, decode, encode,
-                      json_schema, make_rejection, new_run_id, parse_key, sender_matches_key)
+                      json_schema, make_receipt, make_rejection, new_run_id, parse_key, sender_matches_key)
 from messages.schemas import AgentTotals
 
 DAY = "2024-07-01"
@@ -65,6 +65,7 @@ SAMPLES = {
                                                   reason="no bid by deadline")]),
     "rejection": make_rejection("dmosim/r1/agent/mg1/bid", b"not json", MessageError("not JSON", "not_json"),
                                 market_day=DAY, offender="mg1", received_at=123),
+    "receipt": make_receipt("mg1", b'{"kind":"bid","seq":7}', None, market_day=DAY),
 }
 
 
@@ -129,18 +130,26 @@ def _older(kind: str, version: int, *dropped: str) -> bytes:
     return _bytes({**data, "schema_version": version})
 
 
+BOUND = ("run", "incarnation")  # version 4's envelope fields
+
+
 def test_older_messages_read_as_they_were_meant():
-    """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates."""
-    clock = decode(_older("clock", 1, "day", "days"))
+    """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates; a
+    version-3 message is bound to no run and no process."""
+    clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
-    award = decode(_older("award", 2, "settlement_rule", "deviation_cost"))
+    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", *BOUND))
     assert award.settlement_rule is None and award.deviation_cost is None
     assert award.p_sch_mw == SAMPLES["award"].p_sch_mw
-    assert decode(_older("settlement_statement", 2, "settlement_rule")).settlement_rule is None
+    assert decode(_older("settlement_statement", 2, "settlement_rule", *BOUND)).settlement_rule is None
+    bid = decode(_older("bid", 3, *BOUND))
+    assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
     # a message of an older version that has a later version's field is not upgraded, and a current one that
     # leaves a field out is refused
     _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
+    _rejects(_older("bid", 3, "run"), "invalid", "run")
     _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
+    _rejects(_older("bid", SCHEMA_VERSION, "run"), "invalid", "run")
 
 
 def test_rejects_non_finite_numbers():

@@ -28,11 +28,12 @@ from dmo.cli import main as cli_main
 from dmo.launch.processes import free_port
 from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
-from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Registration,
-                      Rejection, Schedule, decode, encode)
+from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Receipt,
+                      Registration, Schedule, decode, encode)
 from messages.keys import new_run_id
 from messages.transport import Bus, BusConfig
 from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
+from microgrid_agent.agent.delivery import Delivery
 
 DAY = "2026-07-01"
 K = 2
@@ -129,31 +130,48 @@ def test_the_injector_is_seeded_never_blocks_and_counts_what_it_did():
 
 class ScriptedAgent:
     """A stand-in agent without a solver: it bids nothing, schedules nothing and meters its award plus ``excess``
-    MW in every sub-period. ``before_meter(agent, hour)`` runs before each meter report is sent."""
+    MW in every sub-period. ``before_meter(agent, hour)`` runs before each meter report is sent. Like a real agent
+    it learns the run's token from the DMO's clock and sends each message again until its receipt comes
+    (``resend_s`` after the first send)."""
 
-    def __init__(self, run_id: str, name: str, endpoint: str, excess: float = 0.5, faults=(), before_meter=None):
+    def __init__(self, run_id: str, name: str, endpoint: str, excess: float = 0.5, faults=(), before_meter=None,
+                 resend_s: float = 0.5):
         self.name, self.excess, self.before_meter = name, excess, before_meter
         self.bus = Bus(run_id, name, BusConfig(mode="client", connect=(endpoint,))).open()
         if faults:
             self.bus.faults = FaultInjector([parse_message_fault(f) for f in faults], self.bus.keys.prefix, 1, name)
+        self.delivery = Delivery(self.bus.republish, first_s=resend_s)
         self.events: queue.Queue = queue.Queue()
         self.award = None
         self.pending: GridState | None = None
         self.metered = 0
-        self.rejections: list[Rejection] = []
+        self.refusals: list[Receipt] = []
         self.summary = threading.Event()
         self.registered = threading.Event()  # like a real agent, it registers before it handles anything
         k = self.bus.keys
-        for key in (k.call_for_bids(), k.award(name), k.grid(), k.summary(), k.rejected()):
+        for key in (k.call_for_bids(), k.award(name), k.grid(), k.summary()):
             self.bus.subscribe(key, lambda key, msg, at: self.events.put(msg))
+        self.bus.subscribe(k.receipt(name), lambda key, msg, at: self._receipt(msg))
         self.thread = threading.Thread(target=self._loop, daemon=True)
         self.thread.start()
 
     def register(self) -> None:
         assert self.bus.wait_for_subscribers(self.bus.keys.register(self.name), 10)
-        self.bus.publish(Registration(sender=self.name, market_day=DAY, case="scripted", max_import_mw=CAP,
-                                      max_export_mw=CAP))
+        deadline = time.monotonic() + 10
+        while not (clock := self.bus.fetch(self.bus.keys.clock(), timeout_s=1.0)):  # the DMO answers once it listens
+            assert time.monotonic() < deadline, "the DMO never answered for its clock"
+        self.bus.run_token = decode(clock[0][1]).run
+        self.publish(Registration(sender=self.name, market_day=DAY, case="scripted", max_import_mw=CAP,
+                                  max_export_mw=CAP))
         self.registered.set()
+
+    def publish(self, msg) -> None:
+        stamped = self.bus.publish(msg)
+        self.delivery.sent(self.bus.keys.for_message(stamped), encode(stamped), stamped.kind, stamped.seq)
+
+    def _receipt(self, receipt: Receipt) -> None:
+        if self.delivery.receipt(receipt) is not None and not receipt.accepted:
+            self.refusals.append(receipt)
 
     def _loop(self) -> None:
         self.registered.wait()
@@ -165,10 +183,10 @@ class ScriptedAgent:
 
     def _handle(self, msg) -> None:
         if isinstance(msg, CallForBids):
-            self.bus.publish(Bid(sender=self.name, market_day=DAY, hours=((),) * HOURS))
+            self.publish(Bid(sender=self.name, market_day=DAY, hours=((),) * HOURS))
         elif msg.kind == "award" and self.award is None:
             self.award = msg
-            self.bus.publish(Schedule(sender=self.name, market_day=DAY, status="scripted", commitment={},
+            self.publish(Schedule(sender=self.name, market_day=DAY, status="scripted", commitment={},
                                       expected_cost=0.0, p_m_expected_mw=msg.p_sch_mw, scenarios=1, mip_gap=0.0))
             if self.pending is not None:  # the grid state overtook the award
                 self._meter(self.pending)
@@ -177,8 +195,6 @@ class ScriptedAgent:
                 self.pending = msg
             elif msg.hour > self.metered:
                 self._meter(msg)
-        elif isinstance(msg, Rejection) and msg.offender == self.name:
-            self.rejections.append(msg)
         elif isinstance(msg, DaySummary):
             self.summary.set()
 
@@ -187,17 +203,20 @@ class ScriptedAgent:
         if self.before_meter is not None:
             self.before_meter(self, grid.hour)
         p_m = self.award.p_sch_mw[grid.hour - 1] + self.excess
-        self.bus.publish(MeterReport(sender=self.name, market_day=DAY, hour=grid.hour, subperiods=grid.subperiods,
-                                     p_m_mw=(p_m,) * grid.subperiods, deviation_mw=(self.excess,) * grid.subperiods))
+        connected = grid.connected  # islanded: P_M = 0
+        self.publish(MeterReport(sender=self.name, market_day=DAY, hour=grid.hour, subperiods=grid.subperiods,
+                                 p_m_mw=tuple(p_m if up else 0.0 for up in connected),
+                                 deviation_mw=tuple(self.excess if up else -p_m + self.excess for up in connected)))
 
     def close(self) -> None:
         self.registered.set()
         self.events.put(None)
+        self.delivery.close()
         self.bus.close()
 
 
 @contextlib.contextmanager
-def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=None):
+def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=None, resend_s=0.5):
     """A DMO (in a thread) and scripted agents; yields (day, agents, outcome) and closes everything on exit.
     ``outcome`` fills in with "result" (the DayResult) or "error" once the DMO's day is over."""
     run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
@@ -222,7 +241,7 @@ def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=No
         scripted = {}
         for name in agents:
             scripted[name] = ScriptedAgent(run_id, name, endpoint, faults=(faults or {}).get(name, ()),
-                                           before_meter=before_meter)
+                                           before_meter=before_meter, resend_s=resend_s)
             stack.callback(lambda a=name: scripted[a].close())
         for a in scripted.values():
             a.register()
@@ -251,23 +270,27 @@ def baseline():
     return result
 
 
-def test_duplicates_and_replays_are_rejected_once_each_and_change_no_settlement(baseline):
+def test_copies_change_nothing_and_replays_with_other_content_are_refused_once_each(baseline):
     captured: list[tuple[str, bytes]] = []
-    replayed = []
+    copies, forged = [], []
+    changed_payloads: set[bytes] = set()  # not captured for replay: only what the agents said is
 
     def replay_the_past(agent, hour):
-        # Before its own report, the agent's bus plays back what this run's agents said before, byte for byte,
-        # and once more with the content changed but an old seq: replays, each must be refused as a duplicate.
+        # Before its own report, the agent's bus plays back what this run's agents said before, byte for byte (each
+        # an exact copy of an accepted message: it is receipted again and changes nothing), and once more with the
+        # content changed but an old seq: replays, each refused as a duplicate.
         if agent.name != "mg1" or hour % 4:
             return
         for key, payload in list(captured):
             agent.bus.publish_raw(key, payload)
+            copies.append(key)
             msg = decode(payload)
             if isinstance(msg, MeterReport) and msg.hour < hour:  # its seq was accepted already
-                forged = msg.model_copy(update={"hour": hour, "p_m_mw": (0.0,) * K, "deviation_mw": (-AWARD,) * K})
-                agent.bus.publish_raw(key, encode(forged))
-                replayed.append(key)
-            replayed.append(key)
+                changed = encode(msg.model_copy(update={"hour": hour, "p_m_mw": (0.0,) * K,
+                                                        "deviation_mw": (-AWARD,) * K}))
+                changed_payloads.add(changed)
+                agent.bus.publish_raw(key, changed)
+                forged.append(key)
 
     faults = {"mg1": ["duplicate:agent/**:1"], "mg2": ["duplicate:agent/*/meter:0.5"]}
     with scripted_day(faults=faults, before_meter=replay_the_past) as (day, agents, outcome):
@@ -276,7 +299,7 @@ def test_duplicates_and_replays_are_rejected_once_each_and_change_no_settlement(
             seen = set()
 
             def keep(key, payload, at):
-                if payload not in seen and "/agent/" in key:
+                if payload not in seen and payload not in changed_payloads and "/agent/" in key:
                     seen.add(payload)
                     captured.append((key, payload))
 
@@ -284,18 +307,22 @@ def test_duplicates_and_replays_are_rejected_once_each_and_change_no_settlement(
             assert outcome["done"].wait(120)
     result = finished(outcome)
     injected = sum(a.bus.faults.summary().get("duplicate", 0) for a in agents.values())
+    resent = sum(a.delivery.resent for a in agents.values())
     s = result.state
-    assert injected >= 27 and replayed
-    assert s.rejected == injected + len(replayed)
-    assert set(s.rejected_by_code) == {"duplicate"}
+    assert injected >= 27 and copies and forged
+    # every copy (injected, replayed, or sent again for want of a receipt) was taken as its message again
+    assert injected + len(copies) <= s.again <= injected + len(copies) + resent
+    assert s.rejected == len(forged) and set(s.rejected_by_code) == {"duplicate"}
     assert s.accepted == baseline.state.accepted  # nothing counted twice, nothing lost
     assert totals(result) == totals(baseline)
-    print(f"\nscripted day: {injected} duplicates and {len(replayed)} replays, all rejected as duplicate; "
-          "settlement unchanged")
+    print(f"\nscripted day: {injected} duplicates and {len(copies)} copies taken again, {len(forged)} replays with "
+          "other content rejected as duplicate; settlement unchanged")
 
 
 def test_a_meter_report_delayed_past_its_hour_is_rejected_as_late_and_settled_as_missing(baseline):
-    with scripted_day(hour_s=0.5, faults={"mg2": ["delay:agent/mg2/meter:0.8:0.3"]}) as (day, agents, outcome):
+    # (no resends: a report sent again would overtake the delayed one, which is what resends are for)
+    with scripted_day(hour_s=0.5, faults={"mg2": ["delay:agent/mg2/meter:0.8:0.3"]}, resend_s=3600) as (day, agents,
+                                                                                                      outcome):
         pass
     result = finished(outcome)
     delayed = agents["mg2"].bus.faults.summary()["delay"]
@@ -309,7 +336,10 @@ def test_a_meter_report_delayed_past_its_hour_is_rejected_as_late_and_settled_as
     assert sum(1 for i in result.state.incidents if "late" in i.reason and i.agent == "mg2") >= delayed
 
 
-def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline):
+@pytest.mark.parametrize("noticed", [True, False], ids=["after-it-vanished", "before-it-is-noticed"])
+def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline, noticed):
+    """The new process registers once the DMO has seen the old one vanish, or at once: the agent's identity is its
+    credentials and its later incarnation, not what the DMO saw of its presence."""
     restarted = {}
 
     def crash(agent, hour):
@@ -321,19 +351,23 @@ def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline)
         deadline = time.monotonic() + 30
         while "old" not in restarted and time.monotonic() < deadline:
             time.sleep(0.01)
-        restarted["old"].bus.close()  # the process is gone: its liveliness token with it
-        while "mg2" not in day.state.vanished and time.monotonic() < deadline:
-            time.sleep(0.01)
+        if noticed:
+            restarted["old"].close()  # the process is gone: its liveliness token with it
+            while "mg2" not in day.state.vanished and time.monotonic() < deadline:
+                time.sleep(0.01)
         new = ScriptedAgent(outcome["run_id"], "mg2", outcome["endpoint"])  # a new process: seq from 0
         try:
             new.register()
+            if not noticed:
+                restarted["old"].close()  # the old process goes only now, after the new one registered
             assert new.summary.wait(60)
         finally:
             new.close()
     result = finished(outcome)
     reasons = [i.reason for i in result.state.incidents if i.agent == "mg2"]
-    assert any("vanished" in r for r in reasons)
-    assert any(r.startswith("rejoined after vanishing") and "sent its award" in r for r in reasons)
+    assert any("vanished" in r for r in reasons) == noticed  # an old token that goes while a new one is there: no
+    assert any(r.startswith("rejoined") and "sent its award" in r for r in reasons)
+    assert result.locked_out == ()
     (rejoined,) = [i.hour for i in result.state.incidents if i.agent == "mg2" and i.reason.startswith("rejoined")]
     missing = [line.hour + 1 for line in result.statements["mg2"].lines if line.missing]
     assert missing == list(range(5, rejoined))  # from the hour it crashed in until the hour it rejoined in
@@ -412,14 +446,16 @@ def test_dmosim_run_survives_message_faults_and_a_restart_and_settles_what_it_ac
 
     # the DMO refused every duplicate and corruption, with its reason, and counted each once
     by_code = result["rejected_by_code"]
-    assert by_code.get("duplicate", 0) >= 20 and sum(by_code.values()) == result["rejected_messages"]
-    assert set(by_code) <= {"duplicate", "not_json", "invalid", "late"}
+    assert result["received_again"] >= 20 and sum(by_code.values()) == result["rejected_messages"]
+    assert set(by_code) <= {"not_json", "invalid", "late"} and result["locked_out"] == []
+    # a corrupted or dropped report was sent again until its receipt came: none was lost
+    assert result["settlement"]["mg2"]["missing_subperiods"] == 0
     # no accepted meter report lost: every hour not settled as missing is one accepted report
     settled = sum(HOURS - s["missing_subperiods"] for s in result["settlement"].values())
     assert settled == result["accepted_messages"]["meter_report"]
     incidents = [i for i in result["incidents"] if i["agent"] == "mg1"]
     assert any("vanished" in i["reason"] for i in incidents)
-    assert any(i["reason"].startswith("rejoined after vanishing") for i in incidents)
+    assert any(i["reason"].startswith("rejoined") for i in incidents)
     assert result["settlement"]["mg1"]["missing_subperiods"] < 20  # it came back and reported again
 
     # the recording alone re-settles to the same statements, the refused reports left out
@@ -464,7 +500,7 @@ def test_the_dmo_killed_mid_day_resumes_from_its_journal_and_settles_as_if_undis
     assert restarted["accepted_messages"] == undisturbed["accepted_messages"]  # nothing lost, nothing twice
     (resumed,) = [i for i in restarted["incidents"] if "resumed day 1" in i["reason"]]
     assert resumed["hour"] == 8 and "not back" not in resumed["reason"]
-    resent = sum(json.loads(line.split(" messages ", 1)[1])["answers_sent_again"]
+    resent = sum(json.loads(line.split(" messages ", 1)[1])["sent_again"]
                  for a in ("mg1", "mg2")
                  for line in (tmp_path / "restarted" / "logs" / f"{a}.log").read_text().splitlines()
                  if f"{a} messages {{" in line)
