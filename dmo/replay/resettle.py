@@ -19,7 +19,7 @@ from messages import (Award, MeterReport, Registration, SettlementStatement, enc
 from messages.recording import RecordedMessage, Recording
 from scenarios.days import market_days as scenario_days
 
-from ..market.choice import ChosenRule, choose, paper_rule
+from ..market.choice import ChosenRule, Trust, UntrustedRule, paper_rule
 from ..market.settlement import RULES_VERSION, Statement, settlement_day
 from ..operator.outbox import statement_message
 
@@ -229,19 +229,23 @@ def rule_named(award: Award) -> str:
     return award.settlement_rule or paper_rule(award.penalty_per_mwh, award.credit_per_mwh).label
 
 
-def recorded_rule(day: RecordedDay) -> ChosenRule:
-    """The rule the day was settled by, as its awards name it (a rule of one's own is loaded again from where it
-    was named); ResettleError if it cannot be."""
+def recorded_rule(day: RecordedDay, trust: Trust | None = None) -> ChosenRule:
+    """The rule the day was settled by, as its awards name it. A built-in is made again from its name; a rule of
+    one's own is loaded again from where it was named only if ``trust`` allows it (by default it does not:
+    UntrustedRule, before anything is imported); ResettleError if it cannot be loaded."""
+    spec = rule_named(day.terms)
     try:
-        return choose(rule_named(day.terms))
+        return (trust or Trust()).choose(spec)
+    except UntrustedRule:
+        raise
     except ValueError as err:
-        raise ResettleError(f"{day.market_day} was settled by {rule_named(day.terms)}, which cannot be used "
-                            f"here: {err}") from None
+        raise ResettleError(f"{day.market_day} was settled by {spec}, which cannot be used here: {err}") from None
 
 
 def resettle(day: RecordedDay, rule: ChosenRule | None = None) -> dict[str, Statement]:
-    """Every agent's statement from the recorded awards and meter reports, under the recorded rule unless ``rule``
-    says otherwise. The agents' recorded behaviour is held fixed: their readings are what they were."""
+    """Every agent's statement from the recorded awards and meter reports, under the recorded rule (a built-in; see
+    ``recorded_rule`` for one of the recording's own) unless ``rule`` says otherwise. The agents' recorded behaviour
+    is held fixed: their readings are what they were."""
     terms = day.terms
     settled = settlement_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh,
                              day.meter, subperiods=terms.subperiods,

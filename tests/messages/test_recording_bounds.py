@@ -25,6 +25,7 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Schema
 from mcap.writer import Writer
 
 from dmo.bench.recording import synthetic_day
+from dmo.cli import main
 from messages import MAX_PAYLOAD_BYTES
 from messages.keys import new_run_id
 from messages.recording import RecordingError, RecordingWriter, read_recording
@@ -201,10 +202,15 @@ def edited(path: Path, old: bytes, new: bytes, last: bool = False) -> Path:
     return out
 
 
-def test_an_edited_attachment_fails_its_crc(day):
+def test_an_edited_attachment_fails_its_crc(day, capsys):
+    path = edited(day, b"scenarios = 2", b"scenarios = 3")
     with pytest.raises(RecordingError) as err:
-        read_recording(edited(day, b"scenarios = 2", b"scenarios = 3"))
-    assert str(err.value) == f"{day.with_name('edited.mcap')}: attachment experiment.toml: CRC mismatch"
+        read_recording(path)
+    assert str(err.value) == f"{path}: attachment experiment.toml: CRC mismatch"
+    assert main(["run", "--from", str(day), "--check"]) == 0  # the same recording, unedited, runs again
+    capsys.readouterr()
+    assert main(["run", "--from", str(path), "--check"]) == 2
+    assert capsys.readouterr().err == f"error: {path}: attachment experiment.toml: CRC mismatch\n"
 
 
 def test_an_edited_summary_fails_the_footers_crc(day):
