@@ -7,7 +7,7 @@ import base64
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Iterable, Iterator
 
 from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema, Statistics
 from mcap.stream_reader import CRCValidationError, StreamReader
@@ -97,16 +97,14 @@ class Recording:
     def in_log_order(self) -> list[RecordedMessage]:
         return sorted(self.messages, key=lambda m: m.log_time)
 
-    def decoded(self, kind: str) -> list[tuple[RecordedMessage, object]]:
-        """The valid messages of one kind with their decoded form, in log order."""
-        out = []
-        for m in self.in_log_order():
-            if m.kind == kind and m.invalid is None:
-                try:
-                    out.append((m, decode(m.payload, expected_kind=kind)))
-                except MessageError:
-                    continue
-        return out
+    def decoded(self, kind: str) -> Iterator[tuple[RecordedMessage, object]]:
+        """The valid messages of one kind with their decoded form, in log order, one at a time: decoded, a day's
+        messages take several times the memory of their bytes, so none is held longer than its caller needs."""
+        for m in sorted((m for m in self.messages if m.kind == kind and m.invalid is None), key=lambda m: m.log_time):
+            try:
+                yield m, decode(m.payload, expected_kind=kind)
+            except MessageError:
+                continue
 
 
 def _prefix_of(topics: Iterable[str]) -> str:

@@ -26,7 +26,7 @@ from mcap.writer import Writer
 
 from dmo.bench.recording import synthetic_day
 from dmo.cli import main
-from messages import MAX_PAYLOAD_BYTES
+from messages import MAX_PAYLOAD_BYTES, MeterReport, encode
 from messages.keys import new_run_id
 from messages.recording import RecordingError, RecordingWriter, read_recording
 from messages.recording.layout import (MAGIC, MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES, MESSAGE_COST_BYTES,
@@ -131,6 +131,34 @@ def test_every_verb_refuses_a_hostile_file_in_one_line_within_a_small_peak(hosti
         assert "chunk at byte" in err and "Traceback" not in err, (name, err)
         assert peak < PEAK_MIB, f"{verb} {name}: peak {peak:.0f} MiB"
         print(f"\n{verb} {name} ({path.stat().st_size:,} bytes): exit {code}, peak {peak:.0f} MiB: {err.strip()}")
+
+
+@pytest.fixture(scope="module")
+def flood(tmp_path_factory) -> Path:
+    """A recorded day followed by copies of one valid meter report (60 sub-periods) up to the reader's budget:
+    well-formed and small, it reads, and every verb that decodes it holds only what it needs of it."""
+    run_id, path = new_run_id(), tmp_path_factory.mktemp("flood") / "flood.mcap"
+    report = encode(MeterReport(sender="mg1", market_day="2026-07-01", hour=1, subperiods=60,
+                                p_m_mw=tuple(1.25 + i / 64 for i in range(60)), deviation_mw=(0.25,) * 60))
+    copies = (READ_BUDGET_FLOOR_BYTES - 4 * MIB) // (len(report) + MESSAGE_COST_BYTES)
+    with RecordingWriter(path, run_id) as writer:
+        writer.start({"market_day": "2026-07-01", "agents": "mg1"})
+        day = synthetic_day(run_id, 1, 60)
+        for i, (key, payload) in enumerate(day):
+            writer.write(key, payload, 1_700_000_000_000_000_000 + i)
+        for i in range(copies):  # after the day's own reports: the DMO would have refused every one
+            writer.write(f"dmosim/{run_id}/agent/mg1/meter", report, 1_800_000_000_000_000_000 + i)
+    assert len(read_recording(path).messages) == len(day) + copies and path.stat().st_size < 2 * MIB
+    return path
+
+
+def test_every_verb_reads_a_flood_of_valid_messages_within_a_small_peak(flood, tmp_path):
+    for verb, more in (("info", []), ("cat", []), ("settle", []), ("export", ["--out", str(tmp_path / "tables")]),
+                       ("plot", ["--out", str(tmp_path / "day.png")])):
+        code, err, peak = run_measured([verb, str(flood), *more], tmp_path)
+        assert code == 0, (verb, err[-2000:])
+        assert peak < PEAK_MIB, f"{verb}: peak {peak:.0f} MiB"
+        print(f"\n{verb} flood ({flood.stat().st_size:,} bytes): exit {code}, peak {peak:.0f} MiB")
 
 
 def test_a_chunk_over_the_cap_is_refused_before_it_is_decompressed(hostile):
