@@ -16,13 +16,14 @@ import sys
 import zlib
 from pathlib import Path
 
+import lz4.frame
 import pytest
 import zstandard
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Schema
-from mcap.writer import Writer
+from mcap.writer import CompressionType, Writer
 
 from dmo.bench.recording import synthetic_day
 from dmo.cli import main
@@ -89,8 +90,8 @@ def hostile_file(path: Path, chunks: list[Chunk]) -> Path:
 
 @pytest.fixture(scope="module")
 def hostile(tmp_path_factory) -> dict[str, Path]:
-    """The reviewer's file (one chunk of 12 x 64 MiB blank messages), one whose chunk declares 1 MiB and holds as
-    much, and many chunks each exactly at the cap (together 1 GiB)."""
+    """The reviewer's file (one chunk of 12 x 64 MiB blank messages), the same chunk declaring 1 MiB (so only the
+    check while decompressing stops it), and 64 chunks each exactly at the cap (together 1 GiB)."""
     where = tmp_path_factory.mktemp("hostile")
     big = blank_chunk(12, 64 * MIB)
     lying = dataclasses.replace(big, uncompressed_size=MIB)
@@ -333,3 +334,21 @@ def test_the_caps_are_documented_as_they_are():
                  f"at most {READ_BUDGET_RATIO} times the file's size (`READ_BUDGET_RATIO`)",
                  f"or {READ_BUDGET_FLOOR_BYTES >> 20} MiB (`READ_BUDGET_FLOOR_BYTES`)"):
         assert said in doc, said
+
+
+def test_an_lz4_chunk_is_read_within_the_same_caps(tmp_path):
+    """Other writers compress with lz4: read alike, and stopped alike when it expands past what it declares."""
+    path = tmp_path / "lz4.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.LZ4)
+        w.start()
+        channel = w.register_channel(TOPIC, "json", w.register_schema("dmosim.award", "jsonschema", b"{}"))
+        for i in range(3):
+            w.add_message(channel, log_time=i, data=bytes(100_000), publish_time=i)
+        w.finish()
+    rec = read_recording(path)
+    assert rec.complete and rec.compression == {"lz4"} and [len(m.payload) for m in rec.messages] == [100_000] * 3
+    chunk = Chunk(message_start_time=0, message_end_time=0, uncompressed_size=1000, uncompressed_crc=0,
+                  compression="lz4", data=lz4.frame.compress(message_head(MIB) + BLANK))
+    with pytest.raises(RecordingError, match="decompresses to more bytes, not the 1,000 it declares"):
+        read_recording(hostile_file(tmp_path / "lying-lz4.mcap", [chunk]))
