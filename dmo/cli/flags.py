@@ -246,6 +246,25 @@ SETTLEMENT_HELP = ("the settlement rule, NAME[:key=value,...] (paper, symmetric,
                    "--credit)")
 
 
+TRUST_FLAG = "--trust-rules"
+
+
+def add_trust_flag(p: argparse.ArgumentParser) -> None:
+    """The one flag that lets a file's own settlement rules run: ``settle``, ``replay --as-dmo``, ``run --from``."""
+    p.add_argument(TRUST_FLAG, dest="trust_rules", action="store_true",
+                   help="load and run a settlement rule of its own (path/to/rules.py:function or module:function) "
+                        "that the recording names; without it only a built-in rule, or one you name yourself, runs "
+                        "(docs/settlement.md, \"Rules named by recordings\")")
+
+
+def untrusted(subject: str, spec: str, naming: str) -> UsageError:
+    """The one line of a file that names a rule of its own that the user did not: ``subject`` says where the file
+    names ``spec``; ``naming`` is the flag by which the user names a rule (``--rule``, ``--settlement``), or empty."""
+    how = f"name it yourself ({naming} {spec}) or pass {TRUST_FLAG}" if naming else f"pass {TRUST_FLAG}"
+    return UsageError(f"{subject}, a rule of the recording's own, which dmosim does not run unless you {how} "
+                      "(docs/settlement.md)")
+
+
 def settlement_flag(spec: str | None):
     """``--settlement``: the rule, loaded and tried on a trial day, or the one-line UsageError; None if not given."""
     if spec is None:

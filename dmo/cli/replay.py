@@ -1,5 +1,6 @@
 """``dmosim replay PATH``: republish a recorded day over Zenoh, or, with ``--as-dmo``, play the DMO's side of it to
-a live agent process and settle that agent by the recorded rules (replay/as_dmo.py).
+a live agent process and settle that agent by the recorded rules (replay/as_dmo.py; a rule of the recording's own
+only with ``--trust-rules``).
 
 Plain replay publishes every selected message at its recorded spacing scaled by ``--rate``, under a new run
 prefix (``--run-id``, default a new id), so it never mixes with a live run. With ``--as-dmo --record PATH`` the
@@ -18,11 +19,12 @@ from messages import DMO, check_agent_id, check_run_id, new_run_id
 from messages.recording import Player, Recorder, Recording, RecordingWriter, select
 from messages.transport import Bus
 
+from ..market.choice import Trust, UntrustedRule
 from ..replay.as_dmo import AsDmo, dmo_steps, render
 from ..replay.resettle import ResettleError, recorded_day, recorded_rule
 from .console import UsageError, print_json, progress
-from .flags import (add_bus_flags, bus_config, credentials_for, load_recording, market_day, nonneg_float,
-                    recorded_day_flag, recording_path, setup_logging)
+from .flags import (TRUST_FLAG, add_bus_flags, add_trust_flag, bus_config, credentials_for, load_recording,
+                    market_day, nonneg_float, recorded_day_flag, recording_path, setup_logging, untrusted)
 
 HELP = "republish a recording over Zenoh under a new run prefix"
 
@@ -61,6 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing file at --record PATH")
     p.add_argument("--json", action="store_true", help="print one JSON object at the end")
     p.add_argument("--quiet", action="store_true")
+    add_trust_flag(p)
     add_bus_flags(p)
 
 
@@ -71,8 +74,8 @@ def run(args) -> int:
         check_run_id(run_id)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if not args.as_dmo and (args.agent or args.record):
-        raise UsageError("--agent and --record go with --as-dmo")
+    if not args.as_dmo and (args.agent or args.record or args.trust_rules):
+        raise UsageError(f"--agent, --record and {TRUST_FLAG} go with --as-dmo")
     rec = load_recording(args.path)
     recorded_day_flag(rec, args.day)
     stop = threading.Event()
@@ -117,7 +120,9 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     """``--as-dmo``: the DMO's side of the recorded day, played to a live agent (replay/as_dmo.py)."""
     try:
         day = recorded_day(rec, args.day)
-        recorded_rule(day)  # a rule of one's own that cannot be loaded here: said now, before anything starts
+        rule = recorded_rule(day, Trust(everything=args.trust_rules))  # said now, before anything starts
+    except UntrustedRule as err:
+        raise untrusted(f"{args.path}: {day.market_day} was settled by {err.spec}", err.spec, "") from None
     except ResettleError as exc:
         raise UsageError(str(exc)) from None
     agent = args.agent or sorted(day.awards)[0]
@@ -150,7 +155,7 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
                 recorder.start(backfill=False)  # this process is the day's DMO: nothing to ask it
                 recorder_thread = threading.Thread(target=recorder.run, args=(recorder_stop,), name="recorder")
                 recorder_thread.start()
-            driver = AsDmo(bus, day, agent, steps, args.timeout)
+            driver = AsDmo(bus, day, agent, steps, args.timeout, rule)
             result = driver.run(stop)
             time.sleep(0.2)  # the last messages reach the recorder
     finally:

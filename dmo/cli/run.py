@@ -23,10 +23,11 @@ from ..experiment.rundir import RunDir, RunDirError
 from ..experiment.spec import FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, with_settings
 from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, fleet_of, resolved, run_locally
+from ..market.choice import Trust, UntrustedRule, choose
 from ..replay.reproduce import differences
 from .console import UsageError, print_json, progress
-from .flags import (SETTLEMENT_HELP, gap, hours, load_recording, market_day, nonneg_float, positive_int,
-                    recording_path, scales)
+from .flags import (SETTLEMENT_HELP, add_trust_flag, gap, hours, load_recording, market_day, nonneg_float,
+                    positive_int, recording_path, scales, untrusted)
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
@@ -96,6 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--quiet", action="store_true", help="no progress lines")
     out.add_argument("--check", action="store_true",
                      help="check the inputs (experiment, cases, fleet, faults, paths) and exit without running")
+    add_trust_flag(p)
     p.add_argument("--tls", action="store_true",
                    help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
                         "passwords and access control are always on; docs/security.md)")
@@ -118,13 +120,38 @@ def experiment_of(args) -> Experiment:
             flags["faults"] = list(args.fault)
         experiment = with_settings(base, flags, "flags") if flags else base
         _check_faults(experiment)
-        return experiment
     except (ExperimentError, FleetError) as exc:
         raise UsageError(str(exc)) from None
+    _load_rule(args, experiment.market.settlement)
+    return experiment
+
+
+def _load_rule(args, spec: str | None) -> None:
+    """Load and try the run's settlement rule before anything starts: one the user named (``--settlement``, or the
+    experiment file given) at once; one only the recording of ``--from`` names, if it is built in, or with
+    ``--trust-rules`` (docs/settlement.md, "Rules named by recordings")."""
+    if args.trust_rules and not args.source:
+        raise UsageError("--trust-rules goes with --from RECORDING")
+    if spec is None:
+        return
+    where = ("--settlement" if args.settlement is not None else
+             f"{args.experiment}: market.settlement" if args.experiment else
+             f"{args.source}: its experiment.toml: market.settlement")
+    try:
+        if args.settlement is not None or args.experiment:
+            choose(spec)
+        else:
+            Trust(everything=args.trust_rules).choose(spec)
+    except UntrustedRule as err:
+        raise untrusted(f"{args.source}: its experiment.toml names the settlement rule {err.spec}", err.spec,
+                        "--settlement") from None
+    except ValueError as err:
+        raise UsageError(f"{where}: {err}") from None
 
 
 def experiment_in_recording(path: str) -> Experiment:
-    """The resolved experiment a recording of ``dmosim run`` holds (its attachment experiment.toml)."""
+    """The resolved experiment a recording of ``dmosim run`` holds (its attachment experiment.toml, checked against
+    its CRC by the reader), parsed as data: a settlement rule it names is a name, not loaded (``_load_rule``)."""
     rec = load_recording(path)
     for attachment in rec.attachments:
         if attachment.name == "experiment.toml":

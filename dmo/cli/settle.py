@@ -5,6 +5,9 @@ market day a recording reaches is settled (``--day`` picks one). Without a rule:
 statement equals the recorded one, field by field and line by line; 1 with the list of differences. With
 ``--rule`` (repeatable), or ``--penalty`` / ``--credit`` (the recorded paper rule at other rates), the days are
 re-settled under each rule, the agents' recorded behaviour held fixed, and one table compares them (exit 0).
+
+A recorded rule of the recording's own (not built in) is loaded only if ``--rule`` names the same code, or with
+``--trust-rules``; otherwise settling by it is refused in one line (docs/settlement.md, "Rules named by recordings").
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ import sys
 from pathlib import Path
 
 from ..experiment.rundir import RunDir
-from ..market.choice import ChosenRule, choose, paper_rule
-from ..replay.resettle import (RecordedDay, ResettleError, compare, gaps, held_days, recorded_day, recording_days,
-                               resettle)
+from ..market.choice import ChosenRule, Trust, UntrustedRule, choose, paper_rule
+from ..replay.resettle import (RecordedDay, ResettleError, compare, gaps, held_days, recorded_day, recorded_rule,
+                               recording_days, resettle)
 from .console import UsageError, print_json
-from .flags import load_recording, market_day, nonneg_float, recorded_day_flag
+from .flags import add_trust_flag, load_recording, market_day, nonneg_float, recorded_day_flag, untrusted
 
 HELP = "re-settle recorded market days: compare with the recorded statements, or under other settlement rules"
 FIXED = ("re-settled with the agents' recorded behaviour held fixed: their metered imports are what they were under "
@@ -41,6 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="settle only this market day of a recording of several (default: every day recorded)")
     p.add_argument("--csv", metavar="FILE", help="also write the comparison of rules to this CSV file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_trust_flag(p)
 
 
 def run(args) -> int:
@@ -51,9 +55,10 @@ def run(args) -> int:
         raise UsageError(f"--rule: {err}") from None
     if args.csv and not (rules or args.penalty is not None or args.credit is not None):
         raise UsageError("--csv writes the comparison of rules: give --rule, --penalty or --credit")
+    trust = Trust.of(args.trust_rules, args.rule)  # a rule of its own a recording names: only one named here
     if rules or args.penalty is not None or args.credit is not None:
-        return _compare_rules(args, paths, rules)
-    outcomes = [_verify(args, load_recording(str(path))) for path in paths]
+        return _compare_rules(args, paths, rules, trust)
+    outcomes = [_verify(args, load_recording(str(path)), trust) for path in paths]
     if args.json:
         print_json(outcomes[0] if len(outcomes) == 1 else {"recordings": outcomes})
     return 1 if any(not o["identical"] for o in outcomes) else 0
@@ -75,7 +80,7 @@ def recordings(paths: list[str]) -> list[Path]:
     return out
 
 
-def _verify(args, rec) -> dict:
+def _verify(args, rec, trust: Trust) -> dict:
     """Re-settle one recording's days under the recorded rule and compare with its statements; print the outcome
     unless ``--json``."""
     days = _days(rec, args.day)
@@ -87,7 +92,7 @@ def _verify(args, rec) -> dict:
         if not days[-1].statements:
             print(f"warning: {rec.path}: {days.pop().market_day} is not settled in the recording; left out",
                   file=sys.stderr)
-    results = [_settled(rec, day) for day in days]
+    results = [_settled(rec, day, trust) for day in days]
     diffs = [d for r in results for d in r["differences"]]
     lacking = gaps(rec) if diffs else []
     lines = sum(r["lines"] for r in results)
@@ -124,13 +129,25 @@ def _days(rec, wanted: str | None) -> list[RecordedDay]:
     return out
 
 
-def _settled(rec, day: RecordedDay) -> dict:
-    """One day re-settled and compared with its recorded statements; differences start with the market day when
-    the recording is of several."""
+def _recorded_rule(rec, day: RecordedDay, trust: Trust) -> ChosenRule:
+    """The rule ``day`` was settled by, or the one line of a rule the recording names that ``trust`` keeps from
+    running, or that cannot be loaded."""
     try:
-        statements = resettle(day)
+        return recorded_rule(day, trust)
+    except UntrustedRule as err:
+        raise untrusted(f"{rec.path}: {day.market_day} was settled by {err.spec}", err.spec, "--rule") from None
     except ResettleError as err:
         raise UsageError(f"{rec.path}: {err}") from None
+
+
+def _settled(rec, day: RecordedDay, trust: Trust) -> dict:
+    """One day re-settled and compared with its recorded statements; differences start with the market day when
+    the recording is of several."""
+    rule = _recorded_rule(rec, day, trust)
+    try:
+        statements = resettle(day, rule)
+    except ValueError as err:  # a rule that fails on this day: one line naming it
+        raise UsageError(f"{rec.path}, {day.market_day}: {err}") from None
     several = len(recording_days(rec)) > 1
     diffs = [f"{day.market_day}: {d}" if several else d for d in compare(day, statements)]
     return {"market_day": day.market_day, "identical": not diffs, "differences": diffs,
@@ -138,7 +155,7 @@ def _settled(rec, day: RecordedDay) -> dict:
             "totals": {a: float(st.total) for a, st in statements.items()}}
 
 
-def _compare_rules(args, paths: list[Path], rules: list[ChosenRule]) -> int:
+def _compare_rules(args, paths: list[Path], rules: list[ChosenRule], trust: Trust) -> int:
     """Each agent's bill over the chosen days of each recording, under each rule, against its recorded bill."""
     rows = []
     for path in paths:
@@ -155,7 +172,8 @@ def _compare_rules(args, paths: list[Path], rules: list[ChosenRule]) -> int:
                 for agent, st in statements.items():
                     row = sums.setdefault(agent, dict.fromkeys(COLUMNS[3:8], 0.0))
                     old = day.statements.get(agent)  # recorded, else as the recorded rule gives it
-                    row["recorded_total"] += old.total if old is not None else float(resettle(day)[agent].total)
+                    row["recorded_total"] += old.total if old is not None else float(
+                        resettle(day, _recorded_rule(rec, day, trust))[agent].total)
                     for column, value in (("energy_charge", st.energy_charge), ("deviation_penalty",
                                           st.deviation_penalty), ("deviation_credit", st.credit), ("total", st.total)):
                         row[column] += float(value)

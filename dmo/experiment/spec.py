@@ -20,7 +20,7 @@ from microgrid_agent.solvers.routes import METHODS
 from scenarios.case import read_toml
 from scenarios.horizon import HOURS
 
-from ..market.choice import choose
+from ..market.choice import rule_name
 
 
 class ExperimentError(ValueError):
@@ -57,7 +57,7 @@ class Market(_Section):
     @classmethod
     def _a_rule(cls, value: str | None) -> str | None:
         if value is not None:
-            choose(value)  # loaded and tried on a trial day: a ValueError names the problem
+            rule_name(value)  # a name only: parsing an experiment never imports a rule (the run that uses it loads it)
         return value
     import_limit: NonNegative | None = None  # MW (None: 8 x agents)
     export_limit: NonNegative | None = None  # MW (None: 5 x agents)

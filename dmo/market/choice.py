@@ -1,5 +1,7 @@
 """A settlement rule as a user names it: a built-in by name, or a function of the user's own, with parameters;
-checked on a synthetic day before it settles anything (docs/settlement.md, "Choosing a rule").
+checked as a name without loading anything (``rule_name``), loaded and checked on a synthetic day before it settles
+anything (``choose``), and, when a file names it rather than the user, loaded only if trusted (``Trust``;
+docs/settlement.md, "Choosing a rule" and "Rules named by recordings").
 
 ``NAME[:key=value,...]`` names a built-in rule (``paper``, ``symmetric``, ``deadband``, ``price-linked``);
 ``path/to/rules.py:function[:key=value,...]`` or ``module:function[:key=value,...]`` a rule of one's own.
@@ -78,22 +80,93 @@ def paper_rule(penalty: float, credit: float = 0.0) -> ChosenRule:
     return ChosenRule("paper", BUILT_IN["paper"], {"penalty": penalty, "credit": credit})
 
 
-def choose(spec: str) -> ChosenRule:
-    """The rule ``spec`` names, loaded and checked (``check``); ValueError, one line, when it cannot be used."""
+@dataclass(frozen=True)
+class RuleName:
+    """A rule as named, checked without loading anything: ``target`` a built-in's name or ``where:function`` (a
+    file, path/to/rules.py, or a module), ``params`` the parameters given."""
+
+    target: str
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def built_in(self) -> bool:
+        return self.target in BUILT_IN
+
+    @property
+    def code(self) -> str | None:
+        """The code a rule of one's own would run, as loading it would find it (a file resolved against the current
+        directory, a module by name); None for a built-in. Two names with the same code run the same function."""
+        if self.built_in:
+            return None
+        where, _, name = self.target.rpartition(":")
+        return f"{Path(where).resolve()}:{name}" if _is_file(where) else self.target
+
+
+def rule_name(spec: str) -> RuleName:
+    """``spec`` checked as a name, importing and running nothing: its syntax, and a built-in's parameter names and
+    values. ValueError, one line, when it is not a rule's name. This is all that reading a file that names a rule
+    (an experiment, a recording) does with it; only ``choose`` loads a rule."""
     target, params = _split(spec)
     if target in BUILT_IN:
-        chosen = ChosenRule(target, BUILT_IN[target], params)
         try:
-            chosen.parameters  # noqa: B018  (validates them)
+            BUILT_IN[target].parameters(params)
         except ValueError as err:
             raise ValueError(f"settlement rule {err}") from None
     elif ":" in target:
-        chosen = ChosenRule(target, _load(target), params)
+        where, _, name = target.rpartition(":")
+        if not name.isidentifier():
+            raise ValueError(f"settlement rule {target}: {name!r} is not a function name")
+        if not where or not (_is_file(where) or all(part.isidentifier() for part in where.split("."))):
+            raise ValueError(f"settlement rule {target}: {where!r} is neither path/to/rules.py nor a module name")
     else:
         raise ValueError(f"unknown settlement rule {target!r}: the built-in rules are {', '.join(BUILT_IN)}; a rule "
                          "of your own is path/to/rules.py:function or module:function")
+    return RuleName(target, params)
+
+
+def choose(spec: str) -> ChosenRule:
+    """The rule ``spec`` names, loaded and checked (``check``); ValueError, one line, when it cannot be used. A rule
+    of one's own is imported and run here: only for a rule the user named (on the command line, or in the
+    experiment file they run), or one a file names that ``Trust`` allows."""
+    name = rule_name(spec)
+    chosen = ChosenRule(name.target, BUILT_IN[name.target] if name.built_in else _load(name.target), name.params)
     check(chosen)
     return chosen
+
+
+class UntrustedRule(ValueError):
+    """A file (a recording, a run directory's experiment) names a rule of its own that the user did not: ``spec``
+    is the rule as named."""
+
+    def __init__(self, spec: str):
+        super().__init__(f"settlement rule {spec} is code that a file names, not the user")
+        self.spec = spec
+
+
+@dataclass(frozen=True)
+class Trust:
+    """Which rules of one's own that a file names may be loaded (docs/settlement.md, "Rules named by recordings"):
+    those whose code the user named on the command line (``named``, each a ``RuleName.code``), or every one
+    (``everything``: the user trusts the file). A built-in is always allowed: it runs no code of the file's."""
+
+    everything: bool = False
+    named: frozenset[str] = frozenset()
+
+    @classmethod
+    def of(cls, everything: bool, specs=()) -> Trust:
+        """Trust in the rules ``specs`` name (the user's own, already loaded), or in everything."""
+        return cls(everything, frozenset(code for code in (rule_name(s).code for s in specs) if code))
+
+    def allows(self, spec: str) -> bool:
+        """Whether the rule a file names as ``spec`` may be loaded; ValueError if it is no rule's name."""
+        name = rule_name(spec)
+        return name.built_in or self.everything or name.code in self.named
+
+    def choose(self, spec: str) -> ChosenRule:
+        """``choose(spec)`` for a rule a file names: UntrustedRule, before anything is imported, if not allowed."""
+        if not self.allows(spec):
+            raise UntrustedRule(spec)
+        return choose(spec)
 
 
 def _split(spec: str) -> tuple[str, dict[str, float]]:
@@ -117,11 +190,17 @@ def _split(spec: str) -> tuple[str, dict[str, float]]:
     return target, params
 
 
+def _is_file(where: str) -> bool:
+    """Whether a rule's ``where`` names a file (path/to/rules.py) rather than a module."""
+    return where.endswith(".py") or "/" in where
+
+
 def _load(target: str) -> Rule:
-    """The function ``path/to/rules.py:function`` or ``module:function`` names."""
+    """The function ``path/to/rules.py:function`` or ``module:function`` names: its module imported, so its code
+    runs. Only ``choose`` calls this."""
     where, _, name = target.rpartition(":")
     try:
-        if where.endswith(".py") or "/" in where:
+        if _is_file(where):
             path = Path(where)
             if not path.is_file():
                 raise ValueError(f"settlement rule {target}: no file {where}")

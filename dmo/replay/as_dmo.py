@@ -26,6 +26,7 @@ from messages.transport import Bus
 
 from ..market import acceptance
 from ..market.acceptance import Refusal
+from ..market.choice import ChosenRule
 from ..market.settlement import settlement_day
 from ..operator.history import DayHistory
 from ..operator.outbox import day_summary
@@ -41,8 +42,10 @@ _EXPECTED = {"registration": (Registration, "registration"), "bidding": (Bid, "b
 class AsDmo:
     """The DMO's side of a recorded day, driven by one live agent's answers."""
 
-    def __init__(self, bus: Bus, day: RecordedDay, agent: str, steps: list[tuple], timeout_s: float):
+    def __init__(self, bus: Bus, day: RecordedDay, agent: str, steps: list[tuple], timeout_s: float,
+                 rule: ChosenRule | None = None):
         self.bus, self.day, self.agent, self.steps, self.timeout_s = bus, day, agent, steps, timeout_s
+        self.rule = rule  # the recorded rule, as the caller was allowed to load it (None: a built-in by its name)
         self.events: queue.Queue = queue.Queue()
         self.player = Player(bus, [])
         self.registration: Registration | None = None
@@ -169,7 +172,7 @@ class AsDmo:
     def _settle(self) -> dict:
         day, terms, agent = self.day, self.day.terms, self.agent
         reg = self.registration
-        statements, _ = recorded_rule(day).settle(settlement_day(
+        statements, _ = (self.rule or recorded_rule(day)).settle(settlement_day(
             {agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
             subperiods=terms.subperiods, p_m_max={agent: reg.max_import_mw}, p_m_min={agent: reg.max_export_mw}))
         message = as_message(day, statements[agent])

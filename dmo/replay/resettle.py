@@ -13,13 +13,14 @@ from __future__ import annotations
 import collections
 import hashlib
 from dataclasses import dataclass, field
+from typing import Iterator
 
 from messages import (Award, MeterReport, Registration, SettlementStatement, encode, relative_key,
                       sender_matches_key)
 from messages.recording import RecordedMessage, Recording
 from scenarios.days import market_days as scenario_days
 
-from ..market.choice import ChosenRule, choose, paper_rule
+from ..market.choice import ChosenRule, Trust, UntrustedRule, paper_rule
 from ..market.settlement import RULES_VERSION, Statement, settlement_day
 from ..operator.outbox import statement_message
 
@@ -73,11 +74,11 @@ def held_days(rec: Recording) -> list[str]:
     return [day for day in recording_days(rec) if day in held]
 
 
-def day_messages(rec: Recording, day: str | None, kind: str) -> list:
-    """The valid messages of one kind as the receivers read them: of this day, and from the key's owner to the
-    key's addressee."""
-    return [(m, msg) for m, msg in rec.decoded(kind)
-            if (day is None or msg.market_day == day) and sender_matches_key(m.key, msg)]
+def day_messages(rec: Recording, day: str | None, kind: str) -> Iterator[tuple[RecordedMessage, object]]:
+    """The valid messages of one kind as the receivers read them, one at a time (``Recording.decoded``): of this
+    day, and from the key's owner to the key's addressee."""
+    return ((m, msg) for m, msg in rec.decoded(kind)
+            if (day is None or msg.market_day == day) and sender_matches_key(m.key, msg))
 
 
 def gaps(rec: Recording) -> list[str]:
@@ -114,7 +115,7 @@ def day_gaps(rec: Recording, day: str | None) -> list[str]:
             if hours:
                 out.append(f"{agent}: no meter report recorded for hour(s) {_ranges(hours)}, which its statement "
                            "settled as metered")
-    if not day_messages(rec, day, "day_summary"):
+    if next(day_messages(rec, day, "day_summary"), None) is None:
         out.append("no day summary recorded")
     return out
 
@@ -134,7 +135,7 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
     """What settling ``day`` (default: the recording's first market day) needs, as recorded."""
     day = day or next(iter(recording_days(rec)), None)
 
-    def decoded(kind: str) -> list:
+    def decoded(kind: str) -> Iterator:
         return day_messages(rec, day, kind)
 
     awards: dict[str, Award] = {}
@@ -169,7 +170,7 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
     statements = {}
     for _, msg in decoded("settlement_statement"):
         statements.setdefault(msg.agent, msg)
-    summaries = decoded("day_summary")
+    summaries = list(decoded("day_summary"))
     totals = {a: t.model_dump() for a, t in summaries[-1][1].totals.items()} if summaries else None
     return RecordedDay(first.market_day, awards, registered, meter, statements, totals, left_out)
 
@@ -179,10 +180,9 @@ def accepted_messages(rec: Recording, kind: str,
     """The valid messages of one kind the DMO did not refuse, in log order, and how many it refused: of ``day``
     (every day if None), from the key's owner; of the copies of one payload on one key, as many are left out as
     there are recorded rejections of it."""
-    refused = _refused(rec)
     kept, left_out = [], 0
-    for m, msg in day_messages(rec, day, kind):
-        if _take(refused, m.relative_key, m.payload, msg):
+    for m, msg, refused in _judged(rec, kind, day):
+        if refused:
             left_out += 1
         else:
             kept.append((m, msg))
@@ -193,13 +193,22 @@ def accepted_meter_reports(rec: Recording, day: str | None = None, *, agents: se
                            subperiods: int | None = None) -> tuple[list[tuple[RecordedMessage, MeterReport]], int]:
     """The meter reports the DMO accepted, in log order, and how many it refused (``accepted_messages``): of what
     it did not refuse, of ``agents`` (all if None) with ``subperiods`` readings (any if None), the first report per
-    market day, agent and hour counts, as the DMO counts it."""
-    kept, left_out = accepted_messages(rec, "meter_report", day)
+    market day, agent and hour counts, as the DMO counts it. Only those are held, however many were recorded."""
     accepted: dict[tuple[str, str, int], tuple[RecordedMessage, MeterReport]] = {}
-    for m, msg in kept:
-        if (agents is None or msg.sender in agents) and (subperiods is None or msg.subperiods == subperiods):
+    left_out = 0
+    for m, msg, refused in _judged(rec, "meter_report", day):
+        if refused:
+            left_out += 1
+        elif (agents is None or msg.sender in agents) and (subperiods is None or msg.subperiods == subperiods):
             accepted.setdefault((msg.market_day, msg.sender, msg.hour), (m, msg))
     return list(accepted.values()), left_out
+
+
+def _judged(rec: Recording, kind: str, day: str | None) -> Iterator[tuple[RecordedMessage, object, bool]]:
+    """``day_messages``, each with whether the DMO refused it (using up one of its recorded rejections)."""
+    refused = _refused(rec)
+    for m, msg in day_messages(rec, day, kind):
+        yield m, msg, _take(refused, m.relative_key, m.payload, msg)
 
 
 def _refused(rec: Recording) -> collections.Counter:
@@ -229,19 +238,23 @@ def rule_named(award: Award) -> str:
     return award.settlement_rule or paper_rule(award.penalty_per_mwh, award.credit_per_mwh).label
 
 
-def recorded_rule(day: RecordedDay) -> ChosenRule:
-    """The rule the day was settled by, as its awards name it (a rule of one's own is loaded again from where it
-    was named); ResettleError if it cannot be."""
+def recorded_rule(day: RecordedDay, trust: Trust | None = None) -> ChosenRule:
+    """The rule the day was settled by, as its awards name it. A built-in is made again from its name; a rule of
+    one's own is loaded again from where it was named only if ``trust`` allows it (by default it does not:
+    UntrustedRule, before anything is imported); ResettleError if it cannot be loaded."""
+    spec = rule_named(day.terms)
     try:
-        return choose(rule_named(day.terms))
+        return (trust or Trust()).choose(spec)
+    except UntrustedRule:
+        raise
     except ValueError as err:
-        raise ResettleError(f"{day.market_day} was settled by {rule_named(day.terms)}, which cannot be used "
-                            f"here: {err}") from None
+        raise ResettleError(f"{day.market_day} was settled by {spec}, which cannot be used here: {err}") from None
 
 
 def resettle(day: RecordedDay, rule: ChosenRule | None = None) -> dict[str, Statement]:
-    """Every agent's statement from the recorded awards and meter reports, under the recorded rule unless ``rule``
-    says otherwise. The agents' recorded behaviour is held fixed: their readings are what they were."""
+    """Every agent's statement from the recorded awards and meter reports, under the recorded rule (a built-in; see
+    ``recorded_rule`` for one of the recording's own) unless ``rule`` says otherwise. The agents' recorded behaviour
+    is held fixed: their readings are what they were."""
     terms = day.terms
     settled = settlement_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh,
                              day.meter, subperiods=terms.subperiods,

@@ -1,5 +1,6 @@
 """MCAP recordings of a run: the layout (layout.py), writing (writer.py) and the recorder's loop (recorder.py),
-reading a possibly cut file (reader.py), comparing contents (compare.py) and replaying them over Zenoh (player.py)."""
+reading a possibly cut file (reader.py) within bounds and checksums (integrity.py), comparing contents (compare.py)
+and replaying them over Zenoh (player.py)."""
 
 from .compare import content_signature
 from .layout import BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, INVALID_KEY, METADATA_NAME, versions

@@ -36,6 +36,18 @@ ANY_SCHEMA_NAME = "dmosim.any"
 CHUNK_MESSAGES = 500
 FLUSH_INTERVAL_S = 1.0
 CHUNK_BYTES = 1 << 20
+
+# What reading a file may take, whatever it declares (docs/recording.md, "Reading is bounded and checked"). The
+# writer's chunks close at CHUNK_BYTES, so the largest holds 1 MiB plus one message; its largest message is an
+# invalid payload kept to the wire's MAX_PAYLOAD_BYTES + 1, in base64 (1.4 MiB). Measured on real recordings: a chunk
+# compresses 3.5x to 6.5x, and a whole file expands to 1.0-3.7x its size (to 24x for a day under a flood of
+# oversized junk, every message charged MESSAGE_COST_BYTES), so the budget below leaves room for what dmosim
+# writes while a 26 KB file can no longer expand to gigabytes.
+MAX_CHUNK_BYTES = 16 << 20
+MAX_MESSAGE_BYTES = 4 << 20
+MESSAGE_COST_BYTES = 512        # what holding one message costs beyond its data (its RecordedMessage)
+READ_BUDGET_RATIO = 32          # a file expands to at most this many times its size...
+READ_BUDGET_FLOOR_BYTES = 64 << 20  # ...or this, whichever is more
 _DRAFT = "https://json-schema.org/draft/2020-12/schema"
 
 # A payload on a key outside the layout (no kind): any JSON value.
@@ -48,7 +60,9 @@ INVALID_SCHEMA = {
     "required": ["key", "code", "reason", "payload_size", "payload_base64"],
     "properties": {"key": {"type": "string"}, "code": {"type": "string"}, "reason": {"type": "string"},
                    "payload_size": {"type": "integer", "minimum": 0},
-                   "payload_base64": {"type": "string", "contentEncoding": "base64"}},
+                   "payload_base64": {"type": "string", "contentEncoding": "base64",
+                                      "description": "the payload; one over the wire's size limit is kept to its "
+                                                     "first limit + 1 bytes (payload_size is its whole size)"}},
 }
 SCHEMA_ID = re.compile(r"^urn:dmosim:[a-z_]+:v([0-9]+)$")
 

@@ -1,4 +1,5 @@
-"""Read a recording front to back, surviving a cut or torn end: every complete record before the damage is kept."""
+"""Read a recording front to back, surviving a cut or torn end (every complete record before the damage is kept) and
+refusing a file whose records fail their checks (integrity.py): a CRC, a cap on what it may expand to."""
 
 from __future__ import annotations
 
@@ -6,22 +7,23 @@ import base64
 import json
 import os
 from dataclasses import dataclass, field
-from typing import Iterable
+from typing import Iterable, Iterator
 
 from mcap.records import Attachment, Channel, Chunk, DataEnd, Footer, Header, Message, Metadata, Schema, Statistics
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import CRCValidationError, StreamReader
 
 from ..codec import MessageError, decode
 from ..keys import ROOT, parse_key, relative_key
 from ..schemas import SCHEMA_VERSION
-from .layout import INVALID_SCHEMA_NAME, MAGIC, METADATA_NAME, SCHEMA_ENCODING, SCHEMA_ID
+from .integrity import Budget, Refused, check_attachment, check_message, check_summary, chunk_data, chunk_records
+from .layout import INVALID_SCHEMA_NAME, MAGIC, MESSAGE_COST_BYTES, METADATA_NAME, SCHEMA_ENCODING, SCHEMA_ID
 
 
 class RecordingError(ValueError):
     """A file that cannot be read as a recording: ``str(err)`` is one line naming the file and the problem."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class RecordedMessage:
     """One recorded payload. ``key`` is the key it travelled on (under the recorded run's prefix), ``payload`` the
     bytes as they arrived; ``invalid`` is (code, reason) for a payload that failed its key's schema."""
@@ -95,16 +97,14 @@ class Recording:
     def in_log_order(self) -> list[RecordedMessage]:
         return sorted(self.messages, key=lambda m: m.log_time)
 
-    def decoded(self, kind: str) -> list[tuple[RecordedMessage, object]]:
-        """The valid messages of one kind with their decoded form, in log order."""
-        out = []
-        for m in self.in_log_order():
-            if m.kind == kind and m.invalid is None:
-                try:
-                    out.append((m, decode(m.payload, expected_kind=kind)))
-                except MessageError:
-                    continue
-        return out
+    def decoded(self, kind: str) -> Iterator[tuple[RecordedMessage, object]]:
+        """The valid messages of one kind with their decoded form, in log order, one at a time: decoded, a day's
+        messages take several times the memory of their bytes, so none is held longer than its caller needs."""
+        for m in sorted((m for m in self.messages if m.kind == kind and m.invalid is None), key=lambda m: m.log_time):
+            try:
+                yield m, decode(m.payload, expected_kind=kind)
+            except MessageError:
+                continue
 
 
 def _prefix_of(topics: Iterable[str]) -> str:
@@ -118,7 +118,8 @@ def _prefix_of(topics: Iterable[str]) -> str:
 def read_recording(path: str | os.PathLike) -> Recording:
     """Read a recording front to back, tolerating a cut or torn end: whatever complete records precede the damage
     are returned, with ``complete`` False. Raises RecordingError (one line) for a file that is not MCAP, is cut
-    before its header, or was written with a newer message schema version than this dmosim reads."""
+    before its header, was written with a newer message schema version than this dmosim reads, fails a CRC, or
+    declares or expands to more than the reader's caps (docs/recording.md, "Reading is bounded and checked")."""
     name = str(path)
     try:
         f = open(path, "rb")  # noqa: SIM115
@@ -135,7 +136,10 @@ def read_recording(path: str | os.PathLike) -> Recording:
             raise RecordingError(f"{name}: not an MCAP file" + (" (empty)" if not magic else " (bad magic bytes)"))
         f.seek(0)
         rec = Recording(path=name, size=size, bytes_read=len(MAGIC))
-        _Scan(rec).run(StreamReader(f, emit_chunks=True, record_size_limit=max(size, 1)), f)
+        try:
+            _Scan(rec, f).run()
+        except Refused as err:
+            raise RecordingError(f"{name}: {err}") from None
     if not rec.library and not rec.profile and not rec.messages and rec.bytes_read <= len(MAGIC):
         raise RecordingError(f"{name}: file cut after {size} bytes, before its MCAP header was complete")
     prefix = rec.prefix
@@ -145,39 +149,47 @@ def read_recording(path: str | os.PathLike) -> Recording:
 
 
 class _Scan:
-    """Fills a Recording from the records of a stream, stopping at the first record that cannot be read whole."""
+    """Fills a Recording from the records of a file, stopping at the first record that cannot be read whole (a cut
+    end) and refusing, with ``Refused``, a whole record that fails a check of integrity.py."""
 
-    def __init__(self, rec: Recording):
-        self.rec = rec
+    def __init__(self, rec: Recording, f):
+        self.rec, self.f = rec, f
         self.raw_channels: dict[int, Channel] = {}
         self.in_data = True
+        self.budget = Budget(rec.size)
+        self.footer: tuple[Footer, int] | None = None
 
-    def run(self, reader: StreamReader, f) -> None:
-        rec = self.rec
-        records = reader.records
+    def run(self) -> None:
+        rec, f = self.rec, self.f
+        records = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=max(rec.size, 1)).records
+        start = len(MAGIC)
         while True:
             try:
                 record = next(records)
             except StopIteration:
+                if self.footer is not None:
+                    check_summary(f.fileno(), *self.footer)
                 rec.complete = True
                 rec.bytes_read = rec.size
                 return
-            except RecordingError:
-                raise
+            except CRCValidationError:  # the only one a stream raises: the data section's, at DataEnd
+                raise Refused(f"data section (DataEnd at byte {start:,}): CRC mismatch") from None
             except Exception as exc:  # EndOfFile, struct.error, InvalidMagic, a record too long for the file...
                 rec.cut_reason = _why(exc)
                 return
             try:
-                self.record(record)
-            except RecordingError:
+                self.record(record, start)
+            except (RecordingError, Refused):
                 raise
-            except Exception as exc:  # a torn chunk (zstd or CRC error), a message on an unknown channel
+            except Exception as exc:  # a record mcap parsed that makes no sense as a whole (a bad schema version...)
                 rec.cut_reason = _why(exc)
                 return
+            start = f.tell()
             if not isinstance(record, Footer):
-                rec.bytes_read = f.tell()
+                rec.bytes_read = start
 
-    def record(self, record) -> None:
+    def record(self, record, start: int | None) -> None:
+        """File one record; ``start`` is where it begins in the file (None inside a chunk)."""
         rec = self.rec
         if isinstance(record, Header):
             rec.library, rec.profile = record.library, record.profile
@@ -188,13 +200,17 @@ class _Scan:
             else:
                 rec.other_metadata[record.name] = dict(record.metadata)
         elif isinstance(record, Attachment):
+            check_attachment(self.f.fileno(), record, start)
             rec.attachments.append(record)
         elif isinstance(record, Chunk):
-            parts = breakup_chunk(record, validate_crc=True)  # a torn chunk raises here, before any of it is kept
+            what = f"chunk at byte {start:,}"
+            data = chunk_data(record, what, self.budget)  # a damaged chunk is refused here, before any of it is kept
             rec.chunks += 1
             rec.compression.add(record.compression or "none")
-            for part in parts:
-                self.record(part)
+            for part in chunk_records(data, what):
+                if isinstance(part, Message):
+                    self.budget.charge(MESSAGE_COST_BYTES, what)
+                self.record(part, None)
         elif isinstance(record, Schema):
             if record.id not in rec.schemas:
                 rec.schemas[record.id] = record
@@ -207,12 +223,18 @@ class _Scan:
                     record.id, record.topic, "", record.message_encoding,
                     schema.name if schema else "", schema.encoding if schema else "")
         elif isinstance(record, Message):
+            if start is not None:  # outside any chunk (a chunk's were charged with it)
+                what = f"message at byte {start:,}"
+                check_message(record, what)
+                self.budget.charge(len(record.data) + MESSAGE_COST_BYTES, what)
             if self.in_data:
                 self.message(record)
         elif isinstance(record, DataEnd):
             self.in_data = False
         elif isinstance(record, Statistics):
             rec.statistics = record
+        elif isinstance(record, Footer):
+            self.footer = (record, start)
 
     def message(self, record: Message) -> None:
         rec = self.rec

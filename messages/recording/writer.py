@@ -18,7 +18,7 @@ from typing import Iterable, Mapping
 
 from mcap.writer import CompressionType, Writer
 
-from ..codec import MessageError, decode
+from ..codec import MAX_PAYLOAD_BYTES, MessageError, decode
 from ..keys import Keys, parse_key
 from ..schemas import SCHEMA_VERSION, SCHEMAS
 from .layout import (ANY_SCHEMA, ANY_SCHEMA_NAME, CHUNK_BYTES, CHUNK_MESSAGES, FLUSH_INTERVAL_S, INVALID_KEY,
@@ -88,6 +88,9 @@ class RecordingWriter:
                 return self._write_invalid(key, payload, log_time, err.code, err.reason)
             publish_time, seq = msg.sent_at or log_time, msg.seq
         else:
+            if len(payload) > MAX_PAYLOAD_BYTES:  # the limit decode applies to every kind, on a key of none
+                return self._write_invalid(key, payload, log_time, "oversize",
+                                           f"payload is {len(payload)} bytes, over the {MAX_PAYLOAD_BYTES}-byte limit")
             try:
                 data = json.loads(payload)
             except (ValueError, RecursionError):
@@ -102,8 +105,11 @@ class RecordingWriter:
             schema = self._schema(INVALID_SCHEMA_NAME, INVALID_SCHEMA)
             self._invalid_channel = self._mcap.register_channel(f"{self.keys.prefix}/{INVALID_KEY}", MESSAGE_ENCODING,
                                                                 schema, {"kind": "invalid_payload"})
+        # An oversized payload is kept to one byte over the limit: it replays as the same fault, and every message
+        # of the file stays under the reader's MAX_MESSAGE_BYTES whatever a peer sends.
+        kept = payload[:MAX_PAYLOAD_BYTES + 1]
         wrapped = json.dumps({"key": key, "code": code, "reason": reason, "payload_size": len(payload),
-                              "payload_base64": base64.b64encode(payload).decode("ascii")}).encode()
+                              "payload_base64": base64.b64encode(kept).decode("ascii")}).encode()
         self.invalid += 1
         self._add(self._invalid_channel, key, wrapped, log_time, log_time, 0)
         return False
