@@ -27,12 +27,10 @@ def journal_recording(path: Path, run_id: str, metadata: dict[str, str]) -> Reco
                 entries.append(json.loads(line))
             except ValueError:
                 break
-    prefix = Keys(run_id).prefix
-    rec = Recording(path=str(path), size=path.stat().st_size, library=JOURNAL_LIBRARY, complete=True,
-                    metadata={**metadata, "run_id": run_id, "key_prefix": prefix})
-    rec.messages = [recorded(key, payload, at, prefix) for key, payload, at in traffic(entries)]
-    rec.bytes_read = rec.size
-    return rec
+    prefix, size = Keys(run_id).prefix, path.stat().st_size
+    return Recording(path=str(path), size=size, bytes_read=size, library=JOURNAL_LIBRARY, complete=True,
+                     metadata={**metadata, "run_id": run_id, "key_prefix": prefix},
+                     messages=[recorded(key, payload, at, prefix) for key, payload, at in traffic(entries)])
 
 
 def recorded(key: str, payload: bytes, at: int, prefix: str) -> RecordedMessage:
