@@ -8,7 +8,7 @@ import json
 
 from messages.recording import BACKFILL_METADATA, Recording
 
-from ..replay.resettle import day_messages, gaps, rule_named
+from ..replay.resettle import accepted_meter_reports, day_messages, gaps, hour_ranges, rule_named
 from .console import print_json
 from .flags import load_recording
 
@@ -50,13 +50,42 @@ def describe(rec: Recording) -> dict:
         "duration_s": round((max(times) - min(times)) / 1e9, 3) if times else 0.0,
         "messages": len(rec.messages), "invalid_messages": invalid,
         "backfilled_messages": _int(rec.other_metadata.get(BACKFILL_METADATA, {}).get("messages", 0)),
-        "missing": gaps(rec), "settled_by": settled_by(rec),
+        "missing": gaps(rec), "missing_meter": missing_meter(rec), "settled_by": settled_by(rec),
         "chunks": rec.chunks, "compression": sorted(rec.compression),
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)} for a in rec.attachments],
         "channels": [{"key": c.relative_key, "messages": c.messages, "schema": c.schema_name,
                       "schema_encoding": c.schema_encoding, "message_encoding": c.message_encoding}
                      for c in sorted(rec.channels.values(), key=lambda c: c.relative_key)],
     }
+
+
+def missing_meter(rec: Recording) -> list[dict]:
+    """The meter data the DMO did not have, per market day and agent: the ``hours`` with no accepted meter report
+    and how many ``subperiods`` of each, as the agent's recorded statement settled them by the missing-data rule
+    (its ``missing`` lines, with the ``penalty`` of those hours, $); without a recorded statement, the hours whose
+    grid state is recorded and no accepted meter report is (every sub-period of each). ``settled`` says which."""
+    statements, awards, operated = {}, {}, {}
+    for _, st in day_messages(rec, None, "settlement_statement"):
+        statements.setdefault((st.market_day, st.agent), st)
+    for _, award in day_messages(rec, None, "award"):
+        awards.setdefault((award.market_day, award.agent), award)
+    for _, grid in day_messages(rec, None, "grid_state"):
+        operated.setdefault(grid.market_day, set()).add(grid.hour)
+    metered = {(m.market_day, m.sender, m.hour) for _, m in accepted_meter_reports(rec)[0]}
+    out = []
+    for day, agent in sorted(set(statements) | set(awards)):
+        st = statements.get((day, agent))
+        if st is not None:
+            lines = [line for line in st.lines if line.missing]
+            hours, subperiods = [ln.hour for ln in lines], [ln.missing_subperiods for ln in lines]
+            penalty = round(sum(ln.deviation_penalty for ln in lines), 2)
+        else:
+            hours = [h for h in sorted(operated.get(day, ())) if (day, agent, h) not in metered]
+            subperiods, penalty = [awards[day, agent].subperiods] * len(hours), None
+        if hours:
+            out.append({"market_day": day, "agent": agent, "hours": hours, "subperiods": subperiods,
+                        "penalty": penalty, "settled": st is not None})
+    return out
 
 
 def settled_by(rec: Recording) -> dict[str, str]:
@@ -113,10 +142,10 @@ def render(info: dict) -> str:
     if info["backfilled_messages"]:
         rows.append(f"backfilled:  {info['backfilled_messages']} messages from before the recorder joined, given by "
                     "the DMO's history")
-    if info["missing"]:
-        rows += [f"missing:     {gap}" for gap in info["missing"]]
-    else:
-        rows.append("missing:     nothing: every registration, award, metered hour, statement and the day summary")
+    rows += [f"missing:     {gap}" for gap in info["missing"]]
+    rows += [f"missing:     {_meter_gap(m)}" for m in info["missing_meter"]]
+    if not info["missing"] and not info["missing_meter"]:
+        rows.append("missing:     nothing: every registration, award, meter report, statement and the day summary")
     if info["attachments"]:
         rows.append("attachments: " + ", ".join(f"{a['name']} ({a['bytes']:,} bytes)" for a in info["attachments"]))
     width = max([len("channel")] + [len(c["key"]) for c in info["channels"]])
@@ -125,6 +154,15 @@ def render(info: dict) -> str:
         rows.append(f"{c['key']:<{width}}  {c['messages']:>8}  {c['schema'] or '-'} ({c['schema_encoding'] or 'none'}, "
                     f"{c['message_encoding']})")
     return "\n".join(rows)
+
+
+def _meter_gap(m: dict) -> str:
+    """One agent's day of missing meter data, as one line."""
+    what = (f"{m['agent']} {m['market_day']}: no accepted meter report for hour(s) {hour_ranges(m['hours'])} "
+            f"({sum(m['subperiods'])} sub-period(s))")
+    if not m["settled"]:
+        return what + "; no statement recorded"
+    return what + f", settled by the missing-data rule (penalty in those hours: ${m['penalty']:,.2f})"
 
 
 def run(args) -> int:

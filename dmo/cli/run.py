@@ -24,14 +24,15 @@ from ..experiment.spec import FLAGS, Experiment, ExperimentError, load_experimen
 from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, fleet_of, resolved, run_locally
 from ..market.choice import Trust, UntrustedRule, choose
-from ..replay.reproduce import differences
+from ..results.verdict import one_line
 from .console import UsageError, print_json, progress
 from .flags import (SETTLEMENT_HELP, add_trust_flag, gap, hours, load_recording, market_day, nonneg_float,
                     positive_int, recording_path, scales, untrusted)
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
-              "clock reaches HOUR of DAY, default 1), restart:AGENT:HOUR[:DAY] (SIGKILL it, then start it again: it "
+              "clock reaches HOUR of DAY, default 1; AGENT may be recorder: the run goes on and exits 1), "
+              "restart:AGENT:HOUR[:DAY] (SIGKILL it, then start it again: it "
               "rejoins; AGENT may be dmo: it resumes the run from its journal), and on the messages "
               "whose key, relative to the run prefix, matches PATTERN (* one level, ** any, e.g. agent/*/meter): "
               "drop:PATTERN:P, duplicate:PATTERN:P, corrupt:PATTERN:P (each with probability P) and "
@@ -168,9 +169,11 @@ def _check_faults(experiment: Experiment) -> None:
         faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault)]
     except FaultSpecError as exc:
         raise ExperimentError(f"--fault: {exc}") from None
-    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo"})
+    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo", "recorder"})
     if any(f.agent == "dmo" and f.kind != "restart" for f in faults):
         raise ExperimentError("--fault: the DMO can only be restarted (restart:dmo:HOUR), not killed")
+    if any(f.agent == "recorder" and f.kind != "kill" for f in faults):
+        raise ExperimentError("--fault: the recorder can only be killed (kill:recorder:HOUR), not restarted")
     if unknown:
         raise ExperimentError(f"--fault names unknown agent {unknown[0]} (agents: {', '.join(m.id for m in fleet)})")
     late = [f for f in faults if f.day > experiment.days]
@@ -184,6 +187,9 @@ def run(args) -> int:
     for name in sorted({experiment.market.case, *(m.case for m in fleet)}):
         load_case(name)  # a bad case is a CaseError: one line, exit 2
     record_to = recording_path(args.record, args.overwrite) if args.record else None
+    recorder_faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent == "recorder"]
+    if args.no_record and recorder_faults:
+        raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
     if args.check:
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
               f"agents ({', '.join(m.id for m in fleet)}), case {experiment.market.case}, "
@@ -198,31 +204,19 @@ def run(args) -> int:
     say = (lambda text: None) if args.quiet else progress
     signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
     try:
-        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, say=say)
+        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say)
     except RoleFailed as exc:
         for name in exc.names:
             _tail(rundir.logs / f"{name}.log")
         raise
-    if args.source and record is not None:
-        result["reproduced"] = _reproduced(args.source, record, say)
     if args.json:
         print_json(result)
     else:
         print(summary_table(result))
+    if not result["verdict"]["ok"]:  # the run is over and its files are written, but its results are not to be trusted
+        print(f"failed: {one_line(result['verdict']['problems'])}", file=sys.stderr)
+        return 1  # as a runtime failure: the same exit as any run that went wrong
     return 0
-
-
-def _reproduced(source: str, record: Path, say) -> dict:
-    """Whether the run settled every agent as the recording it was repeated from; where not, which agent, day and
-    hour differ (a fault, a missed deadline or a solve cut by its time limit can make a run differ)."""
-    diffs = differences(load_recording(source), load_recording(str(record)))
-    if diffs:
-        say(f"{len(diffs)} statement line(s) differ from {source}:")
-        for line in diffs:
-            say(f"  {line}")
-    else:
-        say(f"every statement is the same as in {source}, to the cent")
-    return {"source": source, "identical": not diffs, "differences": diffs}
 
 
 def _interrupt(*_):
@@ -254,6 +248,10 @@ def summary_table(result: dict) -> str:
             f" ({recorded['messages']} messages on {recorded['channels']} channels, {recorded['bytes']:,} bytes"
             f"{'' if recorded['complete'] else ', INCOMPLETE'})" if "messages" in recorded else
             f" ({recorded.get('error', 'unreadable')})"))
+        if recorded.get("recorder"):
+            rows.append(f"recorder: {recorded['recorder']}")
+        if recorded.get("tables_from") == "journal":
+            rows.append("tables and figure: from the DMO's journal, which holds every message it sent or received")
     else:
         rows.append("recording: none (--no-record)")
     rows.append(f"run directory: {result['run_dir']}" + (" (experiment.toml, result.json, tables/, run.png, logs/)"
@@ -262,4 +260,7 @@ def summary_table(result: dict) -> str:
         where = incident["phase"] + (f" hour {incident['hour']}" if incident["hour"] else "")
         where = f"{incident['market_day']} {where}" if "market_day" in incident else where
         rows.append(f"incident [{where}] {incident['agent'] or '-'}: {incident['reason']}")
+    problems = result["verdict"]["problems"]
+    rows.append("verdict: ok" if not problems else f"verdict: NOT OK, {len(problems)} problem(s):")
+    rows += [f"  {line}" for line in problems]
     return "\n".join(rows)

@@ -2,8 +2,10 @@
 (dmo/experiment/sweep.py), each run a ``dmosim run`` of its own into its own run directory, ``--parallel`` at a
 time; then one table of every run and agent (``sweep.csv``) and its figure (``sweep.png``, dmo/results/sweeps.py).
 
-Every variant is validated before the first run starts. A run that fails is reported and keeps a row saying so;
-the others go on, and the sweep exits 1 at the end. Ctrl-C stops every run under way (each stops its roles).
+Every variant is validated before the first run starts. A run that fails, or ends with a verdict that is not ok
+(docs/experiments.md, "The result"), is reported and keeps a row saying so (``status`` ``failed`` or
+``untrusted``); the others go on, and the sweep exits 1 at the end. Ctrl-C stops every run under way (each stops
+its roles).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import argparse
 import json
 import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -76,19 +79,23 @@ def run(args) -> int:
     table = pd.DataFrame(rows)
     table.to_csv(root / "sweep.csv", index=False)
     figure = None
-    if len(failed) < len(runs):
+    if (table["status"] == "ok").any():
         figure = save(sweep_figure(table, keys, f"{experiment.name}: each agent's bill over the run"),
                       root / "sweep.png")
+    status = table.drop_duplicates("label").set_index("label")["status"]
     summary = {"sweep": str(root.resolve()), "table": str((root / "sweep.csv").resolve()),
                "figure": str(figure.resolve()) if figure else None, "keys": keys, "runs": len(runs),
-               "failed": failed}
+               **{name: [label for label in failed if status[label] == name] for name in ("failed", "untrusted")}}
     if args.json:
         print_json(summary)
     else:
         print(_render(table, keys))
         print(f"table: {summary['table']}" + (f"; figure: {summary['figure']}" if figure else ""))
         for label in failed:
-            print(f"FAILED: {label} (its logs: {root / label / 'logs'})")
+            print(f"{status[label].upper()}: {label} (its logs: {root / label / 'logs'})")
+    if failed:  # one line, also with --quiet and --json, as dmosim run gives it
+        print(f"failed: {len(failed)} of {len(runs)} run(s) did not end ok: "
+              + ", ".join(f"{label} ({status[label]})" for label in failed), file=sys.stderr)
     return 1 if failed else 0
 
 
@@ -125,16 +132,18 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[
                 del running[label]
                 done += 1
                 seconds = time.monotonic() - started
-                if process.returncode == 0:
-                    rows[label] = sweep_rows(v.settings, label, str((root / label).resolve()), seconds,
-                                             json.loads(out))
+                result = _result(out)
+                if process.returncode and (result or {}).get("verdict", {}).get("ok", True):
+                    result = None  # it went wrong otherwise than by its verdict: nothing of it to table
+                rows[label] = sweep_rows(v.settings, label, str((root / label).resolve()), seconds, result,
+                                         (err.strip().splitlines() or [f"exit {process.returncode}"])[-1])
+                status = rows[label][0]["status"]
+                if status == "ok":
                     say(f"{done}/{len(runs)} done: {label} in {seconds:.0f} s")
                 else:
-                    reason = (err.strip().splitlines() or [f"exit {process.returncode}"])[-1]
-                    rows[label] = sweep_rows(v.settings, label, str((root / label).resolve()), seconds, None,
-                                             reason)
                     failed.append(label)
-                    say(f"{done}/{len(runs)} FAILED: {label} after {seconds:.0f} s: {reason}")
+                    say(f"{done}/{len(runs)} {status.upper()}: {label} after {seconds:.0f} s: "
+                        f"{rows[label][0]['error']}")
             time.sleep(0.2)
     except BaseException:
         for _, process, _ in running.values():
@@ -143,6 +152,16 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[
             process.wait()
         raise
     return [row for v in runs for row in rows[v.label]], failed
+
+
+def _result(out: str) -> dict | None:
+    """The result a run printed (``dmosim run --json``), also when its verdict made it exit 1; None if it printed
+    none (it failed before its result was written)."""
+    try:
+        result = json.loads(out)
+    except ValueError:
+        return None
+    return result if isinstance(result, dict) and "settlement" in result else None
 
 
 def _render(table, keys: list[str]) -> str:
@@ -155,7 +174,7 @@ def _render(table, keys: list[str]) -> str:
         first = run.iloc[0]
         cells = "".join(f"{str(first[k]):>18}" for k in keys)
         if first["status"] != "ok":
-            lines.append(cells + f"  failed: {first['error']}")
+            lines.append(cells + f"  {first['status']}: {first['error']}")
             continue
         totals = run.set_index("agent")["total"]
         lines.append(cells + "".join(f"{totals.get(a, float('nan')):>13,.2f}" for a in agents))

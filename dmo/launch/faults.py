@@ -1,5 +1,5 @@
-"""Process faults of ``dmosim run --fault``: an agent (or the DMO) killed, or restarted, when the DMO's clock reaches
-an hour. Message faults (drop, delay, duplicate, corrupt) are injected at each role's bus instead
+"""Process faults of ``dmosim run --fault``: an agent killed or restarted, the DMO restarted or the recorder killed,
+when the DMO's clock reaches an hour. Message faults (drop, delay, duplicate, corrupt) are injected at each role's bus instead
 (messages/transport/faults.py); ``parse_fault`` reads either (docs/faults.md)."""
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ PROCESS_FAULTS = ("kill", "restart")
 class Fault:
     """``kill:AGENT:HOUR[:DAY]``: SIGKILL the agent's process when the DMO's clock reaches that hour of that day (of
     day 1 if none is given); ``restart:AGENT:HOUR[:DAY]`` also starts it again at once, with the same command line
-    (it registers again and rejoins the day)."""
+    (it registers again and rejoins the day). AGENT may also be ``dmo`` (restart only: it resumes from its journal)
+    or ``recorder`` (kill only: the run goes on without it)."""
 
     agent: str
     hour: int

@@ -1,8 +1,9 @@
 """A run on this machine: the DMO, one process per agent and the recorder, started from an experiment over Zenoh on
 loopback with credentials made for the run, watched (process faults fire on the DMO's clock) and always stopped.
 
-``run_locally`` returns the DMO's result (``RunResult.report``) with where the recording went; it writes what the
-run makes into its run directory (experiment/rundir.py).
+``run_locally`` returns the DMO's result (``RunResult.report``) with where the recording went and the run's
+verdict (dmo/results/verdict.py); it writes what the run makes into its run directory (experiment/rundir.py). The
+recorder is an observer: if it fails, the days go on and settle, and the tables come from the DMO's journal.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Callable
 
 from messages import Clock, Schedule
 from messages.keys import new_run_id
-from messages.recording import RecordingError, read_recording
+from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import Bus, BusConfig
 from messages.transport.access import bundle_settings
 from messages.transport.credentials import create_auth_dir
@@ -29,11 +30,16 @@ from scenarios.fleet import FleetMember, load_fleet, make_fleet
 
 from ..experiment.rundir import RunDir
 from ..experiment.spec import Experiment, load_experiment, to_toml
+from ..replay.reproduce import differences, statements_of
+from ..results.journaled import journal_recording
+from ..results.verdict import problems, verdict
 from .faults import Fault, parse_fault
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
 
 OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
+RECORDER_STOP_S = 60.0  # how long the recorder may take to finish its file once the run is over
+AWAIT_RECORDER = ("--await-recorder", "60")  # the DMO's first message waits for the recorder (seconds)
 
 
 class RoleFailed(RuntimeError):
@@ -68,8 +74,10 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
 
 
 def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
-                say: Callable[[str], None] = lambda text: None) -> dict:
-    """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder)."""
+                repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None) -> dict:
+    """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
+    ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
+    with before its result is written."""
     e = experiment
     fleet = fleet_of(e)
     parsed = [parse_fault(f) for f in e.faults]
@@ -99,7 +107,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             "--registration-timeout", repr(d.registration), "--bid-timeout", repr(d.bid),
             "--schedule-timeout", repr(d.schedule), "--hour-timeout", repr(d.hour),
             "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"), "--auth-dir", str(auth),
-            *(["--await-recorder", "60"] if record else []), *message_faults), log=logs / "dmo.log")
+            *(AWAIT_RECORDER if record else ()), *message_faults), log=logs / "dmo.log")
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
@@ -124,11 +132,10 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                     "--island-hours", str(m.island_hours), "--gap", repr(s.gap), "--time-limit", repr(s.time_limit),
                     "--method", s.method, "--workers", str(s.workers), "--lease", "1", *scales,
                     "--auth-dir", str(auth), *message_faults), log=logs / f"{member.id}.log")
-            failed = _wait_for_run(roles)
-        if record and not failed:
-            failed = _stop_recorder(roles)
+            failed = _wait_for_run(roles, watch)
         if failed:
             raise RoleFailed(failed, roles)
+        recorder = _stop_recorder(roles, watch, faults) if record else None
         restarts = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
     result = json.loads(rundir.result.read_text())
     result.update(realised=realised_days(logs, [m.id for m in fleet]), wall_s=round(time.monotonic() - began, 3),
@@ -136,13 +143,43 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     result.update(experiment=e.name, run_dir=str(rundir.root.resolve()), logs=str(logs.resolve()),
                   recording=str(record.resolve()) if record else None, faults=[str(f) for f in parsed],
                   restarts=restarts)
+    # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.
+    rec, complete = None, False
     if record:
-        result["recorded"] = _recorded(record)
-        if result["recorded"].get("messages"):
-            say("writing the run's tables and figure")
-            result.update(_write_results(record, rundir, run_id))
+        rec, result["recorded"] = _recorded(record, recorder)
+        complete = result["recorded"]["complete"]
+    if record or repeat_of is not None:
+        said = rec if complete else journal_recording(logs / "dmo.journal", run_id, _run_metadata(e, fleet))
+        if repeat_of is not None:
+            result["reproduced"] = reproduction(repeat_of, said, say)
+        if record and said.messages:
+            result["recorded"]["tables_from"] = "recording" if complete else "journal"
+            say("writing the run's tables and figure" + ("" if complete else " from the DMO's journal (the "
+                                                                               "recording is incomplete)"))
+            result.update(_write_results(said, rundir, run_id))
+    found = problems(result, agents=[m.id for m in fleet], days=e.days,
+                     recorded=set(statements_of(rec)) if complete else None)
+    result["verdict"] = verdict(found)
     rundir.result.write_text(json.dumps(result, indent=2) + "\n")
     return result
+
+
+def reproduction(source: str | Path, again: Recording, say: Callable[[str], None] = lambda text: None) -> dict:
+    """Whether the run (``again``: what it said) settled every agent as the recording ``source`` it was repeated
+    from; where not, which agent, day and hour differ (a fault, a missed deadline or a solve cut by its time limit
+    can make a run differ)."""
+    try:
+        before = read_recording(source)
+    except RecordingError as exc:
+        return {"source": str(source), "identical": False, "differences": [], "error": str(exc)}
+    diffs = differences(before, again)
+    if diffs:
+        say(f"{len(diffs)} statement line(s) differ from {source}:")
+        for line in diffs:
+            say(f"  {line}")
+    else:
+        say(f"every statement is the same as in {source}, to the cent")
+    return {"source": str(source), "identical": not diffs, "differences": diffs}
 
 
 def realised_days(logs: Path, agents: list[str]) -> dict[str, list[dict]]:
@@ -168,12 +205,17 @@ def _optional(flag: str, value) -> list[str]:
     return [] if value is None else [flag, repr(value)]
 
 
-def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir: RunDir) -> list[str]:
-    """The recorder's --meta and --attach flags: the resolved experiment (as metadata and as a file, so that the
-    recording can be run again), seed, market day, agents, and the case and fleet files."""
-    meta = {"config": json.dumps(experiment.model_dump(), sort_keys=True), "seed": str(experiment.seed),
+def _run_metadata(experiment: Experiment, fleet: list[FleetMember]) -> dict[str, str]:
+    """What the recording's metadata says of the run: the resolved experiment, seed, market day, days, agents."""
+    return {"config": json.dumps(experiment.model_dump(), sort_keys=True), "seed": str(experiment.seed),
             "market_day": experiment.market_day, "days": str(experiment.days),
             "agents": ",".join(m.id for m in fleet), "command": "dmosim run"}
+
+
+def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir: RunDir) -> list[str]:
+    """The recorder's --meta and --attach flags: the run's metadata, and the resolved experiment (so that the
+    recording can be run again), the case and fleet files as attachments."""
+    meta = _run_metadata(experiment, fleet)
     fleet_file = rundir.logs / "fleet.toml"
     fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
                                   f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n\n"
@@ -183,14 +225,14 @@ def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir
     return flags + [flag for path in [str(rundir.experiment), *cases, str(fleet_file)] for flag in ("--attach", path)]
 
 
-def _write_results(record: Path, rundir: RunDir, run_id: str) -> dict:
-    """The recording as tables (``dmosim export``) and a figure (``dmosim plot``) in the run directory."""
+def _write_results(rec: Recording, rundir: RunDir, run_id: str) -> dict:
+    """The run's recording as tables (``dmosim export``) and a figure (``dmosim plot``) in the run directory."""
     from microgrid_agent.studies.figures import save  # noqa: PLC0415  (pandas, matplotlib: only once a run is over)
 
     from ..results.figures import days_label, recording_figure  # noqa: PLC0415
     from ..results.tables import tables, write_tables  # noqa: PLC0415
 
-    frames = tables(read_recording(record))
+    frames = tables(rec)
     rundir.tables.mkdir(exist_ok=True)
     written = {"tables": {path.stem: str(path.resolve()) for path in write_tables(frames, rundir.tables)}}
     if not frames["hours"].empty:
@@ -210,47 +252,71 @@ def _wait_until(event: threading.Event, roles: Roles, watched: tuple[str, ...], 
             raise RuntimeError(f"no sign of {what} within {timeout_s:g} s")
 
 
-def _stop_recorder(roles: Roles) -> list[str]:
-    """SIGTERM the recorder once the run is over: it writes its last chunk, the summary and the footer."""
-    process = roles.roles["recorder"].process
+def _stop_recorder(roles: Roles, watch: _Watch, faults: list[Fault]) -> str | None:
+    """SIGTERM the recorder once the run is over: it writes its last chunk, the summary and the footer. None if it
+    did all that; else its failure in one line: killed by a fault, exited before the run ended, or failed to finish
+    its file."""
+    role = roles.roles["recorder"]
+    process = role.process
     time.sleep(0.2)  # what the DMO sent last is still on its way to the recorder
-    if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
+    if process.poll() is not None:
+        at = f" at {watch.recorder_exit}" if watch.recorder_exit else " before it was stopped"
+        if role.killed_on_purpose:
+            spec = next((str(f) for f in faults if f.agent == "recorder"), "")
+            return f"killed{at} (--fault {spec})"
+        return f"exited{at} ({_exit_status(process.returncode, role.log)}; its log: {role.log})"
+    process.send_signal(signal.SIGTERM)
     try:
-        code = process.wait(timeout=60)
+        code = process.wait(timeout=RECORDER_STOP_S)
     except subprocess.TimeoutExpired:
-        return ["recorder"]
-    return [] if code == 0 else ["recorder"]
+        return f"did not finish its file within {RECORDER_STOP_S:g} s of being stopped (its log: {role.log})"
+    return None if code == 0 else f"failed to finish its file ({_exit_status(code, role.log)}; its log: {role.log})"
 
 
-def _recorded(path: Path) -> dict:
+def _exit_status(code: int, log: Path | None = None) -> str:
+    """How a process ended: the signal that killed it, or its exit code and, if it failed, the last line of its
+    ``log`` (a failing dmosim role's last line is its error)."""
+    if code < 0:
+        return f"killed by {signal.Signals(-code).name}"
+    lines = log.read_text(errors="replace").split("\n") if code and log and log.exists() else []
+    last = next((line.strip() for line in reversed(lines) if line.strip()), "")
+    return f"exit {code}" + (f": {last[:300]}" if last else "")
+
+
+def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, dict]:
+    """The recording read back, and what the result says of it: its counts, whether it is ``complete`` (the file
+    whole and the recorder never failed) and the ``recorder``'s failure (None if none)."""
     try:
         rec = read_recording(path)
     except RecordingError as exc:
-        return {"error": str(exc)}
-    return {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
-            "complete": rec.complete}
+        return None, {"error": str(exc), "complete": False, "recorder": recorder}
+    return rec, {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
+                 "complete": rec.complete and recorder is None, "recorder": recorder}
 
 
-def _wait_for_run(roles: Roles) -> list[str]:
+def _wait_for_run(roles: Roles, watch: _Watch) -> list[str]:
     """Block on process exits until the DMO is done and the agents have left; return the names that failed.
 
     An agent that exits non-zero on its own stops the run. One killed on purpose is the DMO's problem: the day
-    goes on and settles it by the missing-data rule. The recorder runs until it is stopped: any exit of its own
-    is a failure.
+    goes on and settles it by the missing-data rule. The recorder is an observer: whenever it exits, the run goes
+    on (the DMO needs it only before its first message) and ``watch.recorder_exit`` notes when.
     """
     pending = set(roles.roles) - {"recorder"}
-    failed = []
     while pending:
         timeout = 60.0 if "dmo" not in pending else None  # once the run is settled, agents get a minute to leave
         try:
             name, code = roles.exits.get(timeout=timeout)
         except queue.Empty:
-            return failed + sorted(pending)
+            return sorted(pending)
+        if name == "recorder":
+            watch.recorder_exit = watch.when()
+            watch.say(f"the recorder exited at {watch.recorder_exit} ({_exit_status(code)}); the run goes on, and "
+                      "its tables will come from the DMO's journal")
+            continue
         pending.discard(name)
-        if name == "recorder" or (code != 0 and not roles.roles[name].killed_on_purpose):
-            return failed + [name]
-    return failed
+        if code != 0 and not roles.roles[name].killed_on_purpose:
+            return [name]
+    return []
 
 
 class _Watch:
@@ -266,12 +332,19 @@ class _Watch:
         self.fired: set[Fault] = set()
         self.scheduling_since: float | None = None
         self.day = ""
+        self.clock = "the start"  # where the DMO's clock stands, as the run's messages say it
+        self.recorder_exit: str | None = None  # where it stood when the recorder exited
         self.memory: dict[int, dict[str, dict]] = {}  # day -> role -> its memory as the day is settled
+
+    def when(self) -> str:
+        with self.lock:
+            return self.clock
 
     def on_clock(self, key, msg: Clock, received_at) -> None:
         self.started.set()
         with self.lock:
             self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
+            self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
             if msg.phase == "settlement":
                 self.memory[msg.day] = {name: m for name, role in self.roles.roles.items()
@@ -292,8 +365,14 @@ class _Watch:
 
     def _fire(self, f: Fault) -> None:
         when = f"hour {f.hour} of day {f.day}"
-        if f.kind == "restart" and f.agent == "dmo":
+        if f.agent not in self.roles.roles:
+            self.say(f"fault {f}: this run has no {f.agent}")
+        elif f.kind == "restart" and f.agent == "dmo":
             self.say(f"fault: restarting the DMO (SIGKILL, then start again) {DMO_KILL_AFTER_S:g} s into {when}")
+            recorder, dmo = self.roles.roles.get("recorder"), self.roles.roles["dmo"]
+            if recorder is not None and recorder.process.poll() is not None and AWAIT_RECORDER[0] in dmo.argv:
+                at = dmo.argv.index(AWAIT_RECORDER[0])  # the recorder is gone: the DMO must not wait for it again
+                dmo.argv = dmo.argv[:at] + dmo.argv[at + len(AWAIT_RECORDER):]
             threading.Timer(DMO_KILL_AFTER_S, self.roles.restart, ("dmo",)).start()
         elif f.kind == "restart":
             self.say(f"fault: restarting {f.agent} (SIGKILL, then start again) at {when}")

@@ -113,14 +113,14 @@ def day_gaps(rec: Recording, day: str | None) -> list[str]:
             hours = [line.hour for line in statements[agent].lines
                      if not line.missing and line.hour not in metered.get(agent, ())]
             if hours:
-                out.append(f"{agent}: no meter report recorded for hour(s) {_ranges(hours)}, which its statement "
+                out.append(f"{agent}: no meter report recorded for hour(s) {hour_ranges(hours)}, which its statement "
                            "settled as metered")
     if next(day_messages(rec, day, "day_summary"), None) is None:
         out.append("no day summary recorded")
     return out
 
 
-def _ranges(hours: list[int]) -> str:
+def hour_ranges(hours: list[int]) -> str:
     """1, 2, 3, 5 -> "1-3, 5"."""
     runs: list[list[int]] = []
     for h in sorted(hours):

@@ -1,10 +1,11 @@
 """A sweep's results (``dmosim sweep``): one tidy table, a row per run and agent, and its figure.
 
 The table has the swept settings as columns (named by their dotted keys), then the run's ``label``, ``status``
-(``ok`` or ``failed``), ``run_dir``, ``wall_s``, ``agent``, the agent's settlement summed over the run's days
-(``SETTLED``), and what only the agent knows, from its realised days: its own operating cost and the load it
-curtailed (``REALISED``).
-A failed run keeps one row with its error and empty money, so a sweep that lost a run still says which.
+(``ok``, ``untrusted`` or ``failed``), ``run_dir``, ``wall_s``, ``agent``, the agent's settlement summed over the
+run's days (``SETTLED``), and what only the agent knows, from its realised days: its own operating cost and the
+load it curtailed (``REALISED``).
+A failed run keeps one row with its error and empty money, so a sweep that lost a run still says which; an
+untrusted one (its verdict is not ok) keeps its rows, with what its DMO settled and its problems as the error.
 """
 
 from __future__ import annotations
@@ -25,15 +26,19 @@ REALISED = {"operating_cost": "total", "curtailment_mwh": "curtailment_mwh"}  # 
 
 def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: float, result: dict | None,
                error: str | None = None) -> list[dict]:
-    """The rows of one run: one per agent of its result (``dmosim run --json``), or one saying why it failed."""
-    head = {**{key: _cell(value) for key, value in settings.items()}, "label": label,
-            "status": "failed" if result is None else "ok", "run_dir": run_dir, "wall_s": round(wall_s, 1)}
+    """The rows of one run: one per agent of its result (``dmosim run --json``), or one saying why it failed
+    (``error``, used only when there is no result). A result whose verdict is not ok is ``untrusted``, its problems
+    the error of each of its rows."""
+    found = (result or {}).get("verdict", {}).get("problems", [])
+    status = "failed" if result is None else "untrusted" if found else "ok"
+    head = {**{key: _cell(value) for key, value in settings.items()}, "label": label, "status": status,
+            "run_dir": run_dir, "wall_s": round(wall_s, 1)}
     if result is None:
         return [{**head, "agent": None, **dict.fromkeys([*SETTLED, *REALISED]), "error": error}]
     realised = result.get("realised", {})
     return [{**head, "agent": agent, **{k: s.get(k) for k in SETTLED},
              **{column: _realised_sum(realised.get(agent), field) for column, field in REALISED.items()},
-             "error": None}
+             "error": "; ".join(found) or None}
             for agent, s in sorted(result["settlement"].items())]
 
 
