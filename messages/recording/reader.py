@@ -70,6 +70,17 @@ class Recording:
     complete: bool = False
     bytes_read: int = 0
     cut_reason: str | None = None
+    _run_token: tuple[str | None] | None = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def run_token(self) -> str | None:
+        """The run's token (docs/protocol.md, "The envelope"): the one the DMO's first recorded clock carries, None
+        if no clock is recorded. A message that carries another was not of the run (a replay of another run's, or
+        a forgery): the readers of a recording skip it, as the run's processes did."""
+        if self._run_token is None:
+            clocks = (m for m in self.in_log_order() if m.kind == "clock" and m.invalid is None)
+            self._run_token = (next((msg.run for msg in map(_clock, clocks) if msg is not None), None),)
+        return self._run_token[0]
 
     @property
     def prefix(self) -> str:
@@ -100,11 +111,23 @@ class Recording:
     def decoded(self, kind: str) -> Iterator[tuple[RecordedMessage, object]]:
         """The valid messages of one kind with their decoded form, in log order, one at a time: decoded, a day's
         messages take several times the memory of their bytes, so none is held longer than its caller needs."""
+        token = self.run_token
         for m in sorted((m for m in self.messages if m.kind == kind and m.invalid is None), key=lambda m: m.log_time):
             try:
-                yield m, decode(m.payload, expected_kind=kind)
+                msg = decode(m.payload, expected_kind=kind)
             except MessageError:
                 continue
+            if token is None or msg.run == token:
+                yield m, msg
+
+
+def _clock(m: RecordedMessage):
+    """A recorded clock, decoded, if the DMO sent it (None otherwise)."""
+    try:
+        msg = decode(m.payload, expected_kind="clock")
+    except MessageError:
+        return None
+    return msg if msg.sender == "dmo" and m.relative_key == "dmo/clock" else None
 
 
 def _prefix_of(topics: Iterable[str]) -> str:
