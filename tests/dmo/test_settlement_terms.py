@@ -9,6 +9,11 @@ from pathlib import Path
 import pytest
 
 from dmo.cli import main
+from dmo.cli.console import UsageError
+from dmo.cli.dmo import day_config
+from dmo.cli.main import build_parser
+from dmo.experiment.spec import Experiment, ExperimentError, parse_experiment, settled_by, with_settings
+from dmo.experiment.sweep import parse_setting, variants
 from dmo.market.choice import choose
 from dmo.market.rules import BUILT_IN, market_parameters
 
@@ -74,3 +79,62 @@ def test_a_rule_that_is_not_convex_takes_the_penalty_the_agents_schedule_against
     assert market_parameters(rule, {"credit": 60.0}, 50.0, 0.0, CASE_PENALTY) == {"credit": 60.0}
     for name in ("symmetric", "deadband"):  # convex whatever their parameters
         assert BUILT_IN[name].always_convex({key: high for key, (_, high) in BUILT_IN[name].ranges.items()})
+
+
+@pytest.mark.parametrize("market, label", [
+    ({}, "paper:penalty=150,credit=0"),
+    ({"penalty": 50.0}, "paper:penalty=50,credit=0"),
+    ({"settlement": "paper", "penalty": 50.0}, "paper:penalty=50,credit=0"),
+    ({"settlement": "paper", "credit": 7.0}, "paper:penalty=150,credit=7"),
+    ({"settlement": "paper:penalty=80"}, "paper:penalty=80,credit=0"),
+    ({"settlement": "deadband"}, "deadband:rate=150,below_rate=0,band_mw=0,band_share=0.1"),
+])
+def test_an_experiment_says_which_rule_settles_it(market, label):
+    assert settled_by(parse_experiment({"market": market}).market, CASE_PENALTY) == label
+    own = Experiment().market.model_copy(update={"settlement": "rules.py:mine", "penalty": 50.0})
+    assert settled_by(own, CASE_PENALTY) == "rules.py:mine"  # a rule of one's own settles as it is written
+
+
+@pytest.mark.parametrize("market, says", [
+    ({"settlement": "paper:penalty=100", "penalty": 50.0}, "paper:penalty=100 and a market penalty of 50"),
+    ({"settlement": "deadband", "penalty": 150.0}, "settlement rule deadband prices every deviation"),
+    ({"settlement": "symmetric", "credit": 5.0}, "settlement rule symmetric prices every deviation"),
+])
+def test_an_experiment_whose_rule_and_rates_disagree_is_refused(market, says):
+    with pytest.raises(ExperimentError, match=re.escape(says)) as err:
+        parse_experiment({"market": market}, "exp.toml")
+    assert str(err.value).startswith("exp.toml: market: ") and "\n" not in str(err.value)
+
+
+def test_run_check_names_the_rule_the_days_are_settled_by(capsys):
+    assert main(["run", "--settlement", "paper", "--penalty", "50", "--check"]) == 0
+    assert "settled by paper:penalty=50,credit=0" in capsys.readouterr().out
+    assert main(["run", "--settlement", "deadband", "--penalty", "50", "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "settlement rule deadband prices every deviation" in err and err.count("\n") == 1
+
+
+def test_a_sweep_of_the_penalty_under_a_named_rule_settles_each_run_at_its_own_rate_or_is_refused():
+    under_paper = with_settings(Experiment(), {"market.settlement": "paper"}, "test")
+    runs = variants(under_paper, [parse_setting("market.penalty=50,150,300")])
+    assert [settled_by(v.experiment.market, CASE_PENALTY) for v in runs] == [
+        "paper:penalty=50,credit=0", "paper:penalty=150,credit=0", "paper:penalty=300,credit=0"]
+    under_deadband = with_settings(Experiment(), {"market.settlement": "deadband"}, "test")
+    with pytest.raises(ExperimentError, match="settlement rule deadband prices every deviation"):
+        variants(under_deadband, [parse_setting("market.penalty=50,150")])
+
+
+def dmo_args(*flags: str):
+    return build_parser("dmo").parse_args(["dmo", "--agents", "1", *flags])
+
+
+def test_the_dmo_settles_by_the_rule_with_the_markets_rates():
+    config = day_config(dmo_args("--settlement", "paper", "--penalty", "50", "--credit", "5"), 1)
+    assert config.rule.label == "paper:penalty=50,credit=5" and config.rates == (50.0, 5.0)
+    assert day_config(dmo_args("--settlement", "paper"), 1).rule.label == "paper:penalty=150,credit=0"
+    assert day_config(dmo_args("--settlement", "paper:penalty=70"), 1).rates == (70.0, 0.0)
+    assert day_config(dmo_args("--settlement", "symmetric:below=10"), 1).rule.label == "symmetric:above=150,below=10"
+    for flags in (("--settlement", "paper:penalty=70", "--penalty", "50"),
+                  ("--settlement", "deadband", "--penalty", "50")):
+        with pytest.raises(UsageError, match="--settlement: settlement rule"):
+            day_config(dmo_args(*flags), 1)
