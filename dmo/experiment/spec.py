@@ -212,9 +212,10 @@ def parse_experiment(data: dict, source: str = "<experiment>") -> Experiment:
         return Experiment.model_validate(data)
     except ValidationError as exc:
         err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "experiment"
+        where = ".".join(p if re.fullmatch(r"[\w-]+", str(p), re.ASCII) else repr(p) for p in map(str, err["loc"]))
         what = "unknown key" if err["type"] == "extra_forbidden" else err["msg"].removeprefix("Value error, ")
-        raise ExperimentError(f"{source}: {where}: {what}") from None
+        message = f"{source}: {where or 'experiment'}: {what}"
+        raise ExperimentError(message.replace("\n", "\\n")) from None  # one line, whatever a key or rule says
 
 
 def load_experiment(path: str | Path) -> Experiment:
@@ -260,8 +261,10 @@ def to_toml(experiment: Experiment) -> str:
 def _value(value) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
-    if isinstance(value, (int, str)):
+    if isinstance(value, int):
         return json.dumps(value)
+    if isinstance(value, str):  # JSON's escapes are TOML's, but for surrogate pairs (kept raw here) and DEL
+        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
     if isinstance(value, float):
         return repr(value) if math.isfinite(value) else ("inf" if value > 0 else "-inf")
     if isinstance(value, (list, tuple)):
