@@ -105,6 +105,23 @@ def check_on_the_command_line(path: Path, capsys) -> None:
     assert "Traceback" not in err and (code == 0 or err.count("\n") == 1), err
 
 
+# Each setting at each of these, not left to chance: wrong types, edges and values far past any bound.
+EDGES = [-1, 0, 1, 2, 2**31, 2**32, 2**63, 10**9, 10**30, -1.0, 0.5, 1e300, math.inf, -math.inf, math.nan, True, "",
+         "x" * 5000, "a\nb", "9999-12-31", "2026-07-01", "paper", [], [1.0] * 1000, [[[[]]]], {}, {"a": 1}]
+
+
+def test_every_setting_at_every_edge_is_an_experiment_or_one_line(capsys):
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "edge.toml"
+        for *where, last in PATHS:
+            for value in EDGES:
+                data = copy.deepcopy(DEFAULTS)
+                (data[where[0]] if where else data)[last] = value
+                if accepted_or_one_line(lambda: parse_experiment(data, "edge.toml")) is not None:
+                    path.write_text(toml_document(data))  # what parses must also pass or fail --check in one line
+                    check_on_the_command_line(path, capsys)
+
+
 @FUZZ
 @given(data=documents)
 def test_any_structure_is_an_experiment_or_one_line(data):
