@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import stat
+import sys
 import tomllib
 from functools import cached_property
 from pathlib import Path
@@ -13,6 +15,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from scenarios.horizon import HOURS
 
 DATA_DIR = Path(__file__).parent / "data"
+# Bounds of every TOML file dmosim reads (case, fleet, experiment, a sweep's --set values). The largest we ship,
+# paper.toml, is 9.5 kB and a fleet of 1,024 members about 100 kB: 1 MiB is ten times that and parses in well
+# under a second. The deepest nesting a valid file needs is 4 (a case's units -> unit -> provenance -> note).
+MAX_TOML_BYTES = 1 << 20
+MAX_TOML_DEPTH = 8
 
 NonNeg = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 Pos = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -273,16 +280,60 @@ def load_case(name_or_path: str | Path) -> Case:
 
 
 def read_toml(path: Path, what: str, error: type[Exception], missing_hint: str = "") -> dict:
-    """A TOML file (case, fleet, experiment...) as a dict; a file that is missing, unreadable or not TOML raises
-    ``error`` with one line naming it."""
+    """A TOML file (case, fleet, experiment...) as a dict; a file that is missing, unreadable, not a regular file,
+    larger than ``MAX_TOML_BYTES`` or not TOML raises ``error`` with one line naming it."""
+    path = Path(path)
     try:
-        return tomllib.loads(path.read_text())
+        raw = None
+        if stat.S_ISREG(path.stat().st_mode):  # not a FIFO or /dev/zero, which would block or never end
+            with path.open("rb") as f:
+                raw = f.read(MAX_TOML_BYTES + 1)
     except FileNotFoundError:
         raise error(f"{what} file not found: {path}{missing_hint}") from None
-    except (OSError, UnicodeDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
+        raise error(f"cannot read {what} file {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    if raw is None:
+        raise error(f"cannot read {what} file {path}: not a regular file")
+    if len(raw) > MAX_TOML_BYTES:
+        raise error(f"{path}: larger than {MAX_TOML_BYTES:,} bytes, the most a {what} file may hold")
+    try:
+        text = raw.decode()
+    except UnicodeDecodeError as exc:
         raise error(f"cannot read {what} file {path}: {exc}") from None
+    return parse_toml(text, str(path), error)
+
+
+def parse_toml(text: str, source: str, error: type[Exception]) -> dict:
+    """TOML text as a dict, within ``MAX_TOML_BYTES`` and ``MAX_TOML_DEPTH``; else ``error``, one line naming
+    ``source``."""
+    if len(text) > MAX_TOML_BYTES:
+        raise error(f"{source}: larger than {MAX_TOML_BYTES:,} bytes, the most a TOML document may hold")
+    try:
+        data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise error(f"{path}: not valid TOML: {exc}") from None
+        raise error(f"{source}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise error(f"{source}: nested deeper than {MAX_TOML_DEPTH} levels") from None
+    except ValueError:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
+        digits = sys.get_int_max_str_digits()
+        raise error(f"{source}: not valid TOML: an integer of more than {digits} digits") from None
+    if toml_depth(data) > MAX_TOML_DEPTH:
+        raise error(f"{source}: nested deeper than {MAX_TOML_DEPTH} levels")
+    return data
+
+
+def toml_depth(data: object) -> int:
+    """How deeply tables and arrays nest in ``data`` (a document of scalars only is 1), counted without recursion
+    and no further than one level past ``MAX_TOML_DEPTH``."""
+    deepest, stack = 0, [(data, 1)]
+    while stack:
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if depth > MAX_TOML_DEPTH:
+            break
+        children = node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
+        stack.extend((child, depth + 1) for child in children if isinstance(child, (dict, list)))
+    return deepest
 
 
 def builtin_cases() -> list[str]:

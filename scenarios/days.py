@@ -16,11 +16,25 @@ from .case import Case, parse_case
 from .horizon import HOURS
 
 DAY_STRIDE = 100_003  # a prime: seeds of different days and runs do not collide for any reasonable seed
+# The seeds a user may give (a run's, a fleet member's, an agent's): 0..2**32-1, numpy's legacy seed range. Every
+# seed derived from one stays a non-negative integer below 2**33 (a day's: + DAY_STRIDE x 3,659 at most, its
+# realised day + 1,000), which numpy's SeedSequence takes and which JSON and MCAP metadata keep exactly.
+MAX_SEED = 2**32 - 1
+
+
+def check_seed(seed: object, what: str = "seed") -> int:
+    """``seed`` if it is an integer in 0..MAX_SEED, else ValueError naming ``what``."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
+        raise ValueError(f"{what} must be an integer in 0..{MAX_SEED}, got {seed!r}")
+    return seed
 
 
 def market_days(first: str, days: int) -> tuple[str, ...]:
-    """The ISO dates of ``days`` consecutive market days from ``first``."""
+    """The ISO dates of ``days`` consecutive market days from ``first``; ValueError if the last would fall after
+    9999-12-31, the last date there is."""
     start = dt.date.fromisoformat(first)
+    if days > (dt.date.max - start).days + 1:
+        raise ValueError(f"{days} market days from {first} end after {dt.date.max.isoformat()}, the last date there is")
     return tuple((start + dt.timedelta(days=d)).isoformat() for d in range(days))
 
 

@@ -5,9 +5,11 @@ A fleet file (TOML) lists its agents::
     [[agents]]
     id = "mg1"            # agent id: ^[A-Za-z][A-Za-z0-9_-]{0,31}$, not "dmo" or "recorder"
     case = "paper"        # built-in case name, or a case file path relative to the fleet file
-    scale = 1.0           # > 0: every power and energy quantity is multiplied by it (default 1)
+    scale = 1.0           # in (0, 10]: every power and energy quantity is multiplied by it (default 1)
     shift_hours = 0       # -23..23: load, renewable and award profiles rolled by this many hours (default 0)
-    seed = 1              # the agent's realised-day seed (default: its position in the file, 1-based)
+    seed = 1              # 0..2**32-1: the agent's realised-day seed (default: its position in the file, 1-based)
+
+A file lists at most ``MAX_MEMBERS`` agents.
 """
 
 from __future__ import annotations
@@ -19,10 +21,18 @@ from pathlib import Path
 import numpy as np
 
 from scenarios.case import Case, CaseError, builtin_cases, load_case, parse_case, read_toml
+from scenarios.days import check_seed
 from scenarios.names import check_agent_id
 
 SCALE_RANGE = (0.6, 1.4)
 SHIFTS = (-2, -1, 0, 1, 2)
+# The protocol's day summary lists at most 1,024 agents (messages.schemas.MAX_AGENTS, which this package, below
+# messages, cannot import; tests/scenarios/test_fleet.py checks the two agree).
+MAX_MEMBERS = 1024
+# The largest multiplier of a microgrid's size, and of its profiles: ten times the paper's microgrid ties to the
+# grid at 160 MW, more than any microgrid; above it a scaled day is all curtailment or all spill.
+MAX_SCALE = 10.0
+MAX_SHIFT_HOURS = 23  # a shift of 24 h or more is a shift of less: the day is rolled round
 _FIELDS = ("id", "case", "scale", "shift_hours", "seed")
 
 # Quantities in MW or MWh, by part of the case; costs, times, windows and prices are kept.
@@ -66,8 +76,8 @@ def derive_case(base: Case, scale: float, shift_hours: int, name: str) -> Case:
     """``base`` with every power and energy quantity times ``scale`` and the fixed load, renewable forecasts and
     award rolled ``shift_hours`` later (np.roll: the day stays 24 h). Costs, times, load windows, uncertainty
     bounds and the ISO price are kept. Scale 1 and shift 0 under the base's name give the base itself."""
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
-        raise CaseError(f"derived case {name}: scale must be a finite number > 0, got {scale!r}")
+    if not is_scale(scale):
+        raise CaseError(f"derived case {name}: scale must be a number in (0, {MAX_SCALE:g}], got {scale!r}")
     if isinstance(shift_hours, bool) or not isinstance(shift_hours, (int, np.integer)):
         raise CaseError(f"derived case {name}: shift_hours must be an integer, got {shift_hours!r}")
     identity = scale == 1 and shift_hours == 0
@@ -81,6 +91,12 @@ def derive_case(base: Case, scale: float, shift_hours: int, name: str) -> Case:
     return parse_case(data, f"derived case {name}")
 
 
+def is_scale(scale: object) -> bool:
+    """Whether ``scale`` is a size or profile multiplier: a number in (0, MAX_SCALE]."""
+    return (not isinstance(scale, bool) and isinstance(scale, (int, float)) and math.isfinite(scale)
+            and 0 < scale <= MAX_SCALE)
+
+
 def member_case(member: FleetMember) -> Case:
     """The member's case: its base case derived by its scale and shift (the base itself when 1 and 0)."""
     base = load_case(member.case)
@@ -92,8 +108,9 @@ def member_case(member: FleetMember) -> Case:
 def make_fleet(n: int, seed: int = 0, base: str = "paper") -> list[FleetMember]:
     """n members mg1..mgN of ``base``: mg1 the base as is, the others scaled by U(0.6, 1.4) and shifted by
     -2..2 hours. Member i draws from its own stream of ``seed``, so a larger fleet extends a smaller one."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"a fleet needs at least 1 member, got {n!r}")
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_MEMBERS:
+        raise ValueError(f"a fleet has 1..{MAX_MEMBERS} members, not {n!r}")
+    check_seed(seed)
     members = []
     for i in range(1, n + 1):
         rng = np.random.default_rng([seed, i])
@@ -127,14 +144,17 @@ def _member(path: Path, index: int, entry, seen: set[str]) -> FleetMember:
     seen.add(agent)
     where = f"agents[{agent}]"
     scale = entry.get("scale", 1.0)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale <= 0:
-        _fail(path, f"{where}.scale", f"must be a finite number > 0, got {scale!r}")
+    if not is_scale(scale):
+        _fail(path, f"{where}.scale", f"must be a number in (0, {MAX_SCALE:g}], got {scale!r}")
     shift = entry.get("shift_hours", 0)
-    if isinstance(shift, bool) or not isinstance(shift, int) or not -23 <= shift <= 23:
-        _fail(path, f"{where}.shift_hours", f"must be an integer in -23..23, got {shift!r}")
+    if isinstance(shift, bool) or not isinstance(shift, int) or not -MAX_SHIFT_HOURS <= shift <= MAX_SHIFT_HOURS:
+        _fail(path, f"{where}.shift_hours",
+              f"must be an integer in -{MAX_SHIFT_HOURS}..{MAX_SHIFT_HOURS}, got {shift!r}")
     seed = entry.get("seed", index + 1)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        _fail(path, f"{where}.seed", f"must be an integer >= 0, got {seed!r}")
+    try:
+        check_seed(seed)
+    except ValueError as exc:
+        _fail(path, f"{where}.seed", str(exc))
     case = entry.get("case", "paper")
     if not isinstance(case, str) or not case:
         _fail(path, f"{where}.case", f"must be a case name or path, got {case!r}")
@@ -163,5 +183,7 @@ def load_fleet(path: str | Path) -> list[FleetMember]:
     agents = data.get("agents")
     if not isinstance(agents, list) or not agents:
         _fail(path, "agents", "missing: list at least one agent as [[agents]]")
+    if len(agents) > MAX_MEMBERS:
+        _fail(path, "agents", f"{len(agents)} agents; a fleet has at most {MAX_MEMBERS}")
     seen: set[str] = set()
     return [_member(path, i, entry, seen) for i, entry in enumerate(agents)]

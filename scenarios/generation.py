@@ -15,6 +15,12 @@ from scenarios.reduction import forward_selection
 _LOAD_STREAM = 0
 _ISLAND_STREAM = 1
 _RENEWABLE_STREAM = 2
+# The most scenarios a schedule may have (after reduction): ten times the paper's 100. The reduction's distances
+# take O(sample^2) memory, so the sample drawn before it is bounded too: reducing 10,000 to 1,000 (the default
+# sample of 10 n at this bound) peaks at 2.4 GiB and takes 142 s on the 2-core machine; a sample that is not
+# reduced (an evaluation's) costs 8 bytes x 24 K x (2 + renewables) per scenario, 59 MiB for 10,000 at K = 6.
+MAX_SCENARIOS = 1_000
+MAX_SAMPLE = 10_000
 
 
 @dataclass(frozen=True)
@@ -94,8 +100,8 @@ def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed:
     hours are distinct and equiprobable. Either way each scenario's cost is weighted as its start hour's true
     probability asks, so expectations stay unbiased (``stratum_weights``). Forecast errors are drawn as before.
     """
-    if n < 1:
-        raise ValueError(f"n must be at least 1 scenario, got {n}")
+    if not 1 <= n <= MAX_SAMPLE:
+        raise ValueError(f"n must be 1..{MAX_SAMPLE} scenarios, got {n}")
     if subperiods < 1:
         raise ValueError(f"subperiods must be at least 1 per hour, got {subperiods}")
     if not 0 <= island_hours <= HOURS:
@@ -199,9 +205,11 @@ def make_scenarios(
 ) -> ScenarioSet:
     """The paper's "reduced 100 scenarios": ``sample_size`` sampled scenarios (default 10 n) reduced to n; with
     ``stratified``, the sample spreads the islanding evenly over the day (``sample``)."""
+    if not 1 <= n <= MAX_SCENARIOS:
+        raise ValueError(f"a schedule has 1..{MAX_SCENARIOS} scenarios, not {n}")
     size = 10 * n if sample_size is None else sample_size
-    if size < n:
-        raise ValueError(f"sample_size ({size}) must be at least n ({n})")
+    if not n <= size <= MAX_SAMPLE:
+        raise ValueError(f"sample_size ({size}) must be at least n ({n}) and at most {MAX_SAMPLE}")
     return reduce_scenarios(sample(case, size, subperiods, island_hours, seed, stratified), n)
 
 

@@ -13,21 +13,63 @@ import math
 import sys
 from pathlib import Path
 
+from messages.keys import check_run_id, new_run_id
 from messages.recording import Recording, RecordingError, read_recording
+from messages.schemas import MAX_AGENTS
 from messages.transport import MODES, BusConfig
-from messages.transport.access import READERS, USERS_FILE, auth_settings
-from messages.transport.credentials import create_auth_dir
-from messages.transport.faults import FaultSpecError, injector
+from messages.transport.access import READERS, USERS_FILE, AuthError, auth_settings
+from messages.transport.credentials import check_private, create_auth_dir, private_directory
+from messages.transport.faults import FaultSpecError, injector, parse_message_fault
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
-from scenarios.fleet import FleetError, load_fleet, make_fleet
+from scenarios.days import MAX_SEED
+from scenarios.fleet import MAX_SCALE, FleetError, load_fleet, make_fleet
 
+from ..experiment.spec import MAX_FAULTS, MAX_PROFILE_DAYS, MAX_SECONDS, MAX_WORKERS
 from .console import UsageError
 
 log = logging.getLogger("dmosim")
 DEFAULT_CREDENTIALS = "dmosim-credentials"  # where a router that was given none makes its run's credentials
+DEFAULT_AGENTS = 3  # the agents credentials are made for, given neither --agents nor --fleet
 
 
 # --- value types: each raises ArgumentTypeError, which the parser turns into one line and exit 2 ----------------
+
+def _shown(text: str) -> str:
+    return repr(text if len(text) <= 40 else text[:37] + "...")
+
+
+def integer(low: int, high: int):
+    """The type of a flag that takes an integer in low..high (docs/experiments.md, "Bounds")."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:  # also an integer of more digits than Python converts
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer in {low:,}..{high:,}, got {_shown(text)}")
+        return value
+    return parse
+
+
+def number(low: float, high: float, *, above: bool = False, allow_inf: bool = False):
+    """The type of a flag that takes a number in [low, high] ((low, high] if ``above``), or inf if ``allow_inf``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (allow_inf and value == math.inf) and not (low < value <= high if above else low <= value <= high):
+            where = f"{'(' if above else '['}{low:,g}, {high:,.15g}]" + (" or inf" if allow_inf else "")
+            raise argparse.ArgumentTypeError(f"expected a number in {where}, got {_shown(text)}")
+        return value
+    return parse
+
+
+seed = integer(0, MAX_SEED)
+agents = integer(1, MAX_AGENTS)
+seconds = number(0, MAX_SECONDS, above=True)   # a deadline or time limit
+wait = number(0, MAX_SECONDS)                  # how long to wait for something, 0: not at all
+
 
 def positive_int(text: str) -> int:
     try:
@@ -49,18 +91,14 @@ def hours(text: str) -> int:
     return value
 
 
-def nonneg_float(text: str, allow_inf: bool = False) -> float:
+def nonneg_float(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {text!r}") from None
-    if math.isnan(value) or value < 0 or (math.isinf(value) and not allow_inf):
-        raise argparse.ArgumentTypeError(f"expected a non-negative{' ' if not allow_inf else ' (or inf) '}number, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {_shown(text)}") from None
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {_shown(text)}")
     return value
-
-
-def penalty(text: str) -> float:
-    return nonneg_float(text, allow_inf=True)
 
 
 def gap(text: str) -> float:
@@ -71,13 +109,14 @@ def gap(text: str) -> float:
 
 
 def scales(text: str) -> tuple[float, ...]:
-    """Comma-separated positive numbers, e.g. a week's profile scales 1,1,1,1,1,0.8,0.8."""
+    """Comma-separated numbers in (0, MAX_SCALE], at most MAX_PROFILE_DAYS, e.g. a week's 1,1,1,1,1,0.8,0.8."""
     try:
-        values = tuple(float(x) for x in text.split(","))
+        values = tuple(float(x) for x in text.split(",", MAX_PROFILE_DAYS))
     except ValueError:
         values = ()
-    if not values or not all(math.isfinite(v) and v > 0 for v in values):
-        raise argparse.ArgumentTypeError(f"expected positive numbers separated by commas, got {text!r}")
+    if not 1 <= len(values) <= MAX_PROFILE_DAYS or not all(0 < v <= MAX_SCALE for v in values):
+        raise argparse.ArgumentTypeError(f"expected 1..{MAX_PROFILE_DAYS} numbers in (0, {MAX_SCALE:g}] separated by "
+                                         f"commas, got {_shown(text)}")
     return values
 
 
@@ -99,8 +138,8 @@ def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
     p.add_argument("--method", choices=METHODS, default="auto",
                    help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
                         f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
-    p.add_argument("--workers", type=positive_int, default=workers,
-                   help=f"processes for the Benders subproblems (default: {workers})")
+    p.add_argument("--workers", type=integer(1, MAX_WORKERS), default=workers,
+                   help=f"processes for the Benders subproblems, at most {MAX_WORKERS} (default: {workers})")
 
 
 def add_fault_flags(p: argparse.ArgumentParser) -> None:
@@ -108,14 +147,14 @@ def add_fault_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fault", action="append", default=[], metavar="SPEC",
                    help="message fault on what this process publishes: drop|duplicate|corrupt:PATTERN:P or "
                         "delay:PATTERN:SECONDS[:P] (repeatable; docs/faults.md)")
-    p.add_argument("--fault-seed", type=int, default=0, help="seed of the fault draws (default: 0)")
+    p.add_argument("--fault-seed", type=seed, default=0, help=f"seed of the fault draws, 0..{MAX_SEED} (default: 0)")
 
 
-def add_bus_flags(parser: argparse.ArgumentParser) -> None:
-    """The Zenoh and authentication flags every networked role takes. Never a password on the command line: it
-    would show in ``ps``."""
+def add_bus_flags(parser: argparse.ArgumentParser, default_mode: str) -> None:
+    """The Zenoh and authentication flags every networked role takes; ``default_mode`` says, for the help, the mode
+    the verb takes without ``--mode``. Never a password on the command line: it would show in ``ps``."""
     group = parser.add_argument_group("zenoh")
-    group.add_argument("--mode", choices=MODES, help="zenoh session mode (default: peer)")
+    group.add_argument("--mode", choices=MODES, help=f"zenoh session mode (default: {default_mode})")
     group.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                        help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
     group.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
@@ -137,12 +176,26 @@ def add_bus_flags(parser: argparse.ArgumentParser) -> None:
                            "only). Without it a DMO or router makes the run's credentials itself")
 
 
+def check_bus_flags(args, default_mode: str) -> None:
+    """The bus flags' own values (mode, endpoints, lease, connect timeout), or the one-line UsageError, before a
+    role makes or reads credentials."""
+    try:
+        BusConfig(mode=args.mode or default_mode, connect=tuple(args.connect), listen=tuple(args.listen),
+                  lease_s=args.lease, connect_timeout_s=args.connect_timeout, config_file=args.zenoh_config)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def bus_config(args, default_mode: str, name: str | None = None, run_id: str | None = None) -> BusConfig:
     """The bus settings of the flags of ``add_bus_flags``; ``name`` is who a client logs in as by default, and a
     router with ``run_id`` checks that its --auth-dir was made for that run (messages/transport/access.py)."""
     try:
         mode = args.mode or default_mode
         listen, connect = tuple(args.listen), tuple(args.connect)
+        if args.auth_dir:
+            check_private(args.auth_dir)
+        if args.password_file:
+            check_private(args.password_file, secret=True)
         auth = auth_settings(args.auth_dir, args.user, args.password_file, name, router=mode == "router",
                              run_id=run_id, endpoints=listen if mode == "router" else connect)
         if mode == "router" and not auth:
@@ -163,11 +216,31 @@ def agent_ids(fleet: str | None, agents: int) -> list[str]:
         raise UsageError(str(exc)) from None
 
 
+def run_id_of(args) -> str:
+    """``--run-id``, checked, or else a new one (``messages.keys.new_run_id``: nobody can know it in advance), which
+    ``announce_run_id`` then prints so that the other processes can be started against it."""
+    if args.run_id is None:
+        args.run_id, args.run_id_made = new_run_id(), True
+    try:
+        return check_run_id(args.run_id)
+    except ValueError as exc:
+        raise UsageError(f"--run-id: {exc}") from None
+
+
+def announce_run_id(args) -> None:
+    """Say the run id ``run_id_of`` made, once everything else is checked."""
+    if getattr(args, "run_id_made", False):
+        print(f"dmosim: run {args.run_id} (start the other processes with --run-id {args.run_id})", file=sys.stderr,
+              flush=True)
+
+
 def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -> None:
     """Secure by default: a router that hosts a run (the DMO, ``dmosim router``, ``replay --as-dmo``) given no
     ``--auth-dir``, or one that does not exist yet, makes the run's credentials there itself (by default
     ``./dmosim-credentials/<run_id>/``) and says where every process's bundle is; ``args.auth_dir`` then names
-    them. ``--insecure`` serves an open network instead. A client logs in with the bundle it is given."""
+    them. Credentials that are there already are used only if nobody else could have made or changed them
+    (``check_private``). ``--insecure`` serves an open network instead. A client logs in with the bundle it is
+    given."""
     if args.insecure:
         if args.auth_dir:
             raise UsageError("--insecure and --auth-dir exclude each other: choose an open network or credentials")
@@ -175,13 +248,19 @@ def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -
     if (args.mode or "router") != "router" or args.password_file or args.user:
         return
     where = Path(args.auth_dir) if args.auth_dir else Path(DEFAULT_CREDENTIALS) / run_id
-    if (where / USERS_FILE).is_file():
-        args.auth_dir = str(where)
-        return
     try:
+        if not args.auth_dir:
+            private_directory(where.parent)
+        if (where / USERS_FILE).is_file():
+            check_private(where)
+            args.auth_dir = str(where)
+            return
         create_auth_dir(where, run_id, agents, dmo_client=dmo_client)
-    except ValueError as exc:  # AuthError is one
-        raise UsageError(f"cannot make the run's credentials in {where}: {exc}") from None
+    except AuthError as exc:
+        raise UsageError(str(exc)) from None
+    except (ValueError, OSError) as exc:
+        why = getattr(exc, "strerror", None) or exc
+        raise UsageError(f"cannot make the run's credentials in {where}: {why}") from None
     args.auth_dir = str(where)
     endpoint = (tuple(args.listen) or ("ENDPOINT",))[0]
     print(f"dmosim: made the credentials of run {run_id} in {where}: each process logs in with its bundle "
@@ -227,6 +306,17 @@ def recorded_day_flag(rec: Recording, day: str | None) -> str | None:
     if day is not None and day not in days:
         raise UsageError(f"--day {day}: {rec.path} is of {', '.join(days) or 'no market day'}")
     return day
+
+
+def check_fault_flags(args) -> None:
+    """``--fault``: at most MAX_FAULTS, each a message fault, or the one-line UsageError, before anything starts."""
+    if len(args.fault) > MAX_FAULTS:
+        raise UsageError(f"--fault: {len(args.fault)} faults; a process takes at most {MAX_FAULTS}")
+    for spec in args.fault:
+        try:
+            parse_message_fault(spec)
+        except FaultSpecError as exc:
+            raise UsageError(f"--fault: {exc}") from None
 
 
 def message_faults(args, bus):

@@ -67,8 +67,8 @@ def main(argv: list[str] | None = None) -> int:
         argv = sys.argv[1:] if argv is None else argv
         args = build_parser(argv[0] if argv and not argv[0].startswith("-") else None).parse_args(argv)
         return args.verb.run(args) or 0
-    except (UsageError, CaseError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except (UsageError, CaseError) as exc:  # one line, even where a path or a key the user gave holds a newline
+        print("error: " + str(exc).replace("\n", "\\n"), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -64,7 +64,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object at the end")
     p.add_argument("--quiet", action="store_true")
     add_trust_flag(p)
-    add_bus_flags(p)
+    add_bus_flags(p, "peer; router with --as-dmo")
 
 
 def run(args) -> int:

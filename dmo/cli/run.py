@@ -11,23 +11,27 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-import tomllib
 from pathlib import Path
 
 from messages.keys import new_run_id
-from messages.transport.faults import FaultSpecError
-from scenarios.case import load_case
-from scenarios.fleet import FleetError
+from messages.schemas import MAX_DAYS, MAX_SUBPERIODS
+from scenarios.case import load_case, parse_toml
+from scenarios.days import MAX_SEED
+from scenarios.generation import MAX_SCENARIOS
 
 from ..experiment.rundir import RunDir, RunDirError
-from ..experiment.spec import FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, with_settings
+from ..experiment.spec import (FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, parse_experiment,
+                               settled_by, with_settings)
 from ..launch.faults import Fault, parse_fault
-from ..launch.local import RoleFailed, fleet_of, resolved, run_locally
+from ..launch.local import RoleFailed, resolved, run_locally
 from ..market.choice import Trust, UntrustedRule, choose
+from ..market.rules import MAX_MW, MAX_RATE
+from ..replay.reproduce import differences
 from ..results.verdict import one_line
+from .checks import agent_list, check_inputs
 from .console import UsageError, print_json, progress
-from .flags import (SETTLEMENT_HELP, add_trust_flag, gap, hours, load_recording, market_day, nonneg_float,
-                    positive_int, recording_path, scales, untrusted)
+from .flags import (SETTLEMENT_HELP, add_trust_flag, agents, gap, hours, integer, load_recording, market_day, number,
+                    recording_path, scales, seconds, seed, untrusted)
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
@@ -46,46 +50,49 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--from", dest="source", metavar="RECORDING",
                    help="run again the experiment a recording of dmosim run holds (flags override it)")
     setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
-    setting.add_argument("--agents", type=positive_int, help=f"agents mg1..mgN (default: {default.agents.count})")
+    setting.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {default.agents.count})")
     setting.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (instead of --agents)")
-    setting.add_argument("--days", type=positive_int,
+    setting.add_argument("--days", type=integer(1, MAX_DAYS),
                          help="consecutive market days; agents register once and carry their state across midnight "
-                              f"(default: {default.days})")
+                              f"(at most {MAX_DAYS}; default: {default.days})")
     setting.add_argument("--market-day", type=market_day, help="the first market day, YYYY-MM-DD (default: today)")
-    setting.add_argument("--seed", type=int, help=f"seed of the run: fleet, forecast errors, islanding, faults "
-                                                  f"(default: {default.seed})")
+    setting.add_argument("--seed", type=seed, help=f"seed of the run: fleet, forecast errors, islanding, faults, "
+                                                   f"0..{MAX_SEED} (default: {default.seed})")
     setting.add_argument("--case", help=f"case giving the ISO price, penalty and Table I awards "
                                         f"(default: {default.market.case})")
     setting.add_argument("--market", choices=("bids", "fixed"),
                          help="bids: clear the agents' bids; fixed: award the case's Table I to every agent "
                               f"(default: {default.market.mode})")
-    setting.add_argument("--penalty", type=nonneg_float, help="$/MWh above the award (default: the case's)")
-    setting.add_argument("--credit", type=nonneg_float,
+    setting.add_argument("--penalty", type=number(0, MAX_RATE), help="$/MWh above the award (default: the case's)")
+    setting.add_argument("--credit", type=number(0, MAX_RATE),
                          help=f"$/MWh below the award (default: {default.market.credit:g})")
     setting.add_argument("--settlement", metavar="RULE", help=SETTLEMENT_HELP)
-    setting.add_argument("--import-limit", type=nonneg_float, help="feeder import limit, MW (default: 8 x agents)")
-    setting.add_argument("--export-limit", type=nonneg_float, help="feeder export limit, MW (default: 5 x agents)")
+    setting.add_argument("--import-limit", type=number(0, MAX_MW), help="feeder import limit, MW (default: 8 x agents)")
+    setting.add_argument("--export-limit", type=number(0, MAX_MW), help="feeder export limit, MW (default: 5 x agents)")
     setting.add_argument("--island-hours", type=hours,
                          help=f"hours each day is islanded (default: {default.market.island_hours})")
-    setting.add_argument("--subperiods", type=positive_int,
-                         help=f"metering sub-periods per hour (default: {default.market.subperiods})")
-    setting.add_argument("--scenarios", type=positive_int,
-                         help=f"scenarios of each agent's schedule (default: {default.schedule.scenarios})")
+    setting.add_argument("--subperiods", type=integer(1, MAX_SUBPERIODS),
+                         help=f"metering sub-periods per hour, at most {MAX_SUBPERIODS} "
+                              f"(default: {default.market.subperiods})")
+    setting.add_argument("--scenarios", type=integer(1, MAX_SCENARIOS),
+                         help=f"scenarios of each agent's schedule, at most {MAX_SCENARIOS} "
+                              f"(default: {default.schedule.scenarios})")
     setting.add_argument("--gap", type=gap,
                          help=f"relative MIP gap of each schedule (default: {default.schedule.gap:g})")
-    setting.add_argument("--time-limit", type=nonneg_float,
+    setting.add_argument("--time-limit", type=seconds,
                          help=f"seconds per agent solve (default: {default.schedule.time_limit:g})")
     setting.add_argument("--method", choices=("auto", "extensive", "benders"),
                          help=f"route of the agents' solves (docs/solver.md; default: {default.schedule.method})")
-    setting.add_argument("--workers", type=positive_int,
-                         help=f"processes per agent for Benders subproblems (default: {default.schedule.workers})")
+    setting.add_argument("--workers", type=integer(1, MAX_WORKERS),
+                         help=f"processes per agent for Benders subproblems, at most {MAX_WORKERS} "
+                              f"(default: {default.schedule.workers})")
     setting.add_argument("--load-scale", type=scales, metavar="X,Y,...",
                          help="each day's fixed-load forecast times these, repeated over the days (default: 1)")
     setting.add_argument("--renewable-scale", type=scales, metavar="X,Y,...",
                          help="each day's renewable forecasts times these, as --load-scale (default: 1)")
     for name, what in (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
                        ("hour", "each hour's meter reports")):
-        setting.add_argument(f"--{name}-timeout", type=nonneg_float, metavar="S",
+        setting.add_argument(f"--{name}-timeout", type=seconds, metavar="S",
                              help=f"deadline for {what}, s (default: {getattr(default.deadlines, name):g})")
     setting.add_argument("--fault", action="append", metavar="SPEC", help=FAULT_HELP)
     out = p.add_argument_group("output")
@@ -115,13 +122,15 @@ def experiment_of(args) -> Experiment:
             base = experiment_in_recording(args.source)
         else:
             base = Experiment()
+        if args.agents is not None and (args.fleet or base.agents.fleet):
+            raise ExperimentError(f"--agents and a fleet ({args.fleet or base.agents.fleet}) exclude each other: a "
+                                  "fleet file names its agents")
         flags = {key: getattr(args, dest) for key, dest in FLAGS.items() if getattr(args, dest) is not None}
         flags = {k: list(v) if isinstance(v, tuple) else v for k, v in flags.items()}
         if args.fault is not None:
             flags["faults"] = list(args.fault)
         experiment = with_settings(base, flags, "flags") if flags else base
-        _check_faults(experiment)
-    except (ExperimentError, FleetError) as exc:
+    except ExperimentError as exc:
         raise UsageError(str(exc)) from None
     _load_rule(args, experiment.market.settlement)
     return experiment
@@ -157,42 +166,29 @@ def experiment_in_recording(path: str) -> Experiment:
     for attachment in rec.attachments:
         if attachment.name == "experiment.toml":
             try:
-                return parse_experiment(tomllib.loads(attachment.data.decode()), f"{path}: experiment.toml")
-            except (ValueError, UnicodeDecodeError) as exc:
+                source = f"{path}: experiment.toml"
+                return parse_experiment(parse_toml(attachment.data.decode(), source, ExperimentError), source)
+            except UnicodeDecodeError as exc:
                 raise UsageError(f"{path}: its experiment.toml cannot be read: {exc}") from None
+            except ExperimentError as exc:
+                raise UsageError(str(exc)) from None
     raise UsageError(f"{path}: holds no experiment.toml (it was not recorded by dmosim run)")
-
-
-def _check_faults(experiment: Experiment) -> None:
-    fleet = fleet_of(experiment)
-    try:
-        faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault)]
-    except FaultSpecError as exc:
-        raise ExperimentError(f"--fault: {exc}") from None
-    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo", "recorder"})
-    if any(f.agent == "dmo" and f.kind != "restart" for f in faults):
-        raise ExperimentError("--fault: the DMO can only be restarted (restart:dmo:HOUR), not killed")
-    if any(f.agent == "recorder" and f.kind != "kill" for f in faults):
-        raise ExperimentError("--fault: the recorder can only be killed (kill:recorder:HOUR), not restarted")
-    if unknown:
-        raise ExperimentError(f"--fault names unknown agent {unknown[0]} (agents: {', '.join(m.id for m in fleet)})")
-    late = [f for f in faults if f.day > experiment.days]
-    if late:
-        raise ExperimentError(f"--fault {late[0]}: day {late[0].day} is past the run's {experiment.days} day(s)")
 
 
 def run(args) -> int:
     experiment = resolved(experiment_of(args))
-    fleet = fleet_of(experiment)
-    for name in sorted({experiment.market.case, *(m.case for m in fleet)}):
-        load_case(name)  # a bad case is a CaseError: one line, exit 2
+    try:
+        fleet = check_inputs(experiment)
+    except ExperimentError as exc:
+        raise UsageError(str(exc)) from None
     record_to = recording_path(args.record, args.overwrite) if args.record else None
     recorder_faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent == "recorder"]
     if args.no_record and recorder_faults:
         raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
     if args.check:
+        rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
-              f"agents ({', '.join(m.id for m in fleet)}), case {experiment.market.case}, "
+              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, "
               f"{len(experiment.faults)} fault(s)")
         return 0
     run_id = new_run_id()

@@ -11,30 +11,41 @@ import math
 import time
 from typing import TYPE_CHECKING
 
+from messages.schemas import MAX_SUBPERIODS
 from scenarios.case import load_case
+from scenarios.days import MAX_SEED
+from scenarios.fleet import MAX_SCALE
+from scenarios.generation import MAX_SAMPLE, MAX_SCENARIOS
 
+from ..market.rules import MAX_RATE
 from .console import UsageError, print_json, progress
-from .flags import add_method_flags, gap, hours, nonneg_float, penalty, positive_int
+from .flags import add_method_flags, gap, hours, integer, number, seconds, seed
 
 if TYPE_CHECKING:
     from microgrid_agent.instance import Instance
     from microgrid_agent.schedule import StochasticSchedule
 
 HELP = "one stochastic day-ahead schedule of one microgrid"
+# Each replication is a whole solve of its own (135 s at 20 scenarios, docs/solver.md): 100 is 20 times the 5 the
+# docs use, about four hours at that size.
+MAX_REPLICATIONS = 100
 
 
 def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
     """The flags that define one scheduling instance, shared by ``solve`` and ``study``."""
     p.add_argument("--case", default="paper", help="built-in case name or path to a case TOML file (default: paper)")
-    p.add_argument("--scenarios", type=positive_int, default=scenarios, help=f"scenarios after reduction (default: {scenarios})")
-    p.add_argument("--sample-size", type=positive_int, default=None, help="scenarios sampled before reduction (default: 10x)")
-    p.add_argument("--subperiods", type=positive_int, default=6, help="sub-periods per hour (default: 6, i.e. 10 minutes)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the scenario draws (default: 0)")
+    p.add_argument("--scenarios", type=integer(1, MAX_SCENARIOS), default=scenarios,
+                   help=f"scenarios after reduction, at most {MAX_SCENARIOS} (default: {scenarios})")
+    p.add_argument("--sample-size", type=integer(1, MAX_SAMPLE), default=None,
+                   help=f"scenarios sampled before reduction, --scenarios..{MAX_SAMPLE} (default: 10x)")
+    p.add_argument("--subperiods", type=integer(1, MAX_SUBPERIODS), default=6,
+                   help=f"sub-periods per hour, at most {MAX_SUBPERIODS} (default: 6, i.e. 10 minutes)")
+    p.add_argument("--seed", type=seed, default=0, help=f"seed of the scenario draws, 0..{MAX_SEED} (default: 0)")
     p.add_argument("--islanding", choices=("random", "stratified"), default="random",
                    help="how islanding start hours are drawn: random (each uniform over the day) or stratified "
                         "(spread evenly over the day, each start hour weighted by its probability); default: random")
     p.add_argument("--gap", type=gap, default=0.005, help="relative MIP gap to reach (default: 0.005)")
-    p.add_argument("--time-limit", type=nonneg_float, default=900.0, help="seconds per solve (default: 900)")
+    p.add_argument("--time-limit", type=seconds, default=900.0, help="seconds per solve (default: 900)")
     p.add_argument("--cost-convention", choices=("real", "paper"), default="real",
                    help="real: energy costs x dt; paper: objective (1) as printed, no dt (see docs/model.md)")
     p.add_argument("--take-award", action="store_true",
@@ -47,19 +58,29 @@ def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_instance_flags(p, scenarios=10)
     p.add_argument("--island-hours", type=hours, default=1, help="islanding hours per scenario (default: 1)")
-    p.add_argument("--transfer-scale", type=nonneg_float, default=1.0, help="multiplier of the award P_sch (default: 1)")
-    p.add_argument("--penalty", type=penalty, default=None, help="$/MWh above the award, or inf (default: the case's)")
+    p.add_argument("--transfer-scale", type=number(0, MAX_SCALE), default=1.0,
+                   help=f"multiplier of the award P_sch, 0..{MAX_SCALE:g} (default: 1)")
+    p.add_argument("--penalty", type=number(0, MAX_RATE, allow_inf=True), default=None,
+                   help="$/MWh above the award, or inf (default: the case's)")
     p.add_argument("--metrics", action="store_true", help="also compute VSS and EVPI (solves S + 2 more problems)")
-    p.add_argument("--evaluate", type=positive_int, metavar="N", default=None,
+    p.add_argument("--evaluate", type=integer(2, MAX_SAMPLE), metavar="N", default=None,
                    help="also evaluate the schedule's first stage on N fresh scenarios (LPs only): its expected "
                         "cost for the uncertainty it was drawn from, with a 95%% confidence interval "
-                        "(docs/solver.md, \"Out of sample\"); N >= 2")
-    p.add_argument("--replications", type=positive_int, metavar="R", default=None,
+                        f"(docs/solver.md, \"Out of sample\"); N in 2..{MAX_SAMPLE}")
+    p.add_argument("--replications", type=integer(2, MAX_REPLICATIONS), metavar="R", default=None,
                    help="also solve R independent sample problems of --scenarios scenarios each (sampled, not "
                         "reduced): a statistical lower bound of the true optimum, and with --evaluate the "
-                        "schedule's optimality gap with a 95%% upper limit (docs/solver.md, \"Out of sample\"); R >= 2")
+                        "schedule's optimality gap with a 95%% upper limit (docs/solver.md, \"Out of sample\"); R "
+                        f"in 2..{MAX_REPLICATIONS}")
     p.add_argument("--json", action="store_true", help="print one JSON object (README, \"Commands\")")
     p.add_argument("--verbose", action="store_true", help="show the HiGHS log")
+
+
+def check_instance_flags(args) -> None:
+    """What the instance flags' types cannot see alone: a sample of at least the scenarios it is reduced to."""
+    if args.sample_size is not None and args.sample_size < args.scenarios:
+        raise UsageError(f"--sample-size {args.sample_size}: the sample is reduced to --scenarios {args.scenarios}, "
+                         "so it needs at least as many")
 
 
 def instance_from_args(args, **overrides) -> Instance:
@@ -95,10 +116,7 @@ def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
 
 
 def run(args) -> int:
-    if args.evaluate is not None and args.evaluate < 2:
-        raise UsageError("--evaluate: an out-of-sample evaluation needs at least 2 scenarios")
-    if args.replications is not None and args.replications < 2:
-        raise UsageError("--replications: a statistical lower bound needs at least 2 replications")
+    check_instance_flags(args)
     inst = instance_from_args(args)
     schedule = solve_verified(inst, args)
     out = schedule.summary() | {"case": inst.case.name, "seed": args.seed, "verified": True}

@@ -10,7 +10,7 @@ from scenarios.case import load_case
 
 from ..experiment.rundir import RunDirError, claim_directory
 from .console import UsageError, progress
-from .solve import add_instance_flags, instance_from_args, solve_verified
+from .solve import add_instance_flags, check_instance_flags, instance_from_args, solve_verified
 
 HELP = "reproduce the paper's Table II and Figures 2-5"
 
@@ -34,6 +34,7 @@ def output_dir(text: str) -> Path:
 def run(args) -> int:
     from microgrid_agent.studies import figures, paper, report  # noqa: PLC0415  (pandas, matplotlib)
 
+    check_instance_flags(args)
     out = output_dir(args.out)
     study = paper.STUDIES[args.name]
     units = [u.name for u in load_case(args.case).units]

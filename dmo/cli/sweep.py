@@ -20,11 +20,12 @@ from pathlib import Path
 
 from ..experiment.rundir import RUNS, RunDirError, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
-from ..experiment.sweep import Variant, parse_setting, variants
-from ..launch.local import fleet_of, resolved
+from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
+from ..launch.local import resolved
 from ..launch.processes import dmosim_command, role_env
+from .checks import Checked, check_inputs
 from .console import UsageError, print_json, progress
-from .flags import positive_int
+from .flags import integer
 
 HELP = "run an experiment once per combination of swept settings, into one table and figure"
 
@@ -34,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", dest="settings", action="append", required=True, metavar="KEY=V1,V2,...",
                    help="a setting to sweep and its values, e.g. market.penalty=100,150,300 (repeatable: every "
                         "combination runs; values are TOML: numbers, true/false, strings, arrays like [1,0.8])")
-    p.add_argument("--parallel", type=positive_int, metavar="N",
+    p.add_argument("--parallel", type=integer(1, MAX_VARIANTS), metavar="N",
                    help="runs at a time (default: what the machine's cores fit: cores / agents of a run, at least "
                         "1; each run is a DMO and its agents, each agent solving on a core)")
     p.add_argument("--out", metavar="DIR",
@@ -50,9 +51,15 @@ def run(args) -> int:
     try:
         experiment = resolved(load_experiment(args.experiment))  # one market day for every variant
         runs = variants(_portable(experiment), [parse_setting(s) for s in args.settings])
-        agents = max(len(fleet_of(v.experiment)) for v in runs)  # a bad fleet file is refused before any run
     except ExperimentError as exc:
         raise UsageError(str(exc)) from None
+    checked, agents = Checked(), 1  # each variant as `dmosim run --check` checks it, each file read once
+    for v in runs:
+        try:
+            agents = max(agents, len(check_inputs(v.experiment, checked)))
+            checked.rule(v.experiment.market.settlement)
+        except ExperimentError as exc:
+            raise UsageError(f"{v.label}: {exc}") from None
     keys = list(runs[0].settings)
     parallel = args.parallel or max(1, (os.cpu_count() or 1) // agents)
     if args.check:

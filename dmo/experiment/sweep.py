@@ -8,12 +8,16 @@ replaced and validated again, so a bad value is refused before anything runs.
 from __future__ import annotations
 
 import itertools
+import math
 import re
-import tomllib
 from dataclasses import dataclass
+
+from scenarios.case import parse_toml
 
 from .spec import Experiment, ExperimentError, with_settings
 
+# Runs of one sweep: each is a whole ``dmosim run`` (a week of 3 agents took 80 s, docs/settlement.md), so 1,000
+# is a day of runs at that size; the combinations are counted before any is made.
 MAX_VARIANTS = 1000
 
 
@@ -36,9 +40,11 @@ def parse_setting(text: str) -> tuple[str, list]:
     if rhs.strip().startswith(",") or rhs.strip().endswith(",") or re.search(r",\s*,", rhs):
         raise ExperimentError(f"--set {text!r}: an empty value")
     try:
-        values = tomllib.loads(f"v = [{rhs}]")["v"]
-    except tomllib.TOMLDecodeError:
+        values = parse_toml(f"v = [{rhs}]", f"--set {key}", ExperimentError)["v"]
+    except ExperimentError:  # not TOML (or nested too deep for it): bare words
         values = [v.strip() for v in rhs.split(",")]
+    if len(values) > MAX_VARIANTS:
+        raise ExperimentError(f"--set {key}: {len(values)} values; a sweep has at most {MAX_VARIANTS} runs")
     if not values or any(v == "" for v in values):
         raise ExperimentError(f"--set {text!r}: an empty value")
     if len(set(map(repr, values))) != len(values):
@@ -51,9 +57,10 @@ def variants(experiment: Experiment, settings: list[tuple[str, list]]) -> list[V
     keys = [key for key, _ in settings]
     if len(set(keys)) != len(keys):
         raise ExperimentError(f"--set: {next(k for k in keys if keys.count(k) > 1)} is swept twice")
+    runs = math.prod(len(values) for _, values in settings)
+    if runs > MAX_VARIANTS:
+        raise ExperimentError(f"--set: {runs:,} runs; a sweep has at most {MAX_VARIANTS}")
     combinations = list(itertools.product(*(values for _, values in settings)))
-    if len(combinations) > MAX_VARIANTS:
-        raise ExperimentError(f"--set: {len(combinations)} runs; a sweep has at most {MAX_VARIANTS}")
     out = []
     for i, combination in enumerate(combinations, start=1):
         chosen = dict(zip(keys, combination))

@@ -25,6 +25,15 @@ from .money import exact
 
 Meter = Mapping[str, Mapping[int, Sequence[float | None]]]
 
+# The ranges of the built-ins' parameters (docs/settlement.md, "Parameters and their ranges"). A rate ($/MWh) is at
+# most 100 x the paper's value of lost load ($10,000/MWh): far above what makes an agent shed load rather than
+# deviate, and small enough that the model's cost coefficients stay within what HiGHS's tolerances resolve. A MW
+# quantity (a band) is at most 1,000,000 MW, above the largest fleet's ties together (1,024 agents x 160 MW).
+# ``k`` times the DMO's price cap ($10,000/MWh) stays within MAX_RATE. A share is a fraction.
+MAX_RATE = 1_000_000.0
+MAX_MW = 1_000_000.0
+MAX_PRICE_FACTOR = 100.0
+
 
 @dataclass(frozen=True)
 class SettlementDay:
@@ -98,29 +107,40 @@ class DeviationPrice:
 @dataclass(frozen=True)
 class DeviationRule:
     """A built-in rule: each hour's deviation price from the rule's parameters, the hour's award and its clearing
-    price, ``pricing(params, award_mw, price)``; ``defaults`` names every parameter and its default."""
+    price, ``pricing(params, award_mw, price)``; ``defaults`` names every parameter and its default, ``ranges``
+    the closed interval each may take."""
 
     name: str
     defaults: Mapping[str, float]
     pricing: Callable[[Mapping[str, Fraction], Fraction, Fraction], DeviationPrice]
     formula: str
+    ranges: Mapping[str, tuple[float, float]]
 
     def __call__(self, day: SettlementDay, **params) -> dict[str, list[Charges]]:
         return {agent: [self._hour(day, agent, h, f) for h, f in enumerate(self.hourly(params, award, day.prices))]
                 for agent, award in day.awards.items()}
 
     def parameters(self, given: Mapping[str, object]) -> dict[str, float]:
-        """The defaults overridden by ``given``; an unknown name or a value that is not a finite number >= 0 raises
+        """The defaults overridden by ``given``; an unknown name or a value that is not a number in its range raises
         ValueError."""
         unknown = sorted(set(given) - set(self.defaults))
         if unknown:
             raise ValueError(f"{self.name} has no parameter {unknown[0]!r}; it takes {', '.join(self.defaults)}")
         out = dict(self.defaults)
         for key, value in given.items():
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) or value < 0:
-                raise ValueError(f"{self.name}: {key} must be a finite number >= 0, got {value!r}")
+            low, high = self.ranges[key]
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not low <= value <= high:
+                raise ValueError(f"{self.name}: {key} must be a number in {low:,g}..{high:,.15g}, got {value!r}")
             out[key] = float(value)
         return out
+
+    def always_convex(self, params: Mapping[str, float]) -> bool:
+        """Whether every hour's deviation price is convex at these parameters, whatever the award and the clearing
+        price, so that an award carries it exactly (``deviation_cost``). No built-in's convexity depends on the
+        award, and the only slope that moves with the price, price-linked's rate above the award, is least at a
+        price of 0 (or below), where it is its floor: price 0 decides."""
+        rates = {k: exact(v) for k, v in self.parameters(params).items()}
+        return self.pricing(rates, Fraction(0), Fraction(0)).convex
 
     def hourly(self, params: Mapping[str, float], award: Sequence[float],
                prices: Sequence[float]) -> list[DeviationPrice]:
@@ -165,13 +185,44 @@ def _price_linked(r, award, price) -> DeviationPrice:
     return DeviationPrice((Fraction(0),), (r["credit"], max(r["k"] * price, r["floor"])))
 
 
+_RATE, _MW, _SHARE, _FACTOR = (0.0, MAX_RATE), (0.0, MAX_MW), (0.0, 1.0), (0.0, MAX_PRICE_FACTOR)
 BUILT_IN: dict[str, DeviationRule] = {rule.name: rule for rule in (
     DeviationRule("paper", {"penalty": 150.0, "credit": 0.0}, _paper,
-                  "penalty x max(d, 0) - credit x max(-d, 0)"),
+                  "penalty x max(d, 0) - credit x max(-d, 0)", {"penalty": _RATE, "credit": _RATE}),
     DeviationRule("symmetric", {"above": 150.0, "below": 75.0}, _symmetric,
-                  "above x max(d, 0) + below x max(-d, 0)"),
+                  "above x max(d, 0) + below x max(-d, 0)", {"above": _RATE, "below": _RATE}),
     DeviationRule("deadband", {"rate": 150.0, "below_rate": 0.0, "band_mw": 0.0, "band_share": 0.1}, _deadband,
-                  "rate x max(d - b, 0) + below_rate x max(-d - b, 0), b = max(band_mw, band_share x |P_sch|)"),
+                  "rate x max(d - b, 0) + below_rate x max(-d - b, 0), b = max(band_mw, band_share x |P_sch|)",
+                  {"rate": _RATE, "below_rate": _RATE, "band_mw": _MW, "band_share": _SHARE}),
     DeviationRule("price-linked", {"k": 1.5, "floor": 50.0, "credit": 0.0}, _price_linked,
-                  "max(k x price, floor) x max(d, 0) - credit x max(-d, 0)"),
+                  "max(k x price, floor) x max(d, 0) - credit x max(-d, 0)",
+                  {"k": _FACTOR, "floor": _RATE, "credit": _RATE}),
 )}
+
+
+def market_parameters(rule: DeviationRule, given: Mapping[str, float], penalty: float | None, credit: float,
+                      case_penalty: float) -> dict[str, float]:
+    """The parameters a built-in rule named with ``given`` settles by beside the market's ``penalty`` ($/MWh above
+    the award; None: not set, the case's ``case_penalty``) and ``credit`` ($/MWh below it; 0: not set), or
+    ValueError, one line, where the two disagree (docs/settlement.md, "The rule and the market's penalty"):
+
+    - ``paper`` takes each rate it is not given from the market; a rate given both ways must be the same;
+    - another built-in prices every deviation by its own parameters, so a penalty or credit beside it would be
+      ignored and is refused, unless the rule is not convex at its parameters: an award cannot carry it then, and
+      the agents schedule against the market's penalty and credit instead.
+    """
+    params = dict(given)
+    if rule.name == "paper":
+        for key, market in (("penalty", penalty), ("credit", credit or None)):
+            if market is not None and key in params and params[key] != market:
+                raise ValueError(f"settlement rule paper:{key}={params[key]:g} and a market {key} of {market:g} "
+                                 f"$/MWh disagree: give the {key} once")
+        params.setdefault("penalty", case_penalty if penalty is None else penalty)
+        params.setdefault("credit", credit)
+        rule.parameters(params)  # each in its range
+        return params
+    if (penalty is not None or credit) and rule.always_convex(params):
+        raise ValueError(f"settlement rule {rule.name} prices every deviation by its own parameters "
+                         f"({', '.join(rule.defaults)}): a market penalty or credit beside it would be ignored; "
+                         "leave them unset, or settle by the paper rule")
+    return params

@@ -1,8 +1,9 @@
 """Make the credentials of one run: a password per process, the router's user dictionary and access-control file
-(access.py), and with TLS a CA, the router's certificate and one client certificate per process.
+(access.py), and with TLS a CA, the router's certificate and one client certificate per process; and check that
+credentials found on disk are private to this user before any process uses them.
 
 The layout of the directory is in access.py, which reads it back; every secret is created readable by its owner
-only.
+only, every other file and directory writable by its owner only.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import json
 import os
 import secrets
 import shutil
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -23,6 +25,11 @@ from .access import (ACL_FILE, CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, READ
                      access_control, check_names)
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")  # what the router's certificate is valid for, unless told
+SECRETS = (USERS_FILE, PASSWORD_FILE, KEY_FILE)  # files that hold a secret, wherever they are in a directory
+# Certificates cannot be revoked (docs/security.md): a year is their longest validity, far longer than a run.
+MAX_CERT_DAYS = 366
+MAX_READERS = 16  # readers of one run (the recorder, taps): each may hear everything
+MAX_HOSTS = 16    # names and addresses the router's certificate is valid for
 
 
 def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], *, readers: Sequence[str] = READERS,
@@ -33,10 +40,17 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
     Without ``dmo_client`` there are no credentials for the DMO: it must be the router itself."""
     out = Path(out)
     check_names(agents, readers)
+    if len(readers) > MAX_READERS or len(hosts) > MAX_HOSTS:
+        raise AuthError(f"at most {MAX_READERS} readers and {MAX_HOSTS} host names, not {len(readers)} and "
+                        f"{len(hosts)}")
+    if not 1 <= valid_days <= MAX_CERT_DAYS:
+        raise AuthError(f"certificates are valid for 1..{MAX_CERT_DAYS} days, not {valid_days}")
     Keys(run_id)  # a bad run id fails here, not in the router
     if out.exists():
         if not out.is_dir():
             raise AuthError(f"{out} exists and is not a directory")
+        _check_owner(out)  # another user's directory could be filled behind our back
+        out.chmod(0o700)   # before looking inside: nobody else may add anything from now on
         if any(out.iterdir()):
             if not overwrite:
                 raise AuthError(f"{out} is not empty; remove it or choose another directory")
@@ -47,14 +61,72 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
     passwords = {name: secrets.token_urlsafe(24) for name in names}
     for name in names:
         (out / name).mkdir(mode=0o700)
-    _write_secret(out / USERS_FILE, "".join(f"{n}:{p}\n" for n, p in passwords.items()))
+    _write(out / USERS_FILE, "".join(f"{n}:{p}\n" for n, p in passwords.items()))
     acl = access_control(run_id, agents, readers, tls=tls, dmo_client=dmo_client)
-    (out / ACL_FILE).write_text(json.dumps(acl, indent=2) + "\n")
+    _write(out / ACL_FILE, json.dumps(acl, indent=2) + "\n", public=True)
     for name, password in passwords.items():
-        _write_secret(out / name / PASSWORD_FILE, password + "\n")
+        _write(out / name / PASSWORD_FILE, password)  # the password alone: what a client sends is the file
     if tls:
         write_certificates(out, names, hosts, valid_days)
     return out
+
+
+def private_directory(path: str | os.PathLike) -> Path:
+    """``path`` as a directory only this user can change: made (mode 0700) if missing, else checked as
+    ``check_private`` checks a directory (its contents aside)."""
+    path = Path(path)
+    path.mkdir(mode=0o700, parents=True, exist_ok=True)
+    _check(path, path.stat(), secret=False)
+    return path
+
+
+def check_private(path: str | os.PathLike, *, secret: bool = False) -> None:
+    """Refuse, with an AuthError naming the path and what is wrong, credentials that someone else could have made
+    or changed, as ssh refuses such keys: a directory of credentials, each entry in it and in each bundle
+    directory in it must be owned by this user and writable by nobody else, and a secret (users.txt, password,
+    key.pem, or the file itself with ``secret``) readable by nobody else. A path that does not exist is left to
+    whoever reads it to report."""
+    path = Path(path)
+    try:
+        top = path.stat()
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise AuthError(f"cannot read {path}: {exc.strerror or exc}") from None
+    _check(path, top, secret=secret or path.name in SECRETS)
+    if not stat.S_ISDIR(top.st_mode):
+        return
+    for entry in _entries(path):  # the directory's files and bundles, and each bundle's files: no deeper
+        info = entry.stat()
+        _check(entry, info, secret=entry.name in SECRETS)
+        if stat.S_ISDIR(info.st_mode):
+            for inner in _entries(entry):
+                _check(inner, inner.stat(), secret=inner.name in SECRETS)
+
+
+def _entries(directory: Path) -> list[Path]:
+    try:
+        return sorted(directory.iterdir())
+    except OSError as exc:
+        raise AuthError(f"cannot read {directory}: {exc.strerror or exc}") from None
+
+
+def _check(path: Path, info: os.stat_result, *, secret: bool) -> None:
+    _check_owner(path, info)
+    mode = stat.S_IMODE(info.st_mode)
+    if mode & 0o022:
+        raise AuthError(f"{path} is writable by {'its group' if mode & 0o020 else 'everyone'} (mode {mode:04o}): "
+                        f"credentials anyone else could change are not used; chmod go-w {path}, or make new ones")
+    if secret and mode & 0o077:
+        raise AuthError(f"{path} is readable by others (mode {mode:04o}): a secret must be its owner's alone; "
+                        f"chmod 600 {path}, or make new credentials")
+
+
+def _check_owner(path: Path, info: os.stat_result | None = None) -> None:
+    owner = (info or path.stat()).st_uid
+    if owner != os.getuid():
+        raise AuthError(f"{path} is owned by user {owner}, not by this user ({os.getuid()}): credentials someone "
+                        "else made are not used")
 
 
 def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], valid_days: int) -> None:
@@ -79,10 +151,10 @@ def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], va
                 .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end))
 
     def save(bundle: Path, cert, key) -> None:
-        (bundle / CERT_FILE).write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-        _write_secret(bundle / KEY_FILE, key.private_bytes(
+        _write(bundle / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM).decode(), public=True)
+        _write(bundle / KEY_FILE, key.private_bytes(
             serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()).decode())
-        (bundle / CA_FILE).write_bytes(ca_pem)
+        _write(bundle / CA_FILE, ca_pem.decode(), public=True)
 
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca_name = name("dmosim run CA")
@@ -117,9 +189,10 @@ def _alt_name(x509, host: str):
         return x509.DNSName(host)
 
 
-def _write_secret(path: Path, text: str) -> None:
-    """Create the file readable by its owner only, from the first byte on."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+def _write(path: Path, text: str, *, public: bool = False) -> None:
+    """Create the file, new (never through a link someone left there), readable by its owner only from the first
+    byte on, or with ``public`` by anyone; writable by its owner only, whatever the umask."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
     with os.fdopen(fd, "w") as f:
         f.write(text)
-    path.chmod(0o600)
+        os.fchmod(f.fileno(), 0o644 if public else 0o600)

@@ -52,7 +52,7 @@ def test_flags_override_the_file(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, says", [
     (["run", "nowhere.toml", "--check"], "experiment file not found: nowhere.toml"),
-    (["run", "--days", "0", "--check"], "--days: expected a positive integer"),
+    (["run", "--days", "0", "--check"], "--days: expected an integer in 1..3,660"),
     (["run", "--fault", "kill:mg1:3:2", "--check"], "day 2 is past the run's 1 day(s)"),
     (["run", "--fault", "kill:mg7:3", "--check"], "unknown agent mg7"),
     (["run", "--from", "nothing.mcap", "--check"], "nothing.mcap: no such file"),

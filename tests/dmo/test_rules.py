@@ -69,8 +69,8 @@ rates = st.floats(0, 500, allow_nan=False, allow_subnormal=False)
 @st.composite
 def rule_and_params(draw):
     rule = draw(st.sampled_from(sorted(BUILT_IN)))
-    params = {k: draw(st.floats(0, 1, allow_subnormal=False) if k == "band_share" else rates)
-              for k in BUILT_IN[rule].defaults}
+    params = {k: draw(st.floats(0, min(500.0, BUILT_IN[rule].ranges[k][1]), allow_subnormal=False))
+              for k in BUILT_IN[rule].defaults}  # rates up to $500/MWh, each within its range
     return rule, params
 
 
@@ -153,7 +153,7 @@ def test_a_rule_is_named_with_its_parameters_and_defaults_fill_the_rest():
 @pytest.mark.parametrize("spec, reason", [
     ("nosuch", "unknown settlement rule 'nosuch'"),
     ("deadband:width=1", "deadband has no parameter 'width'"),
-    ("paper:penalty=-1", "penalty must be a finite number >= 0"),
+    ("paper:penalty=-1", "penalty must be a number in 0..1,000,000"),
     ("paper:penalty=abc", "'penalty=abc' is not key=number"),
     ("paper:penalty=inf", "is not key=number"),
     ("tests/dmo/no_such_file.py:f", "no file tests/dmo/no_such_file.py"),

@@ -1,0 +1,76 @@
+"""Credentials on disk (messages/transport/credentials.py): made private whatever the umask, the password file
+holding the password alone, and credentials that someone else could have made or changed refused in one line naming
+the path and what is wrong."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from messages.transport.access import ACL_FILE, PASSWORD_FILE, USERS_FILE, AuthError, read_password
+from messages.transport.credentials import MAX_CERT_DAYS, MAX_READERS, check_private, create_auth_dir
+
+
+@pytest.fixture
+def loose_umask():
+    """A umask that leaves new files group-writable, as many systems set it."""
+    old = os.umask(0o002)
+    yield
+    os.umask(old)
+
+
+def test_credentials_are_private_whatever_the_umask(tmp_path, loose_umask):
+    auth = create_auth_dir(tmp_path / "auth", "r1", ["mg1"], tls=True)
+    modes = {str(p.relative_to(auth)): p.stat().st_mode & 0o777 for p in [auth, *auth.rglob("*")]}
+    assert modes["."] == 0o700 and modes["mg1"] == 0o700
+    assert modes[USERS_FILE] == modes["key.pem"] == modes["mg1/password"] == modes["mg1/key.pem"] == 0o600
+    assert modes[ACL_FILE] == modes["cert.pem"] == modes["mg1/ca.pem"] == 0o644
+    check_private(auth)  # what dmosim makes, it accepts
+
+
+def test_the_password_file_holds_the_password_alone_and_an_old_bundles_newline_is_read_past(tmp_path):
+    auth = create_auth_dir(tmp_path / "auth", "r1", ["mg1"])
+    password = (auth / "mg1" / PASSWORD_FILE).read_text()
+    assert password and "\n" not in password and f"mg1:{password}\n" in (auth / USERS_FILE).read_text()
+    old = tmp_path / "old-password"
+    old.write_text(password + "\n")  # a bundle made before: the newline is not the password's
+    assert read_password(old) == password
+
+
+@pytest.mark.parametrize("where, mode, says", [
+    (".", 0o777, r"auth is writable by its group \(mode 0777\)"),
+    (".", 0o702, r"auth is writable by everyone \(mode 0702\)"),
+    (USERS_FILE, 0o666, r"users.txt is writable by its group"),
+    (USERS_FILE, 0o640, r"users.txt is readable by others \(mode 0640\): a secret must be its owner's alone"),
+    ("mg1", 0o770, r"auth/mg1 is writable by its group"),
+    ("mg1/password", 0o644, r"mg1/password is readable by others"),
+    (ACL_FILE, 0o664, r"access_control.json is writable by its group"),
+])
+def test_credentials_anyone_else_could_change_are_refused(tmp_path, where, mode, says):
+    auth = create_auth_dir(tmp_path / "auth", "r1", ["mg1"])
+    (auth / where).chmod(mode)
+    with pytest.raises(AuthError, match=says):
+        check_private(auth)
+    (auth / ACL_FILE).chmod(0o644)  # a public file may be read by anyone
+    (auth / where).chmod(0o700 if (auth / where).is_dir() else 0o600)
+    check_private(auth)
+
+
+def test_credentials_another_user_made_are_refused(tmp_path, monkeypatch):
+    auth = create_auth_dir(tmp_path / "auth", "r1", ["mg1"])
+    monkeypatch.setattr(os, "getuid", lambda: os.stat(auth).st_uid + 1)  # as seen by someone else
+    with pytest.raises(AuthError, match=r"auth is owned by user \d+, not by this user"):
+        check_private(auth)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(AuthError, match="empty is owned by user"):  # nor is their empty directory filled in
+        create_auth_dir(tmp_path / "empty", "r1", ["mg1"])
+
+
+def test_what_credentials_are_made_for_is_bounded(tmp_path):
+    with pytest.raises(AuthError, match=f"valid for 1..{MAX_CERT_DAYS} days"):
+        create_auth_dir(tmp_path / "a", "r1", ["mg1"], tls=True, valid_days=MAX_CERT_DAYS + 1)
+    readers = tuple(f"r{i}" for i in range(MAX_READERS + 1))
+    with pytest.raises(AuthError, match=f"at most {MAX_READERS} readers"):
+        create_auth_dir(tmp_path / "b", "r1", ["mg1"], readers=readers)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
