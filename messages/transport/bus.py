@@ -217,10 +217,13 @@ class Bus:
 
     # --- sending -----------------------------------------------------------------------------------------
 
-    def publish(self, msg: Envelope, key: str | None = None) -> Message:
+    def publish(self, msg: Envelope, key: str | None = None, *,
+                before_put: Callable[[str, bytes, Message], None] | None = None) -> Message:
         """Stamp ``run`` (the run's token), ``incarnation``, ``seq`` (this sender's next number) and ``sent_at`` (now,
         ns), and put the message on its key (``keys.for_message`` unless given; a given key must fit the message).
-        Returns the stamped message; ``encode`` of it is the payload sent."""
+        ``before_put(key, payload, stamped)`` is called just before the put, so that what tracks the payload (an
+        agent's ``Delivery``) knows it before any answer to it can arrive. Returns the stamped message; ``encode``
+        of it is the payload sent."""
         if msg.sender != self.name:
             raise ValueError(f"bus {self.name!r} cannot publish a message from {msg.sender!r}")
         with self._send_lock:
@@ -229,6 +232,8 @@ class Bus:
             key = key or self.keys.for_message(stamped)
             check_route(key, stamped, self.keys.run_id)
             payload = encode(stamped)
+            if before_put is not None:
+                before_put(key, payload, stamped)
             if self.faults is None:
                 self._put(key, payload)
             else:

@@ -15,7 +15,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable
 
-from messages import Receipt, sha256
+from messages import Message, Receipt, sha256
 
 log = logging.getLogger("dmosim.agent")
 
@@ -47,11 +47,12 @@ class Delivery:
         self._thread = threading.Thread(target=self._loop, name="delivery", daemon=True)
         self._thread.start()
 
-    def sent(self, key: str, payload: bytes, kind: str, seq: int) -> None:
-        """A payload just published: it is sent again until its receipt comes."""
+    def sent(self, key: str, payload: bytes, stamped: Message) -> None:
+        """A payload about to be published (``Bus.publish``'s ``before_put``, so that its receipt cannot come
+        first): it is sent again until its receipt comes."""
         with self._lock:
-            self._pending[sha256(payload)] = _Pending(key, payload, kind, seq, time.monotonic() + self._first,
-                                                      self._first)
+            self._pending[sha256(payload)] = _Pending(key, payload, stamped.kind, stamped.seq,
+                                                      time.monotonic() + self._first, self._first)
             self._lock.notify()
 
     def receipt(self, receipt: Receipt) -> tuple[str, int] | None:

@@ -280,8 +280,7 @@ class MicrogridAgent:
 
     def _publish(self, msg) -> None:
         """Publish, and send again until the DMO's receipt comes."""
-        stamped = self.bus.publish(msg)
-        self.delivery.sent(self.bus.keys.for_message(stamped), encode(stamped), stamped.kind, stamped.seq)
+        self.bus.publish(msg, before_put=self.delivery.sent)
 
     def _receipt_arrived(self, key: str, receipt: Receipt, received_at: int) -> None:
         """On Zenoh's thread: stop sending the payload again at once (the main thread may be solving), then let the

@@ -166,8 +166,7 @@ class ScriptedAgent:
         self.registered.set()
 
     def publish(self, msg) -> None:
-        stamped = self.bus.publish(msg)
-        self.delivery.sent(self.bus.keys.for_message(stamped), encode(stamped), stamped.kind, stamped.seq)
+        self.bus.publish(msg, before_put=self.delivery.sent)
 
     def _receipt(self, receipt: Receipt) -> None:
         if self.delivery.receipt(receipt) is not None and not receipt.accepted:

@@ -36,10 +36,12 @@ def dmosim(*args: str) -> list[str]:
 
 
 class Tap:
-    """A passive observer of one run: keeps every valid message by kind, and signals milestones."""
+    """A passive observer of one run: keeps every valid message by kind, once (an agent sends a payload again while
+    its receipt is on its way: the same sender, process and number), and signals milestones."""
 
     def __init__(self, bus: Bus):
         self.messages: dict[str, list] = {}
+        self.heard: set[tuple[str, int, int]] = set()
         self.lock = threading.Lock()
         self.summary = threading.Event()
         self.hour_reached: dict[int, threading.Event] = {h: threading.Event() for h in range(1, 25)}
@@ -47,6 +49,9 @@ class Tap:
 
     def on_message(self, key, msg, received_at):
         with self.lock:
+            if (msg.sender, msg.incarnation, msg.seq) in self.heard:
+                return
+            self.heard.add((msg.sender, msg.incarnation, msg.seq))
             self.messages.setdefault(msg.kind, []).append(msg)
         if msg.kind == "clock" and msg.hour:
             self.hour_reached[msg.hour].set()
