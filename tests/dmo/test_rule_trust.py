@@ -45,7 +45,7 @@ def test_a_name_is_checked_without_importing_anything(own):
     (" ", "no settlement rule named"),
     ("nosuch", "unknown settlement rule 'nosuch'"),
     ("deadband:width=1", "deadband has no parameter 'width'"),
-    ("paper:penalty=-1", "penalty must be a finite number >= 0"),
+    ("paper:penalty=-1", "penalty must be a number in 0..1,000,000, got -1.0"),
 ])
 def test_a_malformed_name_is_one_line_in_an_experiment_too(own, spec, reason):
     with pytest.raises(ValueError, match=reason):

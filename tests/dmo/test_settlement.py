@@ -104,9 +104,9 @@ def test_award_above_p_m_max_costs_nothing_extra_when_missing():
 
 
 @pytest.mark.parametrize("kwargs, reason", [
-    (dict(penalty=float("inf")), "finite"),
+    (dict(penalty=float("inf")), "penalty must be a number in 0..1,000,000, got inf"),
     (dict(penalty=float("nan")), "number"),
-    (dict(penalty=-1.0), ">= 0"),
+    (dict(penalty=-1.0), "penalty must be a number in 0..1,000,000, got -1.0"),
     (dict(credit=float("nan")), "number"),
     (dict(subperiods=0), "subperiods"),
     (dict(p_m_max=float("nan")), "p_m_max"),

@@ -103,16 +103,23 @@ def hostile(tmp_path_factory) -> dict[str, Path]:
             "chunks-at-cap": hostile_file(where / "at-cap.mcap", [at_cap] * 64)}
 
 
+# The verb is started by a small launcher, not by this process: Linux counts the memory of the process a child was
+# forked from in the child's peak (ru_maxrss survives exec), so a verb started by a large test worker would show the
+# worker's peak. The launcher starts fresh, so its child's peak is the verb's own.
+LAUNCHER = """
+import os, subprocess, sys
+child = subprocess.Popen(sys.argv[2:], stdout=open(sys.argv[1] + "/out", "wb"), stderr=open(sys.argv[1] + "/err", "wb"))
+_, status, usage = os.wait4(child.pid, 0)
+print(os.waitstatus_to_exitcode(status), usage.ru_maxrss)
+"""
+
+
 def run_measured(args: list[str], cwd: Path) -> tuple[int, str, float]:
     """A dmosim verb as a real process: its exit code, stderr and peak resident memory (MiB, from wait4)."""
-    with open(cwd / "out", "wb") as out, open(cwd / "err", "wb") as err:
-        process = subprocess.Popen([sys.executable, "-m", "dmo.cli", *args], stdout=out, stderr=err, cwd=cwd, env=ENV)
-        try:
-            _, status, usage = os.wait4(process.pid, 0)
-        finally:
-            process.returncode = 0  # reaped by wait4 above; Popen must not wait again
-    code = os.waitstatus_to_exitcode(status)
-    return code, (cwd / "err").read_text(), usage.ru_maxrss / 1024
+    launched = subprocess.run([sys.executable, "-c", LAUNCHER, str(cwd), sys.executable, "-m", "dmo.cli", *args],
+                              cwd=cwd, env=ENV, capture_output=True, text=True, check=True)
+    code, peak_kib = map(int, launched.stdout.split())
+    return code, (cwd / "err").read_text(), peak_kib / 1024
 
 
 def test_the_hostile_files_are_small(hostile):

@@ -80,4 +80,4 @@ def test_solve_reports_a_statistical_bound_and_the_schedule_s_gap(capsys):
     assert gap["estimate"] == pytest.approx(out["evaluation"]["expected_cost"] - bound["estimate"])
     assert gap["high"] > max(gap["estimate"], 0)
     assert main([*flags, "--replications", "1"]) == 2
-    assert "at least 2 replications" in capsys.readouterr().err
+    assert "argument --replications: expected an integer in 2..100, got '1'" in capsys.readouterr().err
