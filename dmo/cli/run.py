@@ -26,7 +26,6 @@ from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, resolved, run_locally
 from ..market.choice import Trust, UntrustedRule, choose
 from ..market.rules import MAX_MW, MAX_RATE
-from ..replay.reproduce import differences
 from ..results.verdict import one_line
 from .checks import agent_list, check_inputs
 from .console import UsageError, print_json, progress

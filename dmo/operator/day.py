@@ -3,10 +3,11 @@
 
 The DMO reads everything it receives from one queue on its main thread, so the day's state is touched by one
 thread only; Zenoh's callback threads just enqueue. Each phase ends when every live registered agent has
-answered or its deadline passes. What the day accepts is decided by the market's rules (market/acceptance.py)
-and the replay guard (guard.py); what it publishes is built by outbox.py; the journal (journal.py) lets a
-restarted DMO resume the day, and rejoin.py decides what an agent that comes back is sent again. A refused
-message is published on ``dmo/rejected`` with its reason, counted, and never changes an award or a settlement.
+answered or its deadline passes. What the day accepts is decided by intake.py, on the market's rules
+(market/acceptance.py) and the replay guard (guard.py); what it publishes is built by outbox.py; the journal
+(journal.py) lets a restarted DMO resume the day, and rejoin.py decides what an agent that comes back is sent
+again. A refused message is published on ``dmo/rejected`` with its reason, counted, and never changes an award
+or a settlement.
 """
 
 from __future__ import annotations
@@ -20,15 +21,13 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
-from messages import (PHASES, Bid, GridState, MeterReport, Registration, Schedule, make_receipt, make_rejection,
-                      sha256)
+from messages import PHASES, Bid, GridState, Schedule, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.transport import Bus
 from scenarios.horizon import HOURS
 from scenarios.names import check_agent_id
 
-from ..market import acceptance
-from ..market.acceptance import PHASE_ORDER, Refusal
+from ..market.acceptance import PHASE_ORDER
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
 from ..market.settlement import DayTotals, Statement, settlement_day
 from . import intake, outbox, rejoin
@@ -221,12 +220,13 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("registration", c.registration_s)
 
+        rule = intake.registration(s)
+
         def accept(msg):
-            if not isinstance(msg, Registration):
-                return acceptance.out_of_phase(msg, s.phase)
-            s.registered[msg.sender] = msg
-            s.meter[msg.sender] = {}
-            log.info("registered %s (%d/%d)", msg.sender, len(s.registered), c.agents)
+            refusal = rule(msg)
+            if refusal is None:
+                log.info("registered %s (%d/%d)", msg.sender, len(s.registered), c.agents)
+            return refusal
 
         missing = lambda: [f"{c.agents - len(s.registered)} more agent(s)"] if len(s.registered) < c.agents else []
         self._wait(time.monotonic() + c.registration_s, missing, "registration", accept, name_late=False)
@@ -241,7 +241,7 @@ class MarketDay:
         self._bids_due = time.monotonic() + c.bids_s
         self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
         self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid",
-                   self._first_of_each(Bid, s.bids, "bid"))
+                   intake.first_of_each(s, Bid, s.bids, "bid"))
 
     def _clearing(self) -> None:
         self._clock("clearing", self.config.bids_s)
@@ -256,7 +256,7 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("scheduling", c.schedule_s)
         self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in s.live() if a not in s.schedules],
-                   "schedule", self._first_of_each(Schedule, s.schedules, "schedule"))
+                   "schedule", intake.first_of_each(s, Schedule, s.schedules, "schedule"))
 
     def _realtime(self) -> None:
         s, c = self.state, self.config
@@ -266,16 +266,7 @@ class MarketDay:
             self._grid = outbox.grid_state(c, s.day, hour)
             self._publish(self._grid)
 
-            def accept(msg, hour=hour, grid=self._grid):
-                if not isinstance(msg, MeterReport):
-                    return acceptance.out_of_phase(msg, s.phase)
-                refusal = acceptance.check_meter_report(msg, hour, c.subperiods, s.meter[msg.sender],
-                                                        s.registered[msg.sender], grid.connected)
-                if refusal:
-                    return refusal
-                s.meter[msg.sender][hour - 1] = msg.p_m_mw
-                return None
-
+            accept = intake.meter_report(s, hour, c.subperiods, self._grid)
             self._wait(time.monotonic() + c.hour_s, lambda: [a for a in s.live() if (hour - 1) not in s.meter[a]],
                        f"meter report for hour {hour}", accept)
 
@@ -283,7 +274,7 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("settlement", c.hour_s)
         while not self.events.empty():  # what arrived since the last hour closed is late, and recorded as such
-            self._handle(self.events.get_nowait(), lambda msg: acceptance.out_of_phase(msg, s.phase))
+            self._handle(self.events.get_nowait(), intake.out_of_phase(s))
         locked_out = tuple(s.guard.locked_out())
         for agent in locked_out:
             self._incident(agent, "locked out: a process of it spoke to the DMO, which did not admit it (its "
@@ -296,19 +287,6 @@ class MarketDay:
         self._publish(outbox.day_summary(s.market_day, s.registered, self.clearing.price, statements, s.rejected,
                                          s.incidents))
         return statements, totals, locked_out
-
-    def _first_of_each(self, kind, store: dict, what: str):
-        """Accept the first ``kind`` message of each agent into ``store``; refuse repeats and other kinds."""
-
-        def accept(msg):
-            if not isinstance(msg, kind):
-                return acceptance.out_of_phase(msg, self.state.phase)
-            if msg.sender in store:
-                return acceptance.repeated(what, msg.sender)
-            store[msg.sender] = msg
-            return None
-
-        return accept
 
     # --- a restarted DMO, and agents that come and go ---------------------------------------------------------
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from messages import Registration, Schedule
+from messages import GridState, MeterReport, Registration, Schedule
 
 from ..market import acceptance
 from ..market.acceptance import Refusal
@@ -45,11 +45,13 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
     if state.guard.again(msg.sender, msg.incarnation, msg.seq, sha256):
         state.again += 1
         return Outcome(AGAIN)
-    refusal = (acceptance.check_day(msg, state.market_day) or acceptance.check_registered(msg, state.registered)
+    rejoining = isinstance(msg, Registration) and msg.sender in state.registered
+    refusal = ((None if rejoining else acceptance.check_day(msg, state.market_day))  # a rejoin is of the run
+               or acceptance.check_registered(msg, state.registered)
                or state.guard.check(msg.sender, msg.incarnation, msg.seq, isinstance(msg, Registration)))
     what = ACCEPTED
     if refusal is None:
-        if isinstance(msg, Registration) and msg.sender in state.registered:
+        if rejoining:
             refusal = rejoin.rejoin_refusal(state, msg)
             if refusal is None:
                 rejoin.readmit(state, msg)
@@ -63,3 +65,55 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
         return Outcome(REFUSED, refusal)
     state.count_accepted(msg, sha256)
     return Outcome(what)
+
+
+# --- each phase's rule (``Accept``), on the state alone ----------------------------------------------------------
+
+def registration(state: DayState) -> Accept:
+    """While registration is open: a registration registers its agent; anything else is out of phase."""
+
+    def accept(msg):
+        if not isinstance(msg, Registration):
+            return acceptance.out_of_phase(msg, state.phase)
+        state.registered[msg.sender] = msg
+        state.meter[msg.sender] = {}
+        return None
+
+    return accept
+
+
+def first_of_each(state: DayState, kind: type, store: dict, what: str) -> Accept:
+    """The first ``kind`` message of each agent goes into ``store`` (its bid, its schedule); a second is a repeat,
+    another kind out of phase."""
+
+    def accept(msg):
+        if not isinstance(msg, kind):
+            return acceptance.out_of_phase(msg, state.phase)
+        if msg.sender in store:
+            return acceptance.repeated(what, msg.sender)
+        store[msg.sender] = msg
+        return None
+
+    return accept
+
+
+def meter_report(state: DayState, hour: int, subperiods: int, grid: GridState) -> Accept:
+    """In real-time hour ``hour`` (1..24), whose grid state is ``grid``: the hour's meter report of each agent
+    (``acceptance.check_meter_report``) goes into ``state.meter``."""
+
+    def accept(msg):
+        if not isinstance(msg, MeterReport):
+            return acceptance.out_of_phase(msg, state.phase)
+        refusal = acceptance.check_meter_report(msg, hour, subperiods, state.meter[msg.sender],
+                                                state.registered[msg.sender], grid.connected)
+        if refusal:
+            return refusal
+        state.meter[msg.sender][hour - 1] = msg.p_m_mw
+        return None
+
+    return accept
+
+
+def out_of_phase(state: DayState) -> Accept:
+    """When no answer is due (settlement): everything is out of phase."""
+    return lambda msg: acceptance.out_of_phase(msg, state.phase)

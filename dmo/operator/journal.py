@@ -17,6 +17,7 @@ from pathlib import Path
 
 from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, sha256
 
+from . import rejoin
 from .state import DayState
 
 
@@ -93,7 +94,7 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
             if day > state.day:
                 finished.append(state.start_day(day, market_day))
             state.market_day = market_day
-            clock = (entry["clock"], entry["hour"])
+            clock = state.phase, state.hour = (entry["clock"], entry["hour"])
         elif "incident" in entry:
             state.log.incidents.append(Incident(**entry["incident"]))
         elif "rejected" in entry:
@@ -101,18 +102,19 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
         elif "accepted" in entry:
             payload = entry["message"].encode()
             msg = decode(payload)
-            if isinstance(msg, Registration):  # a second one is a rejoin: count_accepted admits its process
-                state.registered.setdefault(msg.sender, msg)
+            if isinstance(msg, Registration) and msg.sender in state.registered:
+                rejoin.readmit(state, msg)  # a restarted agent's, taken as the live DMO took it
+            elif isinstance(msg, Registration):
+                state.registered[msg.sender] = msg
                 state.meter.setdefault(msg.sender, {})
             elif isinstance(msg, Bid):
                 state.bids[msg.sender] = msg
             elif isinstance(msg, Schedule):
                 state.schedules[msg.sender] = msg
+                state.rescheduling.discard(msg.sender)
             elif isinstance(msg, MeterReport):
                 state.meter[msg.sender][msg.hour - 1] = msg.p_m_mw
             state.count_accepted(msg, sha256(payload))
-    if clock is not None:
-        state.phase, state.hour = clock
     return clock, finished
 
 

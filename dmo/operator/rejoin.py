@@ -51,6 +51,8 @@ def resend_plan(state: DayState, agent: str, cleared: bool, grid_known: bool) ->
         return (CALL_FOR_BIDS,), "the call for bids again"
     if phase in ("scheduling", "realtime") and cleared:
         if phase == "realtime" and grid_known:
+            if state.hour - 1 in state.meter.get(agent, {}):  # an earlier process reported it: the next hour
+                return (AWARD,), f"its award again (hour {state.hour} is reported)"
             return (AWARD, GRID_STATE), f"its award and the grid state of hour {state.hour} again"
         return (AWARD,), "its award again"
     return (), "nothing: registration is open" if phase == "registration" else "nothing"

@@ -16,8 +16,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Chunk, Footer, Message, Schema
 
-from .layout import (MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES, MESSAGE_COST_BYTES, READ_BUDGET_FLOOR_BYTES,
-                     READ_BUDGET_RATIO)
+from .layout import MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES, READ_BUDGET_FLOOR_BYTES, READ_BUDGET_RATIO
 
 MESSAGE_HEADER_BYTES = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time: a Message record before its data
 FOOTER_CRC_SPAN = 1 + 8 + 8 + 8        # the footer's opcode, length, summary_start and summary_offset_start

@@ -53,14 +53,23 @@ class Delivery:
         with self._lock:
             self._pending[sha256(payload)] = _Pending(key, payload, stamped.kind, stamped.seq,
                                                       time.monotonic() + self._first, self._first)
-            self._lock.notify()
+            self._lock.notify_all()
 
     def receipt(self, receipt: Receipt) -> tuple[str, int] | None:
         """A receipt came: its payload is no longer sent again. Returns the (kind, seq) it was, None if it names no
         payload awaiting one (a receipt of a copy, or of a payload someone else sent in this agent's name)."""
         with self._lock:
             pending = self._pending.pop(receipt.payload_sha256, None)
+            self._lock.notify_all()
         return None if pending is None else (pending.kind, pending.seq)
+
+    def drained(self, timeout_s: float) -> bool:
+        """Wait until every payload sent has its receipt (or ``timeout_s`` passes); whether they all have."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while self._pending and (left := deadline - time.monotonic()) > 0:
+                self._lock.wait(timeout=left)
+            return not self._pending
 
     def waiting(self) -> int:
         with self._lock:
@@ -69,7 +78,7 @@ class Delivery:
     def close(self) -> None:
         with self._lock:
             self._closed = True
-            self._lock.notify()
+            self._lock.notify_all()
         self._thread.join(timeout=5)
 
     def _loop(self) -> None:

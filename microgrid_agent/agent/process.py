@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
-                      Receipt, Registration, Schedule, SettlementStatement, check_route, decode, encode)
+                      Receipt, Registration, Schedule, SettlementStatement, check_route, decode)
 from messages.keys import parse_key
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
@@ -125,6 +125,10 @@ class MicrogridAgent:
         grid = self.case.grid
         self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.base.name,
                                    max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max))
+        # Nothing else goes before the registration's receipt: a restarted process's bid, schedule or report would
+        # be refused as unregistered (and not sent again) were it to overtake a lost registration.
+        if not self.delivery.drained(self.config.idle_s):
+            raise AgentTimeout(f"{self.id}: no receipt for my registration in {self.config.idle_s:g} s")
         log.info("%s registered", self.id)
         while True:
             self._run_day()

@@ -222,10 +222,11 @@ def test_a_restarted_agent_with_the_same_case_and_limits_rejoins_whatever_the_dm
     ("bidding", None, True, False, False, ()),
     ("scheduling", None, True, True, False, (AWARD,)),
     ("realtime", 5, True, True, True, (AWARD, GRID_STATE)),
+    ("realtime", 4, True, True, True, (AWARD,)),  # hour 4 is reported already: it goes on at hour 5
     ("settlement", None, True, True, True, ()),
 ])
 def test_an_agent_that_comes_back_is_sent_what_it_needs_to_go_on(phase, hour, has_bid, cleared, grid, sent):
-    state = DayState(phase=phase, hour=hour)
+    state = DayState(phase=phase, hour=hour, meter={"mg1": {3: (1.0,)}})
     if has_bid:
         state.bids["mg1"] = Bid(sender="mg1", market_day=DAY, hours=((),) * HOURS)
     kinds, said = resend_plan(state, "mg1", cleared, grid)

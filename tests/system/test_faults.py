@@ -31,6 +31,7 @@ from dmo.operator.day import MarketDay
 from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Receipt,
                       Registration, Schedule, decode, encode)
 from messages.keys import new_run_id
+from messages.recording import read_recording
 from messages.transport import Bus, BusConfig
 from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
 from microgrid_agent.agent.delivery import Delivery
@@ -507,3 +508,33 @@ def test_the_dmo_killed_mid_day_resumes_from_its_journal_and_settles_as_if_undis
     assert cli_main(["settle", restarted["recording"]]) == 0
     print(f"\nDMO restart: resumed at hour {resumed['hour']}, {resent} answer(s) sent again by the agents; settlement "
           f"identical to the undisturbed day: {restarted['settlement'] == undisturbed['settlement']}")
+
+
+def test_the_dmo_and_an_agent_restarted_in_the_same_hour_and_across_midnight_lock_no_one_out(tmp_path):
+    """The DMO and mg1 killed and started again in the same hour, on day 1 at hour 10 and again at hour 24 (the
+    new mg1 rejoins in day 1's last hour, its settlement, or day 2's bidding): each resumed DMO takes mg1's new
+    process back, mg1 takes part in all of day 2, and the run says it can be trusted (exit 0)."""
+    faults = ["restart:dmo:10", "restart:mg1:10", "restart:dmo:24", "restart:mg1:24"]
+    argv = dmosim("run", "--agents", "2", "--subperiods", "1", "--days", "2", *TINY, *DEADLINES[:-1], "10",
+                  "--out", str(tmp_path), "--json", "--quiet", "--seed", "2",
+                  *[flag for f in faults for flag in ("--fault", f)])
+    out = subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout)
+    assert result["restarts"] == {"dmo": 2, "mg1": 2} and result["locked_out"] == []
+    assert "duplicate" not in result["rejected_by_code"] and "unregistered" not in result["rejected_by_code"]
+    day_2 = result["days"][1]["settlement"]
+    assert day_2["mg1"]["missing_subperiods"] == 0 and day_2["mg2"]["missing_subperiods"] == 0
+    rejoined = [i for i in result["incidents"] if i["agent"] == "mg1" and i["reason"].startswith("rejoined")]
+    assert len(rejoined) == 2, result["incidents"]
+    # back in the market within an hour of rejoining: the new process reports every later hour of day 1 until
+    # it is killed in turn at hour 24
+    reported = {m.hour for _, m in read_recording(result["recording"]).decoded("meter_report")
+                if m.sender == "mg1" and m.market_day == result["market_days"][0]}
+    first = rejoined[0]
+    assert first["market_day"] == result["market_days"][0] and first["phase"] == "realtime"
+    assert set(range(first["hour"] + 1, HOURS)) <= reported, (first, sorted(reported))
+    assert cli_main(["settle", result["recording"]]) == 0
+    missing = result["days"][0]["settlement"]["mg1"]["missing_subperiods"]
+    print(f"\nDMO and mg1 restarted together twice: mg1 missing {missing} hour(s) of day 1, none of day 2; refused "
+          f"{result['rejected_by_code']}")

@@ -22,6 +22,7 @@ import math
 import re
 import signal
 import threading
+import time
 import tomllib
 from pathlib import Path
 
@@ -45,6 +46,7 @@ AGENTS = ("mg1", "mg2")
 # the real one put in (the same length, hex), so that they get past the DMO's first check and reach the others.
 TOKEN = "0123456789abcdef" * 2
 WRONG_DAYS = ("2026-06-30", "2026-07-02", "1999-12-31")
+BEFORE_THE_AGENTS = time.time_ns()  # an incarnation below it is a process of theirs older than the live one
 DMO_TOPICS = {"registration": "register", "bid": "bid", "schedule": "schedule", "meter_report": "meter"}
 AGENT_KEYS = {"call_for_bids": ("dmo/call_for_bids",), "grid_state": ("dmo/grid",), "day_summary": ("dmo/summary",),
               "rejection": ("dmo/rejected",), "award": ("dmo/award/mg1", "dmo/award/mg2"),
@@ -259,10 +261,11 @@ def hostile(draw, target: str) -> tuple[str, bytes]:
     return key, text
 
 
-def verdict(key: str, payload: bytes, run_id: str) -> str | None:
+def verdict(key: str, payload: bytes, run_id: str, registered: bool) -> str | None:
     """What the receiver makes of a hostile payload, by the same checks the Bus, the DMO and the agents apply: a
-    rejection code, "wrong_run", "wrong_day" or "unregistered" (their first checks), or None when only the phase
-    (or the sender's process) could refuse it."""
+    rejection code, "wrong_run", "wrong_day", "unregistered" or "stale" (their first checks), or None when only the
+    phase (or the sender's process) could refuse it. ``registered``: whether the agents have registered by the time
+    it arrives (a registration of theirs is then a rejoin, which belongs to the run, not to a day)."""
     try:
         msg = decode(payload, expected_kind=parse_key(key).kind)
         check_route(key, msg, run_id)
@@ -270,6 +273,8 @@ def verdict(key: str, payload: bytes, run_id: str) -> str | None:
         return err.code
     if msg.run != TOKEN:
         return "wrong_run"
+    if registered and msg.kind == "registration" and msg.sender in AGENTS:
+        return "stale" if msg.incarnation < BEFORE_THE_AGENTS else None
     if msg.market_day != DAY:
         return "wrong_day"
     if key.split("/")[2] == "agent" and msg.kind != "registration" and msg.sender not in AGENTS:
@@ -280,9 +285,10 @@ def verdict(key: str, payload: bytes, run_id: str) -> str | None:
 BATCH = 50
 
 
-def generate(target: str, n: int, run_id: str) -> list[tuple[str, bytes, str]]:
+def generate(target: str, n: int, run_id: str, registered: bool = True) -> list[tuple[str, bytes, str]]:
     """n hostile payloads (relative key, payload, expected code), each certainly refused: a payload only the phase
-    would refuse is sent on the wrong market day instead, so that none can take part in the day."""
+    would refuse is sent on the wrong market day (and as from an agent's earlier process) instead, so that none can
+    take part in the day. ``registered``: whether they are sent after the agents registered."""
     out: list[tuple[str, bytes, str]] = []
     prefix = f"dmosim/{run_id}/"
 
@@ -291,12 +297,14 @@ def generate(target: str, n: int, run_id: str) -> list[tuple[str, bytes, str]]:
     @given(st.lists(hostile(target), min_size=BATCH, max_size=BATCH))
     def collect(batch):
         for key, payload in batch:
-            code = verdict(prefix + key, payload, run_id)
-            if code is None:
+            code = verdict(prefix + key, payload, run_id, registered)
+            if code in (None, "stale"):  # a stale one too: the test's watch takes what is of the day for real
                 data = json.loads(payload)
                 data["market_day"] = WRONG_DAYS[len(out) % len(WRONG_DAYS)]
+                if data["kind"] == "registration":
+                    data["incarnation"] = len(out) % 1000  # an agent's earlier process
                 payload = json.dumps(data).encode()
-                code = verdict(prefix + key, payload, run_id)
+                code = verdict(prefix + key, payload, run_id, registered)
             assert code is not None
             out.append((key, payload, code))
 
@@ -433,7 +441,7 @@ def test_ten_thousand_hostile_messages_crash_nothing_change_no_settlement_and_ar
     with Roles() as reference:  # the same day undisturbed, run meanwhile on its own prefix and port
         start_agents(reference, tmp_path / "undisturbed", run_id + "r",
                      start_day(reference, tmp_path / "undisturbed", run_id + "r"))
-        to_dmo = generate("dmo", 7000, run_id) + oversized(10)
+        to_dmo = generate("dmo", 5000, run_id, registered=False) + generate("dmo", 2000, run_id) + oversized(10)
         to_agents = generate("agents", 3000, run_id)
         undisturbed = finish(reference, tmp_path / "undisturbed")
     assert undisturbed["rejected_messages"] == 0

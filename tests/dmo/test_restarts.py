@@ -1,0 +1,266 @@
+"""Restarts of the DMO and of agents, in any order and phase, across midnight, with messages and receipts lost: a
+property test over random schedules of them, driving the DMO's own decisions (``intake.receive`` and each phase's
+rule, the replay guard, ``rejoin``, the journal and ``journal.restore``) without a network.
+
+The simulated agents behave as dmosim's do (docs/protocol.md): every payload is sent again, the same bytes, until
+its receipt comes; a process sends nothing before its registration's receipt; a restarted process registers again
+and answers what the DMO sends it on rejoining (``rejoin.resend_plan``). A restart is instantaneous here (the new
+process is up within the same step), so every agent is up for every hour: no agent is ever locked out, every hour
+of every agent is settled from the report its process metered, nothing its processes sent is refused but what a
+process that is gone sent, and a resumed DMO holds everything it had receipted.
+"""
+
+from __future__ import annotations
+
+import itertools
+import tempfile
+from pathlib import Path
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dmo.operator import intake, rejoin
+from dmo.operator.journal import Journal, restore
+from dmo.operator.state import DayState
+from messages import Bid, BidStep, GridState, MeterReport, Registration, Schedule, decode, encode, sha256
+
+DAYS = ("2026-07-01", "2026-07-02")
+HOURS = 3  # real-time hours simulated per day (the DMO's rules take any hour 1..24)
+AGENTS = ("mg1", "mg2")
+CAP = 10.0
+RUN_ID = "restarts"
+
+
+def steps() -> list[tuple[int, str, int | None]]:
+    """The DMO's clock over the run: (day, phase, hour)."""
+    out = [(1, "registration", None)]
+    for day in range(1, len(DAYS) + 1):
+        out += [(day, "bidding", None), (day, "scheduling", None)]
+        out += [(day, "realtime", hour) for hour in range(1, HOURS + 1)] + [(day, "settlement", None)]
+    return out
+
+
+STEPS = steps()
+
+
+def metered(agent: str, day: int, hour: int) -> float:
+    """What the agent meters in an hour, whichever of its processes operates it."""
+    return round((1 if agent == "mg1" else -1) * (0.5 * hour + day), 3)
+
+
+class Dmo:
+    """The DMO's state and journal, and the rule of the step it is in; a restart is a new Dmo on the journal."""
+
+    def __init__(self, path: Path, token: str):
+        self.journal = Journal(path, RUN_ID, DAYS[0])
+        self.state = DayState(market_day=DAYS[0])
+        self.resumed, self.finished = restore(self.state, self.journal.entries)
+        if not self.state.run_token:
+            self.state.run_token = token
+            self.journal.run_token(token)
+        self.rule = None
+
+    def clock(self, day: int, phase: str, hour: int | None) -> None:
+        s = self.state
+        if day > s.day:
+            s.start_day(day, DAYS[day - 1])
+        s.phase, s.hour = phase, hour
+        self.journal.clock(phase, hour, day, s.market_day)
+        self.rule = {"registration": lambda: intake.registration(s),
+                     "bidding": lambda: intake.first_of_each(s, Bid, s.bids, "bid"),
+                     "scheduling": lambda: intake.first_of_each(s, Schedule, s.schedules, "schedule"),
+                     "realtime": lambda: intake.meter_report(s, hour, 1, GridState(
+                         sender="dmo", market_day=s.market_day, hour=hour, subperiods=1, connected=(True,))),
+                     "settlement": lambda: intake.out_of_phase(s)}[phase]()
+
+    def receive(self, key: str, payload: bytes) -> intake.Outcome:
+        outcome = intake.receive(self.state, decode(payload), sha256(payload), self.rule)
+        if outcome.taken:  # journaled before the receipt goes, as MarketDay does
+            self.journal.accepted(key, payload)
+        return outcome
+
+    def waiting_for(self, phase: str, hour: int | None) -> list[str]:
+        """Who the step waits for (MarketDay's ``waiting_for``); the step ends when nobody."""
+        s = self.state
+        if phase == "registration":
+            return [a for a in AGENTS if a not in s.registered]
+        if phase == "bidding":
+            return [a for a in AGENTS if a not in s.bids]
+        if phase == "scheduling":
+            return [a for a in AGENTS if a not in s.schedules or a in s.rescheduling]
+        if phase == "realtime":
+            return [a for a in AGENTS if hour - 1 not in s.meter[a]]
+        return []
+
+
+class Agent:
+    """One agent's processes: the live one's numbering, its payloads awaiting a receipt, what it answered."""
+
+    def __init__(self, name: str, token: str):
+        self.name, self.token, self.incarnation = name, token, 0
+        self.stragglers: list[tuple[str, bytes]] = []  # what a dead process had on the wire
+        self.refused: list[str] = []
+        self.start(DAYS[0])
+
+    def start(self, market_day: str) -> None:
+        self.incarnation += 1_000
+        self.seq, self.pending, self.registered, self.answered, self.plan = 0, {}, False, set(), None
+        self.send(Registration(sender=self.name, market_day=market_day, case="paper", max_import_mw=CAP,
+                               max_export_mw=CAP), "register")
+
+    def restart(self, market_day: str) -> None:
+        self.stragglers += list(self.pending.values())
+        self.start(market_day)
+
+    def send(self, msg, topic: str) -> None:
+        stamped = msg.model_copy(update={"run": self.token, "incarnation": self.incarnation, "seq": self.seq})
+        payload = encode(stamped)
+        self.pending[sha256(payload)] = (f"agent/{self.name}/{topic}", payload)
+        self.seq += 1
+
+    def answer(self, day: int, phase: str, hour: int | None) -> None:
+        """What the live process sends in this step, once registered: its bid, schedule or the hour's report."""
+        if not self.registered:
+            return
+        market_day = DAYS[day - 1]
+        if phase == "bidding" and (day, "bid") not in self.answered:
+            step = BidStep(price_per_mwh=40.0, quantity_mw=1.0)
+            self.send(Bid(sender=self.name, market_day=market_day, hours=((step,),) * 24), "bid")
+            self.answered.add((day, "bid"))
+        if phase in ("scheduling", "realtime") and (day, "schedule") not in self.answered:
+            self.send(Schedule(sender=self.name, market_day=market_day, status="optimal", commitment={},
+                               expected_cost=0.0, p_m_expected_mw=(1.0,) * 24, scenarios=1, mip_gap=0.0),
+                      "schedule")
+            self.answered.add((day, "schedule"))
+        if phase == "realtime" and (day, hour) not in self.answered:
+            p_m = metered(self.name, day, hour)
+            self.send(MeterReport(sender=self.name, market_day=market_day, hour=hour, subperiods=1, p_m_mw=(p_m,),
+                                  deviation_mw=(p_m - 1.0,)), "meter")
+            self.answered.add((day, hour))
+
+    def receipt(self, kind: str) -> None:
+        """The receipt of a payload came. That of the registration lets the process go on; a rejoined one answers
+        what the DMO sent it on rejoining (``plan``) at once: a call for bids with its bid, the award with its
+        schedule, a grid state with that hour's report, and nothing else of that phase or hour."""
+        if kind != "registration" or self.registered:
+            return
+        self.registered = True
+        if self.plan is None:
+            return
+        kinds, day, phase, hour = self.plan
+        if phase == "bidding" and rejoin.CALL_FOR_BIDS not in kinds:
+            self.answered.add((day, "bid"))
+        if phase == "realtime":
+            if rejoin.GRID_STATE in kinds:
+                self.answer(day, phase, hour)
+            self.answered.add((day, hour))
+
+
+def deliver(agent: Agent, dmo: Dmo, lost) -> None:
+    """One round: each payload awaiting its receipt is sent (again); the payload or its receipt may be lost."""
+    for sha, (key, payload) in sorted(agent.pending.items(), key=lambda item: decode(item[1][1]).seq):
+        msg = decode(payload)
+        if not agent.registered and msg.kind != "registration":
+            continue  # nothing before the registration's receipt
+        if next(lost):
+            continue  # lost on the way: sent again next round
+        outcome = dmo.receive(key, payload)
+        if outcome.what == intake.REFUSED:
+            agent.refused.append(f"{msg.kind} #{msg.seq}: {outcome.refusal}")
+        if outcome.what == intake.REJOINED:  # what the DMO sends it now, whether or not the receipt gets through
+            s = dmo.state
+            kinds, _ = rejoin.resend_plan(s, agent.name, s.phase in ("scheduling", "realtime"), s.phase == "realtime")
+            agent.plan = kinds, s.day, s.phase, s.hour
+        if next(lost):
+            continue  # the receipt is lost: the payload goes again
+        del agent.pending[sha]
+        if outcome.what != intake.REFUSED:
+            agent.receipt(msg.kind)
+
+
+def run(schedule: dict[int, list[tuple[str, int]]], drops: list[bool], stragglers: bool, journal: Path,
+        outages: frozenset[tuple[int, int, str]] = frozenset()) -> dict:
+    """The run under ``schedule`` (step index -> [(who restarts, after how many delivery rounds)]), with each
+    delivery lost as ``drops`` say in turn, and agents cut off in the rounds ``outages`` name (step index, round,
+    agent): what each day settled, and what was refused to whom."""
+    token = "ab" * 16
+    dmo = Dmo(journal, token)
+    agents = {a: Agent(a, token) for a in AGENTS}
+    lost = itertools.chain(drops, itertools.repeat(False))
+    settled: dict[int, dict] = {}
+    for index, (day, phase, hour) in enumerate(STEPS):
+        dmo.clock(day, phase, hour)
+        for rounds in itertools.count():
+            for who, _ in [e for e in schedule.get(index, []) if e[1] == rounds]:
+                if who == "dmo":
+                    receipted = {a: dict(m) for a, m in dmo.state.meter.items()}
+                    dmo.journal.close()
+                    dmo = Dmo(journal, token)  # resumed where it was, with all it receipted
+                    assert dmo.resumed == (phase, hour) and dmo.state.day == day
+                    assert dmo.state.meter == receipted
+                    dmo.clock(day, phase, hour)  # and it runs the step again from its start
+                else:
+                    agents[who].restart(DAYS[day - 1])
+            if not dmo.waiting_for(phase, hour):
+                break
+            assert rounds < 200, f"step {STEPS[index]} never ends: waiting for {dmo.waiting_for(phase, hour)}"
+            for agent in agents.values():
+                agent.answer(day, phase, hour)
+                if (index, rounds, agent.name) not in outages:
+                    deliver(agent, dmo, lost)
+                for key, payload in agent.stragglers if stragglers else ():
+                    # a dead process's message arrives late: taken if its successor has not registered yet (the
+                    # DMO cannot tell it is dead), else refused
+                    outcome = dmo.receive(key, payload)
+                    assert outcome.what != intake.REFUSED or outcome.refusal[0] in ("stale", "wrong_day"), outcome
+                agent.stragglers.clear()
+        if phase == "settlement":
+            settled[day] = {a: dict(m) for a, m in dmo.state.meter.items()}
+            assert dmo.state.guard.locked_out() == []
+    dmo.journal.close()
+    return {"settled": settled, "refused": {a: agent.refused for a, agent in agents.items()}}
+
+
+restart_schedules = st.dictionaries(
+    st.integers(0, len(STEPS) - 1),
+    st.lists(st.tuples(st.sampled_from(("dmo", *AGENTS)), st.integers(0, 3)), min_size=1, max_size=3),
+    max_size=4)
+
+
+outage_sets = st.frozensets(st.tuples(st.integers(0, len(STEPS) - 1), st.integers(0, 3), st.sampled_from(AGENTS)),
+                            max_size=6)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(schedule=restart_schedules, drops=st.lists(st.booleans(), max_size=80), stragglers=st.booleans(),
+       outages=outage_sets)
+def test_no_restart_schedule_locks_an_agent_out_or_loses_an_hour_it_reported(schedule, drops, stragglers, outages):
+    with tempfile.TemporaryDirectory() as tmp:
+        out = run(schedule, drops, stragglers, Path(tmp) / "journal.jsonl", outages)
+    for day in range(1, len(DAYS) + 1):
+        for agent in AGENTS:
+            assert out["settled"][day][agent] == {h - 1: (metered(agent, day, h),) for h in range(1, HOURS + 1)}
+    assert out["refused"] == {a: [] for a in AGENTS}  # a live process is never refused
+
+
+def test_the_issue_s_case_dmo_and_agent_restarted_in_the_same_hour_with_its_rejoin_lost_once():
+    """The DMO and mg1 restarted in the same hour (before protocol 4 the resumed DMO refused mg1's new
+    registration as a duplicate, and mg1 was billed every later hour as missing), with mg1's new registration
+    lost once, and then both again across midnight."""
+    hour_2, midnight = STEPS.index((1, "realtime", 2)), STEPS.index((1, "settlement", None))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = run({hour_2: [("mg1", 1), ("dmo", 1)], midnight: [("dmo", 0), ("mg1", 0)]}, [False] * 2 + [True],
+                  False, Path(tmp) / "journal.jsonl")
+    assert out["settled"][2]["mg1"] == {h - 1: (metered("mg1", 2, h),) for h in range(1, HOURS + 1)}
+    assert out["refused"]["mg1"] == []
+
+
+def test_an_agent_restarted_after_reporting_its_hour_goes_on_at_the_next_without_a_refusal():
+    """mg1 reports hour 2 and restarts while the DMO still waits for mg2: it rejoins without that hour's grid
+    state, so it does not report the hour twice (a second report would be refused)."""
+    hour_2 = STEPS.index((1, "realtime", 2))
+    with tempfile.TemporaryDirectory() as tmp:
+        out = run({hour_2: [("mg1", 1)]}, [], False, Path(tmp) / "journal.jsonl",
+                  frozenset({(hour_2, 0, "mg2"), (hour_2, 1, "mg2"), (hour_2, 2, "mg2")}))
+    assert out["refused"] == {"mg1": [], "mg2": []}
+    assert out["settled"][1]["mg1"][1] == (metered("mg1", 1, 2),)
