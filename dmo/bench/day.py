@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import shutil
 import subprocess
 import tempfile
@@ -25,7 +24,6 @@ from ..launch.processes import dmosim_command, role_env
 GOAL_PCT = 5.0
 # The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
 STEP_PHASE = {"call_for_bids": "bidding", "award": "scheduling", "grid_state": "realtime"}
-_COMPUTE_LINE = re.compile(r" compute (\[.*\])\s*$")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -112,20 +110,30 @@ def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: 
 
 def read_compute(log: Path) -> list[dict]:
     """The entries of the agent's ``compute`` line (the last one, should a log hold several)."""
+    return _last_line(log, "compute")
+
+
+def read_messages(log: Path) -> dict:
+    """The agent's ``messages`` line: what it received, ignored, sent again, asked for and injected as faults."""
+    return _last_line(log, "messages")
+
+
+def _last_line(log: Path, word: str):
+    """The JSON an agent logged after ``AGENT WORD`` at the end of its run (the last one, should a log hold several)."""
     found = None
     for line in log.read_text(errors="replace").splitlines():
-        match = _COMPUTE_LINE.search(line)
-        if match:
-            found = json.loads(match.group(1))
+        head, sep, tail = line.partition(f" {word} ")
+        if sep and tail[:1] in "[{":
+            found = tail.strip()
     if found is None:
-        raise RuntimeError(f"no compute line in {log}: did the agent finish its day?")
-    return found
+        raise RuntimeError(f"no {word} line in {log}: did the agent finish its day?")
+    return json.loads(found)
 
 
-def run_and_read(flags: list[str], timeout_s: float) -> dict:
-    """One ``dmosim run FLAGS --json`` into a scratch run directory (removed unless the run fails): its result,
-    each agent's ``compute`` entries and the command's wall time."""
-    rundir = Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
+def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None) -> dict:
+    """One ``dmosim run FLAGS --json`` into a run directory: ``keep``, or a scratch one removed unless the run
+    fails. Its result, each agent's ``compute`` entries and ``messages`` counts, and the command's wall time."""
+    rundir = keep or Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
     argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",
                           "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
                           "--json", "--quiet")
@@ -148,6 +156,9 @@ def run_and_read(flags: list[str], timeout_s: float) -> dict:
         raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {err.strip()[-500:]} "
                            f"(run directory: {rundir})")
     result = json.loads(out)
-    compute = {agent: read_compute(rundir / "logs" / f"{agent}.log") for agent in result["agents"]}
-    shutil.rmtree(rundir, ignore_errors=True)
-    return {"result": result, "compute": compute, "process_s": process_s}
+    logs = {agent: rundir / "logs" / f"{agent}.log" for agent in result["agents"]}
+    compute = {agent: read_compute(log) for agent, log in logs.items()}
+    messages = {agent: read_messages(log) for agent, log in logs.items()}
+    if keep is None:
+        shutil.rmtree(rundir, ignore_errors=True)
+    return {"result": result, "compute": compute, "messages": messages, "process_s": process_s}

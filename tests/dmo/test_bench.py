@@ -1,5 +1,5 @@
-"""Smoke tests of ``dmosim bench messaging`` and ``dmosim bench day``: each runs end to end on tiny parameters and
-returns the expected figures. No timing assertions: the figures themselves belong to the benchmark's output."""
+"""Smoke tests of the benchmarks (messaging, day, recovery): each runs end to end on tiny parameters and returns
+the expected figures. No timing assertions: the figures themselves belong to the benchmark's output."""
 
 from __future__ import annotations
 
@@ -55,6 +55,18 @@ def test_day_runs_end_to_end(capsys):
     assert [p["phase"] for p in out["phases"]] == ["bidding", "clearing", "scheduling", "realtime", "settlement"]
     assert math.isclose(sum(p["wall_s"] for p in out["phases"]), row["day_s"])
     assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0
+
+
+def test_recovery_loses_messages_everywhere_and_settles_every_statement_the_same(capsys, tmp_path):
+    out = bench_json(capsys, "recovery", "--agents", "2", "--days", "1", "--scenarios", "1", "--subperiods", "1",
+                     "--drop", "0.1", "--out", str(tmp_path))
+    clean, dropped = out["runs"]
+    assert (clean["run"], dropped["run"]) == ("fault-free", "dropped")
+    assert clean["dropped_by_dmo"] == clean["dropped_by_agents"] == clean["sent_again"] == 0
+    assert dropped["dropped_by_dmo"] + dropped["dropped_by_agents"] > 0 and dropped["sent_again"] > 0
+    assert out["ratios"]["statement lines that differ"] == 0 and "differences" not in out
+    assert out["ratios"]["wall dropped / fault-free"] > 0
+    assert (tmp_path / "fault-free" / "recording.mcap").is_file() and (tmp_path / "dropped" / "result.json").is_file()
 
 
 def test_split_takes_the_slowest_agent_per_step_and_bounds_cpu_by_the_cores():
