@@ -1,4 +1,5 @@
-"""Which messages the DMO accepts (dmo/market/acceptance.py), and that the replayed DMO applies the same rules."""
+"""Which messages the DMO accepts (dmo/market/acceptance.py, dmo/operator/intake.py), and that the replayed DMO
+applies the same rules."""
 
 from __future__ import annotations
 
@@ -7,8 +8,11 @@ from types import SimpleNamespace
 import pytest
 
 from dmo.market import acceptance
+from dmo.market.settlement import READING_TOLERANCE_MW, settle
+from dmo.operator import intake
+from dmo.operator.state import DayState
 from dmo.replay.as_dmo import AsDmo
-from messages import Bid, Keys, MeterReport, Registration, Schedule
+from messages import Bid, GridState, Keys, MeterReport, Registration, Schedule, decode, encode, sha256
 from scenarios.horizon import HOURS
 
 DAY = "2026-07-01"
@@ -70,3 +74,58 @@ def test_the_replayed_dmo_refuses_what_the_live_one_refuses():
     assert driver.refusal(schedule) is None
     driver.answered.add("schedule")
     assert driver.refusal(schedule) == acceptance.repeated("schedule", "mg1")
+
+
+@pytest.mark.parametrize("excess", [0.0, READING_TOLERANCE_MW / 2, READING_TOLERANCE_MW, 2 * READING_TOLERANCE_MW,
+                                    1e-6])
+def test_one_tolerance_decides_acceptance_and_settlement_alike(excess):
+    """A reading the DMO accepts is one settlement reads, and one it refuses settlement refuses too: another
+    party's reading just above a limit can never stop a day at settlement."""
+    msg = report(p_m=(1.0, CAP + excess))
+    accepted = acceptance.check_meter_report(msg, 3, 2, {}, REG) is None
+    try:
+        settle({"mg1": (1.0,) * HOURS}, (40.0,) * HOURS, {"mg1": {2: msg.p_m_mw}}, subperiods=2, p_m_max=CAP,
+               p_m_min=4.0, penalty=150.0)
+        settled = True
+    except ValueError:
+        settled = False
+    assert accepted == settled == (excess <= READING_TOLERANCE_MW)
+
+
+@pytest.mark.parametrize("p_m, expected", [
+    ((1.0, 0.0), None),
+    ((1.0, READING_TOLERANCE_MW), None),
+    ((1.0, 0.1), "invalid"),
+    ((1.0, -0.1), "invalid"),
+])
+def test_an_islanded_sub_period_must_read_zero(p_m, expected):
+    refusal = acceptance.check_meter_report(report(p_m=p_m), 3, 2, {}, REG, connected=(True, False))
+    assert (refusal and refusal[0]) == expected
+    assert acceptance.check_meter_report(report(p_m=p_m), 3, 2, {}, REG, connected=(True, True)) is None
+
+
+def test_the_dmo_takes_a_message_of_its_run_and_admitted_process_once_and_refuses_the_others():
+    """intake.receive: bound to the run (wrong_run, whatever credentials sent it: a report recorded in an earlier
+    run), to the admitted process (stale, unregistered), a copy is the message again, and a restarted process
+    rejoins by registering."""
+    state = DayState(market_day=DAY, run_token="ab" * 16, phase="realtime", hour=3)
+    state.registered["mg1"], state.meter["mg1"] = REG, {}
+    state.guard.admit("mg1", 100)
+    grid = GridState(sender="dmo", market_day=DAY, hour=3, subperiods=2, connected=(True, True))
+    rule = intake.meter_report(state, 3, 2, grid)
+
+    def sent(msg, **stamp):
+        msg = msg.model_copy(update={"run": state.run_token, "incarnation": 100, "seq": 5} | stamp)
+        payload = encode(msg)
+        return intake.receive(state, decode(payload), sha256(payload), rule)
+
+    assert sent(report(), run="cd" * 16).refusal[0] == "wrong_run"  # recorded in another run
+    assert sent(report(), incarnation=99).refusal[0] == "stale"      # an earlier process
+    assert sent(report(), incarnation=101).refusal[0] == "unregistered"  # a later one, not registered yet
+    assert state.meter["mg1"] == {} and state.guard.locked_out() == ["mg1"]
+    assert sent(report()).what == intake.ACCEPTED and state.meter["mg1"] == {2: (1.0, 2.0)}
+    assert sent(report()).what == intake.AGAIN and state.again == 1  # the same bytes: a receipt, nothing more
+    assert sent(report(p_m=(2.0, 2.0))).refusal[0] == "duplicate"     # other content under #5
+    assert sent(REG, incarnation=101, seq=0, market_day="2026-07-02").what == intake.REJOINED  # of the run
+    assert state.guard.locked_out() == [] and state.rescheduling == {"mg1"}
+    assert sent(report(), seq=6).refusal[0] == "stale"  # the old process is gone
