@@ -108,6 +108,24 @@ def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: 
     return {"phases": rows, "totals": totals}
 
 
+def add_run_flags(parser: argparse.ArgumentParser, *, agents: int, days: int, scenarios: int, subperiods: int,
+                  gap_: float) -> None:
+    """The flags of a bench that runs ``dmosim run`` of one fleet over several days (``run_flags`` passes them on)."""
+    parser.add_argument("--agents", type=positive_int, default=agents, help=f"agents (default: {agents})")
+    parser.add_argument("--days", type=positive_int, default=days, help=f"consecutive market days (default: {days})")
+    parser.add_argument("--scenarios", type=positive_int, default=scenarios,
+                        help=f"scenarios per agent schedule (default: {scenarios})")
+    parser.add_argument("--subperiods", type=positive_int, default=subperiods,
+                        help=f"sub-periods per hour (default: {subperiods})")
+    parser.add_argument("--gap", type=gap, default=gap_, help=f"relative MIP gap of the schedules (default: {gap_})")
+
+
+def run_flags(args) -> list[str]:
+    """The ``dmosim run`` flags of ``add_run_flags``."""
+    return ["--agents", str(args.agents), "--days", str(args.days), "--scenarios", str(args.scenarios),
+            "--subperiods", str(args.subperiods), "--gap", repr(args.gap)]
+
+
 def read_compute(log: Path) -> list[dict]:
     """The entries of the agent's ``compute`` line (the last one, should a log hold several)."""
     return _last_line(log, "compute")

@@ -18,19 +18,15 @@ from pathlib import Path
 
 from messages.recording import read_recording
 
-from ..cli.flags import gap, nonneg_float, positive_int
+from ..cli.flags import nonneg_float
 from ..replay.reproduce import differences
-from .day import run_and_read
+from .day import add_run_flags, run_and_read, run_flags
 
 GOAL_RATIO = 1.3  # wall time with drops / without: what a lost message may cost
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--agents", type=positive_int, default=5, help="agents (default: 5)")
-    parser.add_argument("--days", type=positive_int, default=3, help="consecutive market days (default: 3)")
-    parser.add_argument("--scenarios", type=positive_int, default=2, help="scenarios per agent schedule (default: 2)")
-    parser.add_argument("--subperiods", type=positive_int, default=6, help="sub-periods per hour (default: 6)")
-    parser.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of the schedules (default: 0.01)")
+    add_run_flags(parser, agents=5, days=3, scenarios=2, subperiods=6, gap_=0.01)
     parser.add_argument("--drop", type=_probability, default=0.02,
                         help="probability that each published message is lost (default: 0.02)")
     parser.add_argument("--out", metavar="DIR",
@@ -48,8 +44,7 @@ def _probability(text: str) -> float:
 
 def run(args) -> dict:
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="dmosim-bench-recovery-"))
-    flags = ["--agents", str(args.agents), "--days", str(args.days), "--scenarios", str(args.scenarios),
-             "--subperiods", str(args.subperiods), "--gap", repr(args.gap)]
+    flags = run_flags(args)
     try:
         runs = {name: run_and_read(flags + more, args.timeout, keep=root / name)
                 for name, more in (("fault-free", []), ("dropped", ["--fault", f"drop:**:{args.drop!r}"]))}

@@ -12,16 +12,12 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..cli.flags import gap, nonneg_float, positive_int
-from .day import run_and_read, split_day
+from ..cli.flags import nonneg_float
+from .day import add_run_flags, run_and_read, run_flags, split_day
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--agents", type=positive_int, default=10, help="agents (default: 10)")
-    parser.add_argument("--days", type=positive_int, default=7, help="consecutive market days (default: 7)")
-    parser.add_argument("--scenarios", type=positive_int, default=1, help="scenarios per agent schedule (default: 1)")
-    parser.add_argument("--subperiods", type=positive_int, default=1, help="sub-periods per hour (default: 1)")
-    parser.add_argument("--gap", type=gap, default=0.05, help="relative MIP gap of the schedules (default: 0.05)")
+    add_run_flags(parser, agents=10, days=7, scenarios=1, subperiods=1, gap_=0.05)
     parser.add_argument("--time-limit", type=nonneg_float, default=120.0, help="seconds per agent solve (default: 120)")
     parser.add_argument("--timeout", type=nonneg_float, default=7200.0,
                         help="seconds the whole run may take before the bench stops it (default: 7200)")
@@ -29,9 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> dict:
     cores = os.cpu_count() or 1
-    run = run_and_read(["--agents", str(args.agents), "--days", str(args.days), "--scenarios", str(args.scenarios),
-                        "--subperiods", str(args.subperiods), "--gap", repr(args.gap), "--time-limit",
-                        repr(args.time_limit)], args.timeout)
+    run = run_and_read([*run_flags(args), "--time-limit", repr(args.time_limit)], args.timeout)
     result, compute = run["result"], run["compute"]
     report = summarise(result, compute, cores)
     report["setup"] = {"agents": args.agents, "days": args.days, "scenarios": args.scenarios,

@@ -2,9 +2,9 @@
 
 One JSON object a line, written as it goes: the run's token, every clock step, every payload the DMO accepted (as
 received), every incident and rejection, and its traffic (every payload sent or received, for late joiners:
-history.py). Each line reaches the OS at once, so a DMO killed with SIGKILL loses nothing it had acted on. A DMO restarted on the same journal, run
-and market day reads it back (``restore``, ``traffic``) and runs again the phase, or the real-time hour, it had
-reached; a journal of another run or day is started afresh.
+history.py). Each line reaches the OS at once, so a DMO killed with SIGKILL loses nothing it had acted on. A DMO
+restarted on the same journal, run and market day reads it back (``restore``, ``traffic``) and runs again the
+phase, or the real-time hour, it had reached; a journal of another run or day is started afresh.
 """
 
 from __future__ import annotations
