@@ -1,3 +1,2 @@
-"""The market operator and the application: the market's pure rules (market/), the DMO process (operator/),
-recorded days read back (replay/), the processes of a run on this machine (launch/), the ``dmosim`` command line
-(cli/) and the benchmarks (bench/). The top of the import flow: it may import the other three packages."""
+"""The market operator: the market's pure rules (market/), the DMO process (operator/) and recorded days read
+back (replay/). It may import scenarios, messages and microgrid_agent; the application (dmosim) imports it."""

@@ -6,9 +6,9 @@ its result as a dict, and its recording as pandas tables.
 
 import sys
 
-from dmo.experiment.spec import parse_experiment
-from dmo.launch.local import run_experiment
-from dmo.results.tables import open_recording
+from dmosim.experiment.spec import parse_experiment
+from dmosim.launch.local import run_experiment
+from dmosim.results.tables import open_recording
 
 experiment = parse_experiment({
     "name": "two-days", "days": 2, "market_day": "2026-07-06", "seed": 3,

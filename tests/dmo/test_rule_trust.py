@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from dmo.experiment.spec import ExperimentError, parse_experiment
+from dmosim.experiment.spec import ExperimentError, parse_experiment
 from dmo.market.choice import Trust, UntrustedRule, choose, rule_name
 
 RULE = '''from pathlib import Path

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dmo.cli.main import main
+from dmosim.cli.main import main
 from dmo.market.choice import choose, trial_day
 from dmo.market.money import exact, to_cents
 from dmo.market.rules import BUILT_IN, Charges

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from dmo.cli import main
-from dmo.cli.console import UsageError
-from dmo.cli.dmo import day_config
-from dmo.cli.main import build_parser
-from dmo.experiment.spec import Experiment, ExperimentError, parse_experiment, settled_by, with_settings
-from dmo.experiment.sweep import parse_setting, variants
+from dmosim.cli import main
+from dmosim.console import UsageError
+from dmosim.cli.dmo import day_config
+from dmosim.cli.main import build_parser
+from dmosim.experiment.spec import Experiment, ExperimentError, parse_experiment, settled_by, with_settings
+from dmosim.experiment.sweep import parse_setting, variants
 from dmo.market.choice import choose
 from dmo.market.rules import BUILT_IN, market_parameters
 

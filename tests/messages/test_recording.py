@@ -27,8 +27,8 @@ import zenoh
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from dmo.bench.recording import synthetic_day
-from dmo.launch.processes import Roles, free_port, wait_for_line
+from dmosim.bench.recording import synthetic_day
+from dmosim.launch.processes import Roles, free_port, wait_for_line
 from messages import SCHEMA_VERSION, Bus, BusConfig, decode
 from messages.keys import key_pattern, new_run_id
 from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
@@ -43,12 +43,12 @@ TINY = ["--subperiods", "1", "--scenarios", "1", "--gap", "0.05", "--time-limit"
 
 
 def dmosim(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "dmo.cli", *args], capture_output=True, text=True, timeout=timeout,
+    return subprocess.run([sys.executable, "-m", "dmosim", *args], capture_output=True, text=True, timeout=timeout,
                           cwd=ROOT, env=ENV)
 
 
 def argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "dmo.cli", *args]
+    return [sys.executable, "-m", "dmosim", *args]
 
 
 def run_day(directory: Path) -> tuple[Path, dict]:

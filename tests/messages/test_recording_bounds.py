@@ -25,8 +25,8 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Schema
 from mcap.writer import CompressionType, Writer
 
-from dmo.bench.recording import synthetic_day
-from dmo.cli import main
+from dmosim.bench.recording import synthetic_day
+from dmosim.cli import main
 from messages import MAX_PAYLOAD_BYTES, MeterReport, encode
 from messages.keys import new_run_id
 from messages.recording import RecordingError, RecordingWriter, read_recording
@@ -116,7 +116,7 @@ print(os.waitstatus_to_exitcode(status), usage.ru_maxrss)
 
 def run_measured(args: list[str], cwd: Path) -> tuple[int, str, float]:
     """A dmosim verb as a real process: its exit code, stderr and peak resident memory (MiB, from wait4)."""
-    launched = subprocess.run([sys.executable, "-c", LAUNCHER, str(cwd), sys.executable, "-m", "dmo.cli", *args],
+    launched = subprocess.run([sys.executable, "-c", LAUNCHER, str(cwd), sys.executable, "-m", "dmosim", *args],
                               cwd=cwd, env=ENV, capture_output=True, text=True, check=True)
     code, peak_kib = map(int, launched.stdout.split())
     return code, (cwd / "err").read_text(), peak_kib / 1024

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from dmo.cli import main
+from dmosim.cli import main
 from microgrid_agent.instance import make_instance
 from microgrid_agent.model import first_stage_of
 from microgrid_agent.solvers.evaluation import (Evaluation, estimate, evaluate_schedule, fresh_seed, lower_bound,

@@ -13,7 +13,7 @@ from microgrid_agent.instance import make_instance
 from dmo.market.rules import BUILT_IN
 from microgrid_agent.model import DeviationCost, Params
 from microgrid_agent.solvers.extensive import solve
-from microgrid_agent.solvers.metrics import stochastic_metrics
+from microgrid_agent.metrics import stochastic_metrics
 from scenarios.case import load_case, parse_case
 from scenarios.generation import ScenarioSet
 

@@ -10,13 +10,14 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo")
+PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo", "dmosim")
 # What each package may import of the others: the flow runs from the case data up to the application.
 MAY_IMPORT = {
     "scenarios": set(),
     "messages": {"scenarios"},
     "microgrid_agent": {"scenarios", "messages"},
     "dmo": {"scenarios", "messages", "microgrid_agent"},
+    "dmosim": {"scenarios", "messages", "microgrid_agent", "dmo"},
 }
 SHARED_NAMES = {"HELP"}  # every verb module has its own one-line help
 
@@ -104,3 +105,70 @@ def test_the_checks_see_the_code():
         resolved.update(module for module, _, _ in imports(path, tree))
     assert all(n >= 5 for n in found.values()), found
     assert {"dmo.market.clearing", "microgrid_agent.model", "messages.keys", "scenarios.horizon"} <= resolved
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the modules of the project it imports, at the top or inside a function alike (a name taken from
+    a package is its submodule where one exists)."""
+    known = {dotted(path) for _, path, _ in modules()}
+    graph = {}
+    for _, path, tree in modules():
+        edges = set()
+        for module, names, _ in imports(path, tree):
+            if module.split(".")[0] not in PACKAGES:
+                continue
+            subs = {f"{module}.{name}" for name in names} & known
+            edges |= subs or {module}
+        graph[dotted(path)] = edges - {dotted(path)}
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index, low, stack, on, found = {}, {}, [], set(), []
+
+    def visit(node):
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on.add(node)
+        for nxt in graph.get(node, ()):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            component = []
+            while True:
+                member = stack.pop()
+                on.discard(member)
+                component.append(member)
+                if member == node:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
+def test_no_module_imports_a_module_that_imports_it_back():
+    assert not cycles(import_graph())
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_subpackage_imports_one_that_imports_it_back():
+    """One level up from modules: dmosim/bench/ may build on dmosim/cli/ or the other way round, not both; a
+    package's own top-level modules (microgrid_agent/instance.py) count one by one."""
+    def unit(module: str) -> str:
+        return ".".join(module.split(".")[:2])
+
+    graph = collections.defaultdict(set)
+    for module, edges in import_graph().items():
+        graph[unit(module)] |= {unit(e) for e in edges} - {unit(module)}
+    assert not cycles(graph)

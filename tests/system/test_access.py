@@ -14,7 +14,7 @@ import subprocess
 
 import pytest
 
-from dmo.launch.processes import Roles, free_port, wait_for_line, wait_listening
+from dmosim.launch.processes import Roles, free_port, wait_for_line, wait_listening
 from messages import HOURS, Award, Bid, BidStep, Bus, BusConfig, GridState, MeterReport, encode, new_run_id
 from messages.transport.access import (AGENT_TOPICS, AuthError, access_control, auth_settings, bundle_settings,
                                        client_settings, router_settings)

@@ -11,7 +11,7 @@ import sys
 
 from test_market_day import DAY, DEADLINES, ENV, ROOT, TINY, dmosim
 
-from dmo.launch.processes import Roles, free_port, wait_listening
+from dmosim.launch.processes import Roles, free_port, wait_listening
 from messages import new_run_id
 from messages.transport.credentials import create_auth_dir
 

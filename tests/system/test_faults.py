@@ -24,8 +24,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
 
-from dmo.cli import main as cli_main
-from dmo.launch.processes import free_port
+from dmosim.cli import main as cli_main
+from dmosim.launch.processes import free_port
 from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
 from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Receipt,

@@ -31,8 +31,8 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 from test_market_day import DAY, DEADLINES, ENV, TINY, dmosim
 
-from dmo.cli import main as cli_main
-from dmo.launch.processes import Roles, free_port, wait_listening
+from dmosim.cli import main as cli_main
+from dmosim.launch.processes import Roles, free_port, wait_listening
 from messages import (HOURS, KINDS, SCHEMA_VERSION, SCHEMAS, AgentTotals, Award, Bid, BidStep, CallForBids, Clock,
                       DaySummary, GridState, Incident, MessageError, MeterReport, Registration, Rejection, Schedule,
                       check_route, decode, encode, parse_key)

@@ -9,7 +9,7 @@ import signal
 import subprocess
 import threading
 
-from dmo.launch.processes import Roles, free_port, wait_listening
+from dmosim.launch.processes import Roles, free_port, wait_listening
 from messages import Bus, BusConfig, new_run_id
 from messages.recording import content_signature, read_recording
 from messages.transport.access import bundle_settings

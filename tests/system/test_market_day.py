@@ -16,7 +16,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from dmo.launch.processes import Roles, free_port, wait_listening
+from dmosim.launch.processes import Roles, free_port, wait_listening
 from messages.keys import new_run_id
 from messages.transport import Bus, BusConfig
 from messages.transport.access import bundle_settings
@@ -32,7 +32,7 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 
 def dmosim(*args: str) -> list[str]:
-    return [sys.executable, "-m", "dmo.cli", *args]
+    return [sys.executable, "-m", "dmosim", *args]
 
 
 class Tap:

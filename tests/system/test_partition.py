@@ -19,7 +19,7 @@ import time
 
 import pytest
 
-from dmo.launch.processes import Roles, wait_for_line
+from dmosim.launch.processes import Roles, wait_for_line
 from messages.keys import new_run_id
 from test_market_day import DAY, DEADLINES, ENV, TINY
 
@@ -66,7 +66,7 @@ def hosts(agents: tuple[str, ...]):
 
 
 def in_ns(ns: str, *args: str) -> list[str]:
-    return ["ip", "netns", "exec", ns, sys.executable, "-m", "dmo.cli", *args]
+    return ["ip", "netns", "exec", ns, sys.executable, "-m", "dmosim", *args]
 
 
 def test_an_agent_cut_off_mid_day_comes_back_and_the_day_completes_across_hosts(tmp_path):

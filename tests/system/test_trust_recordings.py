@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from dmo.bench.recording import synthetic_day
-from dmo.launch.processes import free_port
+from dmosim.bench.recording import synthetic_day
+from dmosim.launch.processes import free_port
 from messages import decode, encode
 from messages.keys import new_run_id
 from messages.recording import RecordingWriter
@@ -74,7 +74,7 @@ def place(tmp_path) -> Path:
 
 
 def dmosim(place: Path, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "dmo.cli", *args], capture_output=True, text=True, cwd=place,
+    return subprocess.run([sys.executable, "-m", "dmosim", *args], capture_output=True, text=True, cwd=place,
                           env=ENV, timeout=timeout)
 
 

@@ -1,0 +1,111 @@
+"""The value types of the command line's flags: each refuses bad input with one line, which the parser prints and
+exits 2 on (docs/experiments.md, "Bounds")."""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import math
+
+from messages.schemas import MAX_AGENTS
+from scenarios.days import MAX_SEED
+from scenarios.fleet import MAX_SCALE
+
+from .experiment.spec import MAX_PROFILE_DAYS, MAX_SECONDS
+
+
+def _shown(text: str) -> str:
+    return repr(text if len(text) <= 40 else text[:37] + "...")
+
+
+def integer(low: int, high: int):
+    """The type of a flag that takes an integer in low..high (docs/experiments.md, "Bounds")."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:  # also an integer of more digits than Python converts
+            value = None
+        if value is None or not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected an integer in {low:,}..{high:,}, got {_shown(text)}")
+        return value
+    return parse
+
+
+def number(low: float, high: float, *, above: bool = False, allow_inf: bool = False):
+    """The type of a flag that takes a number in [low, high] ((low, high] if ``above``), or inf if ``allow_inf``."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (allow_inf and value == math.inf) and not (low < value <= high if above else low <= value <= high):
+            where = f"{'(' if above else '['}{low:,g}, {high:,.15g}]" + (" or inf" if allow_inf else "")
+            raise argparse.ArgumentTypeError(f"expected a number in {where}, got {_shown(text)}")
+        return value
+    return parse
+
+
+seed = integer(0, MAX_SEED)
+agents = integer(1, MAX_AGENTS)
+seconds = number(0, MAX_SECONDS, above=True)   # a deadline or time limit
+wait = number(0, MAX_SECONDS)                  # how long to wait for something, 0: not at all
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def hours(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 24:
+        raise argparse.ArgumentTypeError(f"expected whole hours 0..24, got {text!r}")
+    return value
+
+
+def nonneg_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {_shown(text)}") from None
+    if not 0 <= value < math.inf:
+        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {_shown(text)}")
+    return value
+
+
+def gap(text: str) -> float:
+    value = nonneg_float(text)
+    if value >= 1:
+        raise argparse.ArgumentTypeError(f"expected a relative gap below 1 (e.g. 0.005), got {text!r}")
+    return value
+
+
+def scales(text: str) -> tuple[float, ...]:
+    """Comma-separated numbers in (0, MAX_SCALE], at most MAX_PROFILE_DAYS, e.g. a week's 1,1,1,1,1,0.8,0.8."""
+    try:
+        values = tuple(float(x) for x in text.split(",", MAX_PROFILE_DAYS))
+    except ValueError:
+        values = ()
+    if not 1 <= len(values) <= MAX_PROFILE_DAYS or not all(0 < v <= MAX_SCALE for v in values):
+        raise argparse.ArgumentTypeError(f"expected 1..{MAX_PROFILE_DAYS} numbers in (0, {MAX_SCALE:g}] separated by "
+                                         f"commas, got {_shown(text)}")
+    return values
+
+
+def market_day(text: str) -> str:
+    try:
+        return dt.date.fromisoformat(text).isoformat()
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a date YYYY-MM-DD, got {text!r}") from None
+
+
+def today() -> str:
+    return dt.date.today().isoformat()

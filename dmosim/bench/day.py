@@ -1,0 +1,182 @@
+"""The wall time of a whole market day as processes, split into the agents' computation and protocol overhead.
+
+For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
+(``phase_s``) and each agent logs, at the end of its day, the wall and CPU time of every message it handled
+(``compute`` line of ``microgrid_agent.agent.process``). The split is ``split_day``: per step (the call for bids, the award,
+each hour's grid state) the slowest agent's compute time is on the critical path; the day's wall time minus that
+critical path is the overhead (definition in docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+from ..arguments import gap, nonneg_float, positive_int
+from ..launch.processes import dmosim_command, role_env
+
+GOAL_PCT = 5.0
+# The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
+STEP_PHASE = {"call_for_bids": "bidding", "award": "scheduling", "grid_state": "realtime"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--agents", type=positive_int, nargs="+", default=[1, 5, 10], metavar="N",
+                        help="fleet sizes, one day each (default: 1 5 10)")
+    parser.add_argument("--scenarios", type=positive_int, default=2, help="scenarios per agent schedule (default: 2)")
+    parser.add_argument("--subperiods", type=positive_int, default=1, help="sub-periods per hour (default: 1)")
+    parser.add_argument("--gap", type=gap, default=0.01,
+                        help="relative MIP gap of the agents' schedules (default: 0.01)")
+    parser.add_argument("--time-limit", type=nonneg_float, default=120.0, help="seconds per agent solve (default: 120)")
+    parser.add_argument("--timeout", type=nonneg_float, default=1800.0,
+                        help="seconds one day may take before the bench stops it (default: 1800)")
+
+
+def run(args) -> dict:
+    cores = os.cpu_count() or 1
+    rows, phases, notes = [], [], []
+    for n in args.agents:
+        day = run_and_read(["--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods",
+                            str(args.subperiods), "--gap", repr(args.gap), "--time-limit", repr(args.time_limit),
+                            "--no-record"], args.timeout)
+        split = split_day(day["result"]["phase_s"], day["compute"], cores)
+        incidents = day["result"].get("incidents", [])
+        rows.append({"agents": n, "process_s": day["process_s"], **split["totals"], "incidents": len(incidents)})
+        phases += [{"agents": n, **row} for row in split["phases"]]
+        if incidents:
+            notes.append(f"N={n}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
+                         "every agent answered every step")
+    largest = max(rows, key=lambda r: r["agents"])
+    return {
+        "setup": {"agents": "paper case, fleet of dmosim run (scaled and shifted copies)",
+                  "scenarios": args.scenarios, "subperiods": args.subperiods, "gap": args.gap,
+                  "recording": "off (--no-record)",
+                  "machine": f"{cores} cores shared with other work: one run per N, noisy; with N > {cores} "
+                             f"the agents share {cores} cores, so their compute times include waiting for a core"},
+        "days": rows,
+        "phases": phases,
+        "goal": {"agents": largest["agents"], "overhead_pct": largest["overhead_pct"], "target_pct": GOAL_PCT,
+                 "met": largest["overhead_pct"] <= GOAL_PCT},
+        **({"notes": "; ".join(notes)} if notes else {}),
+    }
+
+
+def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: int) -> dict:
+    """Split the DMO's phase times into the agents' critical-path computation and overhead.
+
+    ``compute`` is agent -> the entries of its ``compute`` log line ({kind, hour, wall_s, cpu_s}). Per step, the
+    critical path is the largest wall time of any agent; the CPU bound the least wall time the step's CPU work could
+    take on ``cores`` cores: max(largest CPU time, total CPU time / cores), so ``cpu_wait_s`` (critical path minus
+    CPU bound) is time the slowest agents spent waiting for a core, taken by each other or by other work on the
+    machine. Registration (the agents' processes starting and connecting) is reported as ``startup_s``, outside
+    the day.
+    """
+    steps: dict[tuple[str, int | None], list[tuple[float, float]]] = {}
+    for entries in compute.values():
+        for e in entries:
+            if e["kind"] in STEP_PHASE:
+                steps.setdefault((e["kind"], e["hour"]), []).append((e["wall_s"], e["cpu_s"]))
+    per_phase = {phase: [0.0, 0.0] for phase in phase_s}
+    for (kind, _), times in steps.items():
+        wall = max(w for w, _ in times)
+        cpu_bound = max(max(c for _, c in times), sum(c for _, c in times) / cores)
+        per_phase[STEP_PHASE[kind]][0] += wall
+        per_phase[STEP_PHASE[kind]][1] += cpu_bound
+    rows = [{"phase": phase, "wall_s": wall, "compute_s": per_phase[phase][0], "overhead_s": wall - per_phase[phase][0],
+             "cpu_bound_s": per_phase[phase][1]} for phase, wall in phase_s.items() if phase != "registration"]
+    day_s = sum(r["wall_s"] for r in rows)
+    compute_s = sum(r["compute_s"] for r in rows)
+    cpu_bound_s = sum(r["cpu_bound_s"] for r in rows)
+    realtime = next((r for r in rows if r["phase"] == "realtime"), None)
+    totals = {
+        "startup_s": phase_s.get("registration", 0.0),
+        "day_s": day_s,
+        "compute_s": compute_s,
+        "overhead_s": day_s - compute_s,
+        "overhead_pct": 100.0 * (day_s - compute_s) / day_s if day_s else float("nan"),
+        "per_hour_ms": 1000.0 * realtime["overhead_s"] / 24 if realtime else float("nan"),
+        "agent_cpu_s": sum(e["cpu_s"] for entries in compute.values() for e in entries if e["kind"] in STEP_PHASE),
+        "cpu_bound_s": cpu_bound_s,
+        "cpu_wait_s": compute_s - cpu_bound_s,
+    }
+    return {"phases": rows, "totals": totals}
+
+
+def add_run_flags(parser: argparse.ArgumentParser, *, agents: int, days: int, scenarios: int, subperiods: int,
+                  gap_: float) -> None:
+    """The flags of a bench that runs ``dmosim run`` of one fleet over several days (``run_flags`` passes them on)."""
+    parser.add_argument("--agents", type=positive_int, default=agents, help=f"agents (default: {agents})")
+    parser.add_argument("--days", type=positive_int, default=days, help=f"consecutive market days (default: {days})")
+    parser.add_argument("--scenarios", type=positive_int, default=scenarios,
+                        help=f"scenarios per agent schedule (default: {scenarios})")
+    parser.add_argument("--subperiods", type=positive_int, default=subperiods,
+                        help=f"sub-periods per hour (default: {subperiods})")
+    parser.add_argument("--gap", type=gap, default=gap_, help=f"relative MIP gap of the schedules (default: {gap_})")
+
+
+def run_flags(args) -> list[str]:
+    """The ``dmosim run`` flags of ``add_run_flags``."""
+    return ["--agents", str(args.agents), "--days", str(args.days), "--scenarios", str(args.scenarios),
+            "--subperiods", str(args.subperiods), "--gap", repr(args.gap)]
+
+
+def read_compute(log: Path) -> list[dict]:
+    """The entries of the agent's ``compute`` line (the last one, should a log hold several)."""
+    return _last_line(log, "compute")
+
+
+def read_messages(log: Path) -> dict:
+    """The agent's ``messages`` line: what it received, ignored, sent again, asked for and injected as faults."""
+    return _last_line(log, "messages")
+
+
+def _last_line(log: Path, word: str):
+    """The JSON an agent logged after ``AGENT WORD`` at the end of its run (the last one, should a log hold several)."""
+    found = None
+    for line in log.read_text(errors="replace").splitlines():
+        head, sep, tail = line.partition(f" {word} ")
+        if sep and tail[:1] in "[{":
+            found = tail.strip()
+    if found is None:
+        raise RuntimeError(f"no {word} line in {log}: did the agent finish its day?")
+    return json.loads(found)
+
+
+def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None) -> dict:
+    """One ``dmosim run FLAGS --json`` into a run directory: ``keep``, or a scratch one removed unless the run
+    fails. Its result, each agent's ``compute`` entries and ``messages`` counts, and the command's wall time."""
+    rundir = keep or Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
+    argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",
+                          "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
+                          "--json", "--quiet")
+    start = time.perf_counter()
+    # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started.
+    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               start_new_session=True, env=role_env())
+    try:
+        out, err = process.communicate(timeout=timeout_s)
+    except BaseException:
+        process.terminate()
+        try:
+            process.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.communicate()
+        raise
+    process_s = time.perf_counter() - start
+    if process.returncode != 0:
+        raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {err.strip()[-500:]} "
+                           f"(run directory: {rundir})")
+    result = json.loads(out)
+    logs = {agent: rundir / "logs" / f"{agent}.log" for agent in result["agents"]}
+    compute = {agent: read_compute(log) for agent, log in logs.items()}
+    messages = {agent: read_messages(log) for agent, log in logs.items()}
+    if keep is None:
+        shutil.rmtree(rundir, ignore_errors=True)
+    return {"result": result, "compute": compute, "messages": messages, "process_s": process_s}

@@ -1,0 +1,80 @@
+"""What ``dmosim run`` (``--check`` or not) and ``dmosim sweep`` check of an experiment beyond its own fields, before
+anything starts: its fleet, its cases and its faults, each refused in one line (``ExperimentError``).
+"""
+
+from __future__ import annotations
+
+from messages.transport.faults import FaultSpecError
+from scenarios.case import CaseError, load_case
+from scenarios.fleet import FleetError, FleetMember
+
+from ..experiment.spec import Experiment, ExperimentError
+from ..launch.faults import Fault, parse_fault
+from ..launch.local import fleet_of
+from dmo.market.choice import choose
+
+
+class Checked:
+    """The fleets and cases already checked, so that a sweep of many variants reads each file once."""
+
+    def __init__(self):
+        self.fleets: dict[tuple, list[FleetMember]] = {}
+        self.cases: set[str] = set()
+        self.rules: set[str] = set()
+
+    def fleet(self, experiment: Experiment) -> list[FleetMember]:
+        a = experiment.agents
+        key = (a.fleet,) if a.fleet else (a.count, experiment.seed)
+        if key not in self.fleets:
+            try:
+                self.fleets[key] = fleet_of(experiment)
+            except FleetError as exc:
+                raise ExperimentError(str(exc)) from None
+        return self.fleets[key]
+
+    def case(self, name: str) -> None:
+        if name not in self.cases:
+            try:
+                load_case(name)
+            except CaseError as exc:
+                raise ExperimentError(str(exc)) from None
+            self.cases.add(name)
+
+    def rule(self, spec: str | None) -> None:
+        """The settlement rule an experiment the user runs names, loaded and tried on a trial day (it is theirs to
+        run: ``choose``)."""
+        if spec is not None and spec not in self.rules:
+            try:
+                choose(spec)
+            except ValueError as exc:
+                raise ExperimentError(f"market.settlement: {exc}") from None
+            self.rules.add(spec)
+
+
+def check_inputs(experiment: Experiment, checked: Checked | None = None) -> list[FleetMember]:
+    """The experiment's fleet, once its cases load and its faults name its agents and days; else ExperimentError."""
+    checked = checked or Checked()
+    fleet = checked.fleet(experiment)
+    for name in sorted({experiment.market.case, *(m.case for m in fleet)}):
+        checked.case(name)
+    try:
+        faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault)]
+    except (FaultSpecError, ValueError) as exc:  # ValueError: a digit int() cannot read, e.g. "²"
+        raise ExperimentError(f"--fault: {exc}") from None
+    unknown = sorted({f.agent for f in faults} - {m.id for m in fleet} - {"dmo", "recorder"})
+    if any(f.agent == "dmo" and f.kind != "restart" for f in faults):
+        raise ExperimentError("--fault: the DMO can only be restarted (restart:dmo:HOUR), not killed")
+    if any(f.agent == "recorder" and f.kind != "kill" for f in faults):
+        raise ExperimentError("--fault: the recorder can only be killed (kill:recorder:HOUR), not restarted")
+    if unknown:
+        raise ExperimentError(f"--fault names unknown agent {unknown[0]} (agents: {agent_list(fleet)})")
+    late = [f for f in faults if f.day > experiment.days]
+    if late:
+        raise ExperimentError(f"--fault {late[0]}: day {late[0].day} is past the run's {experiment.days} day(s)")
+    return fleet
+
+
+def agent_list(fleet: list[FleetMember]) -> str:
+    """The fleet's agent ids for a line of text: all of a small fleet, the first and last of a large one."""
+    ids = [m.id for m in fleet]
+    return ", ".join(ids) if len(ids) <= 8 else f"{', '.join(ids[:3])}, ... {ids[-1]}"

@@ -1,0 +1,59 @@
+"""``dmosim credentials``: per-run passwords, access-control rules and TLS certificates for roles on several hosts."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from messages.transport.access import READERS, AuthError
+from messages.transport.credentials import DEFAULT_HOSTS, MAX_CERT_DAYS, MAX_HOSTS, MAX_READERS, create_auth_dir
+from scenarios.fleet import FleetError, load_fleet, make_fleet
+
+from ..console import UsageError
+from .flags import DEFAULT_AGENTS, run_id_of
+from ..arguments import agents, integer
+
+HELP = "passwords, access-control rules and TLS certificates of one run, for roles on several hosts (docs/security.md)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, metavar="DIR", help="directory to create: the router's files, and "
+                                                               "one bundle DIR/<name>/ per other process")
+    p.add_argument("--run-id", help="the run the rules are for (default: a new one, printed)")
+    p.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {DEFAULT_AGENTS})")
+    p.add_argument("--fleet", help="fleet TOML file naming the agents instead of --agents")
+    p.add_argument("--reader", action="append", default=[], metavar="NAME",
+                   help="a process that may hear everything of the run and publish nothing (repeatable, at most "
+                        f"{MAX_READERS}; default: recorder)")
+    p.add_argument("--tls", action="store_true",
+                   help="also make a CA and certificates: every process must then connect over tls/ endpoints "
+                        "with its own certificate")
+    p.add_argument("--host", action="append", default=[], metavar="NAME",
+                   help="host name or IP address the router's certificate is valid for (repeatable, at most "
+                        f"{MAX_HOSTS}; default: localhost and 127.0.0.1)")
+    p.add_argument("--days", type=integer(1, MAX_CERT_DAYS), default=30,
+                   help=f"validity of the certificates, at most {MAX_CERT_DAYS} days (default: 30)")
+    p.add_argument("--overwrite", action="store_true", help="replace what DIR holds")
+
+
+def run(args) -> int:
+    if args.agents is not None and args.fleet is not None:
+        raise UsageError("--agents and --fleet exclude each other: a fleet file names its agents")
+    try:
+        fleet = load_fleet(args.fleet) if args.fleet else make_fleet(args.agents or DEFAULT_AGENTS)
+        run_id = run_id_of(args)
+        out = create_auth_dir(args.out, run_id, [m.id for m in fleet], readers=tuple(args.reader) or READERS,
+                              tls=args.tls, hosts=tuple(args.host) or DEFAULT_HOSTS, valid_days=args.days,
+                              overwrite=args.overwrite)
+    except (FleetError, AuthError) as exc:
+        raise UsageError(str(exc)) from None
+    except OSError as exc:
+        raise UsageError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+    bundles = sorted(p.name for p in Path(out).iterdir() if p.is_dir())
+    print(f"credentials for run {run_id} in {out}{' (with TLS certificates)' if args.tls else ''}")
+    print(f"  DMO host (the router): dmosim dmo --run-id {run_id} --auth-dir {out} --listen "
+          f"{'tls' if args.tls else 'tcp'}/HOST:7447 ...")
+    print(f"  each other host gets only its bundle, {out}/<name>/ (copy it to DIR/<name>/ there, and keep it "
+          f"private): dmosim agent --id <name> --run-id {run_id} --auth-dir DIR ...")
+    print(f"  bundles: {', '.join(bundles)}")
+    return 0

@@ -1,0 +1,42 @@
+"""``dmosim plot PATH``: recorded market days as one PNG: clearing prices and congestion, each agent's award
+against its metered import with islanded hours shaded, its deviation penalty and credit per hour, and its daily
+totals (dmosim/results/figures.py)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..console import UsageError
+from .flags import load_recording
+
+HELP = "recorded market days as one PNG: prices, awards against metered imports, penalties and credits, totals"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("--out", metavar="FILE",
+                   help="the PNG to write (default: <recording stem>.png beside the recording)")
+
+
+def run(args) -> int:
+    out = Path(args.out) if args.out else Path(args.path).with_suffix(".png")
+    if out.is_dir():
+        raise UsageError(f"{out} is a directory; give a file name, e.g. {out / 'day.png'}")
+    if not out.parent.is_dir():
+        raise UsageError(f"cannot write {out}: directory {out.parent} does not exist")
+    rec = load_recording(args.path)
+    from dmosim.studies.figures import save  # noqa: PLC0415  (matplotlib: only for the verb that needs it)
+
+    from ..results.figures import days_label, recording_figure  # noqa: PLC0415
+    from ..results.tables import tables  # noqa: PLC0415
+
+    frames = tables(rec)
+    if frames["hours"].empty:
+        raise UsageError(f"{rec.path}: no settlement statement recorded, nothing to plot"
+                         + (f" ({rec.cut_note})" if rec.cut_note else ""))
+    market_days = sorted(frames["hours"]["market_day"].unique())
+    title = f"{Path(rec.path).name}: run {rec.run_id or '?'}, {days_label(market_days)}"
+    save(recording_figure(frames, title), out)
+    print(out)
+    return 0

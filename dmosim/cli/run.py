@@ -1,0 +1,261 @@
+"""``dmosim run [EXPERIMENT]``: market days as separate OS processes (the DMO, one per agent, the recorder) over
+Zenoh on this machine, from an experiment file and flags (docs/experiments.md), into a run directory.
+
+Every flag overrides the experiment file's setting of the same name; with neither, the experiment's default holds.
+The run directory (``./runs/<run_id>/`` unless ``--out``) receives the resolved experiment, the recording, the
+DMO's result, the recording as tables and a figure, and the roles' logs (dmosim/experiment/rundir.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+from messages.keys import new_run_id
+from messages.schemas import MAX_DAYS, MAX_SUBPERIODS
+from scenarios.case import load_case, parse_toml
+from scenarios.days import MAX_SEED
+from scenarios.generation import MAX_SCENARIOS
+
+from ..experiment.rundir import RunDir, RunDirError
+from ..experiment.spec import (FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, parse_experiment,
+                               settled_by, with_settings)
+from ..launch.faults import Fault, parse_fault
+from ..launch.local import RoleFailed, resolved, run_locally
+from dmo.market.choice import Trust, UntrustedRule, choose
+from dmo.market.rules import MAX_MW, MAX_RATE
+from ..results.verdict import one_line
+from .checks import agent_list, check_inputs
+from ..console import UsageError, print_json, progress
+from .flags import SETTLEMENT_HELP, add_trust_flag, load_recording, recording_path, untrusted
+from ..arguments import agents, gap, hours, integer, market_day, number, scales, seconds, seed
+
+HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
+FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
+              "clock reaches HOUR of DAY, default 1; AGENT may be recorder: the run goes on and exits 1), "
+              "restart:AGENT:HOUR[:DAY] (SIGKILL it, then start it again: it "
+              "rejoins; AGENT may be dmo: it resumes the run from its journal), and on the messages "
+              "whose key, relative to the run prefix, matches PATTERN (* one level, ** any, e.g. agent/*/meter): "
+              "drop:PATTERN:P, duplicate:PATTERN:P, corrupt:PATTERN:P (each with probability P) and "
+              "delay:PATTERN:SECONDS[:P]; seeded by --seed")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    default = Experiment()
+    p.add_argument("experiment", nargs="?", metavar="EXPERIMENT",
+                   help="an experiment file (TOML, docs/experiments.md); the flags below override it")
+    p.add_argument("--from", dest="source", metavar="RECORDING",
+                   help="run again the experiment a recording of dmosim run holds (flags override it)")
+    setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
+    setting.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {default.agents.count})")
+    setting.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (instead of --agents)")
+    setting.add_argument("--days", type=integer(1, MAX_DAYS),
+                         help="consecutive market days; agents register once and carry their state across midnight "
+                              f"(at most {MAX_DAYS}; default: {default.days})")
+    setting.add_argument("--market-day", type=market_day, help="the first market day, YYYY-MM-DD (default: today)")
+    setting.add_argument("--seed", type=seed, help=f"seed of the run: fleet, forecast errors, islanding, faults, "
+                                                   f"0..{MAX_SEED} (default: {default.seed})")
+    setting.add_argument("--case", help=f"case giving the ISO price, penalty and Table I awards "
+                                        f"(default: {default.market.case})")
+    setting.add_argument("--market", choices=("bids", "fixed"),
+                         help="bids: clear the agents' bids; fixed: award the case's Table I to every agent "
+                              f"(default: {default.market.mode})")
+    setting.add_argument("--penalty", type=number(0, MAX_RATE), help="$/MWh above the award (default: the case's)")
+    setting.add_argument("--credit", type=number(0, MAX_RATE),
+                         help=f"$/MWh below the award (default: {default.market.credit:g})")
+    setting.add_argument("--settlement", metavar="RULE", help=SETTLEMENT_HELP)
+    setting.add_argument("--import-limit", type=number(0, MAX_MW), help="feeder import limit, MW (default: 8 x agents)")
+    setting.add_argument("--export-limit", type=number(0, MAX_MW), help="feeder export limit, MW (default: 5 x agents)")
+    setting.add_argument("--island-hours", type=hours,
+                         help=f"hours each day is islanded (default: {default.market.island_hours})")
+    setting.add_argument("--subperiods", type=integer(1, MAX_SUBPERIODS),
+                         help=f"metering sub-periods per hour, at most {MAX_SUBPERIODS} "
+                              f"(default: {default.market.subperiods})")
+    setting.add_argument("--scenarios", type=integer(1, MAX_SCENARIOS),
+                         help=f"scenarios of each agent's schedule, at most {MAX_SCENARIOS} "
+                              f"(default: {default.schedule.scenarios})")
+    setting.add_argument("--gap", type=gap,
+                         help=f"relative MIP gap of each schedule (default: {default.schedule.gap:g})")
+    setting.add_argument("--time-limit", type=seconds,
+                         help=f"seconds per agent solve (default: {default.schedule.time_limit:g})")
+    setting.add_argument("--method", choices=("auto", "extensive", "benders"),
+                         help=f"route of the agents' solves (docs/solver.md; default: {default.schedule.method})")
+    setting.add_argument("--workers", type=integer(1, MAX_WORKERS),
+                         help=f"processes per agent for Benders subproblems, at most {MAX_WORKERS} "
+                              f"(default: {default.schedule.workers})")
+    setting.add_argument("--load-scale", type=scales, metavar="X,Y,...",
+                         help="each day's fixed-load forecast times these, repeated over the days (default: 1)")
+    setting.add_argument("--renewable-scale", type=scales, metavar="X,Y,...",
+                         help="each day's renewable forecasts times these, as --load-scale (default: 1)")
+    for name, what in (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
+                       ("hour", "each hour's meter reports")):
+        setting.add_argument(f"--{name}-timeout", type=seconds, metavar="S",
+                             help=f"deadline for {what}, s (default: {getattr(default.deadlines, name):g})")
+    setting.add_argument("--fault", action="append", metavar="SPEC", help=FAULT_HELP)
+    out = p.add_argument_group("output")
+    out.add_argument("--out", metavar="DIR", help="the run directory (default: runs/<run_id>)")
+    out.add_argument("--overwrite", action="store_true", help="use --out DIR even if it holds a run")
+    record = out.add_mutually_exclusive_group()
+    record.add_argument("--record", metavar="PATH", help="the recording (default: DIR/recording.mcap)")
+    record.add_argument("--no-record", action="store_true", help="run without a recorder")
+    out.add_argument("--json", action="store_true", help="print one JSON object (docs/experiments.md, \"The result\")")
+    out.add_argument("--quiet", action="store_true", help="no progress lines")
+    out.add_argument("--check", action="store_true",
+                     help="check the inputs (experiment, cases, fleet, faults, paths) and exit without running")
+    add_trust_flag(p)
+    p.add_argument("--tls", action="store_true",
+                   help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
+                        "passwords and access control are always on; docs/security.md)")
+
+
+def experiment_of(args) -> Experiment:
+    """The experiment the arguments describe: a file (or a recording's), then every flag given."""
+    if args.experiment and args.source:
+        raise UsageError("give an experiment file or --from RECORDING, not both")
+    try:
+        if args.experiment:
+            base = load_experiment(args.experiment)
+        elif args.source:
+            base = experiment_in_recording(args.source)
+        else:
+            base = Experiment()
+        if args.agents is not None and (args.fleet or base.agents.fleet):
+            raise ExperimentError(f"--agents and a fleet ({args.fleet or base.agents.fleet}) exclude each other: a "
+                                  "fleet file names its agents")
+        flags = {key: getattr(args, dest) for key, dest in FLAGS.items() if getattr(args, dest) is not None}
+        flags = {k: list(v) if isinstance(v, tuple) else v for k, v in flags.items()}
+        if args.fault is not None:
+            flags["faults"] = list(args.fault)
+        experiment = with_settings(base, flags, "flags") if flags else base
+    except ExperimentError as exc:
+        raise UsageError(str(exc)) from None
+    _load_rule(args, experiment.market.settlement)
+    return experiment
+
+
+def _load_rule(args, spec: str | None) -> None:
+    """Load and try the run's settlement rule before anything starts: one the user named (``--settlement``, or the
+    experiment file given) at once; one only the recording of ``--from`` names, if it is built in, or with
+    ``--trust-rules`` (docs/settlement.md, "Rules named by recordings")."""
+    if args.trust_rules and not args.source:
+        raise UsageError("--trust-rules goes with --from RECORDING")
+    if spec is None:
+        return
+    where = ("--settlement" if args.settlement is not None else
+             f"{args.experiment}: market.settlement" if args.experiment else
+             f"{args.source}: its experiment.toml: market.settlement")
+    try:
+        if args.settlement is not None or args.experiment:
+            choose(spec)
+        else:
+            Trust(everything=args.trust_rules).choose(spec)
+    except UntrustedRule as err:
+        raise untrusted(f"{args.source}: its experiment.toml names the settlement rule {err.spec}", err.spec,
+                        "--settlement") from None
+    except ValueError as err:
+        raise UsageError(f"{where}: {err}") from None
+
+
+def experiment_in_recording(path: str) -> Experiment:
+    """The resolved experiment a recording of ``dmosim run`` holds (its attachment experiment.toml, checked against
+    its CRC by the reader), parsed as data: a settlement rule it names is a name, not loaded (``_load_rule``)."""
+    rec = load_recording(path)
+    for attachment in rec.attachments:
+        if attachment.name == "experiment.toml":
+            try:
+                source = f"{path}: experiment.toml"
+                return parse_experiment(parse_toml(attachment.data.decode(), source, ExperimentError), source)
+            except UnicodeDecodeError as exc:
+                raise UsageError(f"{path}: its experiment.toml cannot be read: {exc}") from None
+            except ExperimentError as exc:
+                raise UsageError(str(exc)) from None
+    raise UsageError(f"{path}: holds no experiment.toml (it was not recorded by dmosim run)")
+
+
+def run(args) -> int:
+    experiment = resolved(experiment_of(args))
+    try:
+        fleet = check_inputs(experiment)
+    except ExperimentError as exc:
+        raise UsageError(str(exc)) from None
+    record_to = recording_path(args.record, args.overwrite) if args.record else None
+    recorder_faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent == "recorder"]
+    if args.no_record and recorder_faults:
+        raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
+    if args.check:
+        rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
+        print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
+              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, "
+              f"{len(experiment.faults)} fault(s)")
+        return 0
+    run_id = new_run_id()
+    try:
+        rundir = RunDir.make(args.out, run_id, args.overwrite)
+    except RunDirError as exc:
+        raise UsageError(str(exc)) from None
+    record = None if args.no_record else (record_to or rundir.recording)
+    say = (lambda text: None) if args.quiet else progress
+    signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
+    try:
+        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say)
+    except RoleFailed as exc:
+        for name in exc.names:
+            _tail(rundir.logs / f"{name}.log")
+        raise
+    if args.json:
+        print_json(result)
+    else:
+        print(summary_table(result))
+    if not result["verdict"]["ok"]:  # the run is over and its files are written, but its results are not to be trusted
+        print(f"failed: {one_line(result['verdict']['problems'])}", file=sys.stderr)
+        return 1  # as a runtime failure: the same exit as any run that went wrong
+    return 0
+
+
+def _interrupt(*_):
+    raise KeyboardInterrupt
+
+
+def _tail(path: Path, lines: int = 15) -> None:
+    if path.exists():
+        for line in path.read_text(errors="replace").splitlines()[-lines:]:
+            print(f"    {line}", file=sys.stderr)
+
+
+def summary_table(result: dict) -> str:
+    """Per agent: award energy, realised import, deviation energy, energy charge, penalty and total."""
+    head = f"{'agent':<8}{'award MWh':>11}{'import MWh':>12}{'dev. MWh':>10}{'energy $':>12}{'penalty $':>11}{'total $':>12}"
+    days = result["days"]
+    when = (f"market day {days[0]['market_day']}" if len(days) == 1 else
+            f"{len(days)} market days, {days[0]['market_day']} to {days[-1]['market_day']} (totals)")
+    rows = [f"{when}, run {result['run_id']}", head, "-" * len(head)]
+    for agent, s in sorted(result["settlement"].items()):
+        rows.append(f"{agent:<8}{s['award_mwh']:>11.2f}{s['import_mwh']:>12.2f}{s['deviation_mwh']:>10.3f}"
+                    f"{s['energy_charge']:>12,.2f}{s['deviation_penalty']:>11,.2f}{s['total']:>12,.2f}")
+    islanded = "; ".join(f"{d['market_day']}: {', '.join(map(str, d['islanded_hours'])) or 'none'}" for d in days)
+    rows.append(f"settled by: {result['settlement_rule']}")
+    rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {islanded}")
+    recorded = result.get("recorded") or {}
+    if result.get("recording"):
+        rows.append(f"recording: {result['recording']}" + (
+            f" ({recorded['messages']} messages on {recorded['channels']} channels, {recorded['bytes']:,} bytes"
+            f"{'' if recorded['complete'] else ', INCOMPLETE'})" if "messages" in recorded else
+            f" ({recorded.get('error', 'unreadable')})"))
+        if recorded.get("recorder"):
+            rows.append(f"recorder: {recorded['recorder']}")
+        if recorded.get("tables_from") == "journal":
+            rows.append("tables and figure: from the DMO's journal, which holds every message it sent or received")
+    else:
+        rows.append("recording: none (--no-record)")
+    rows.append(f"run directory: {result['run_dir']}" + (" (experiment.toml, result.json, tables/, run.png, logs/)"
+                                                         if result.get("figure") else ""))
+    for incident in result["incidents"]:
+        where = incident["phase"] + (f" hour {incident['hour']}" if incident["hour"] else "")
+        where = f"{incident['market_day']} {where}" if "market_day" in incident else where
+        rows.append(f"incident [{where}] {incident['agent'] or '-'}: {incident['reason']}")
+    problems = result["verdict"]["problems"]
+    rows.append("verdict: ok" if not problems else f"verdict: NOT OK, {len(problems)} problem(s):")
+    rows += [f"  {line}" for line in problems]
+    return "\n".join(rows)

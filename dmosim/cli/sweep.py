@@ -1,0 +1,188 @@
+"""``dmosim sweep EXPERIMENT --set KEY=V1,V2 ...``: the experiment run once per combination of the swept values
+(dmosim/experiment/sweep.py), each run a ``dmosim run`` of its own into its own run directory, ``--parallel`` at a
+time; then one table of every run and agent (``sweep.csv``) and its figure (``sweep.png``, dmosim/results/sweeps.py).
+
+Every variant is validated before the first run starts. A run that fails, or ends with a verdict that is not ok
+(docs/experiments.md, "The result"), is reported and keeps a row saying so (``status`` ``failed`` or
+``untrusted``); the others go on, and the sweep exits 1 at the end. Ctrl-C stops every run under way (each stops
+its roles).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from ..experiment.rundir import RUNS, RunDirError, claim_directory
+from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
+from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
+from ..launch.local import resolved
+from ..launch.processes import dmosim_command, role_env
+from .checks import Checked, check_inputs
+from ..console import UsageError, print_json, progress
+from ..arguments import integer
+
+HELP = "run an experiment once per combination of swept settings, into one table and figure"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("experiment", metavar="EXPERIMENT", help="the experiment file (TOML, docs/experiments.md)")
+    p.add_argument("--set", dest="settings", action="append", required=True, metavar="KEY=V1,V2,...",
+                   help="a setting to sweep and its values, e.g. market.penalty=100,150,300 (repeatable: every "
+                        "combination runs; values are TOML: numbers, true/false, strings, arrays like [1,0.8])")
+    p.add_argument("--parallel", type=integer(1, MAX_VARIANTS), metavar="N",
+                   help="runs at a time (default: what the machine's cores fit: cores / agents of a run, at least "
+                        "1; each run is a DMO and its agents, each agent solving on a core)")
+    p.add_argument("--out", metavar="DIR",
+                   help="the sweep's directory: one run directory per variant, sweep.csv, sweep.png "
+                        "(default: runs/sweep-<experiment name>-<time>)")
+    p.add_argument("--overwrite", action="store_true", help="use --out DIR even if it is not empty")
+    p.add_argument("--check", action="store_true", help="validate every variant, list them and exit")
+    p.add_argument("--json", action="store_true", help="print one JSON object at the end")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def run(args) -> int:
+    try:
+        experiment = resolved(load_experiment(args.experiment))  # one market day for every variant
+        runs = variants(_portable(experiment), [parse_setting(s) for s in args.settings])
+    except ExperimentError as exc:
+        raise UsageError(str(exc)) from None
+    checked, agents = Checked(), 1  # each variant as `dmosim run --check` checks it, each file read once
+    for v in runs:
+        try:
+            agents = max(agents, len(check_inputs(v.experiment, checked)))
+            checked.rule(v.experiment.market.settlement)
+        except ExperimentError as exc:
+            raise UsageError(f"{v.label}: {exc}") from None
+    keys = list(runs[0].settings)
+    parallel = args.parallel or max(1, (os.cpu_count() or 1) // agents)
+    if args.check:
+        print(f"dmosim sweep: {len(runs)} valid run(s) of {args.experiment}, sweeping {', '.join(keys)}:")
+        for v in runs:
+            print(f"  {v.label}")
+        return 0
+    stamp = time.strftime("%Y%m%dT%H%M%S")
+    try:
+        root = claim_directory(Path(args.out) if args.out else RUNS / f"sweep-{experiment.name}-{stamp}",
+                               args.overwrite)
+    except RunDirError as exc:
+        raise UsageError(str(exc)) from None
+    say = (lambda text: None) if args.quiet else progress
+    say(f"sweep of {args.experiment}: {len(runs)} run(s), {parallel} at a time, into {root}")
+    rows, failed = _run_all(runs, root, parallel, say)
+
+    import pandas as pd  # noqa: PLC0415  (pandas, matplotlib: once the runs are done)
+
+    from dmosim.studies.figures import save  # noqa: PLC0415
+
+    from ..results.sweeps import sweep_figure  # noqa: PLC0415
+
+    table = pd.DataFrame(rows)
+    table.to_csv(root / "sweep.csv", index=False)
+    figure = None
+    if (table["status"] == "ok").any():
+        figure = save(sweep_figure(table, keys, f"{experiment.name}: each agent's bill over the run"),
+                      root / "sweep.png")
+    status = table.drop_duplicates("label").set_index("label")["status"]
+    summary = {"sweep": str(root.resolve()), "table": str((root / "sweep.csv").resolve()),
+               "figure": str(figure.resolve()) if figure else None, "keys": keys, "runs": len(runs),
+               **{name: [label for label in failed if status[label] == name] for name in ("failed", "untrusted")}}
+    if args.json:
+        print_json(summary)
+    else:
+        print(_render(table, keys))
+        print(f"table: {summary['table']}" + (f"; figure: {summary['figure']}" if figure else ""))
+        for label in failed:
+            print(f"{status[label].upper()}: {label} (its logs: {root / label / 'logs'})")
+    if failed:  # one line, also with --quiet and --json, as dmosim run gives it
+        print(f"failed: {len(failed)} of {len(runs)} run(s) did not end ok: "
+              + ", ".join(f"{label} ({status[label]})" for label in failed), file=sys.stderr)
+    return 1 if failed else 0
+
+
+def _portable(experiment: Experiment) -> Experiment:
+    """The experiment with its fleet file as an absolute path, so each variant's file may live elsewhere."""
+    fleet = experiment.agents.fleet
+    if fleet is None:
+        return experiment
+    return experiment.model_copy(update={"agents": experiment.agents.model_copy(
+        update={"fleet": str(Path(fleet).resolve())})})
+
+
+def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[dict], list[str]]:
+    """Every variant as ``dmosim run``, at most ``parallel`` at once; the table's rows and the failed labels."""
+    from ..results.sweeps import sweep_rows  # noqa: PLC0415
+
+    (root / "experiments").mkdir(exist_ok=True)
+    pending, running, rows, failed, done = list(runs), {}, {}, [], 0
+    try:
+        while pending or running:
+            while pending and len(running) < parallel:
+                v = pending.pop(0)
+                file = root / "experiments" / f"{v.label}.toml"
+                file.write_text(to_toml(v.experiment))
+                argv = dmosim_command("run", str(file), "--out", str(root / v.label), "--json", "--quiet")
+                process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                           env=role_env())
+                running[v.label] = (v, process, time.monotonic())
+                say(f"started {v.label}")
+            for label, (v, process, started) in list(running.items()):
+                if process.poll() is None:
+                    continue
+                out, err = process.communicate()
+                del running[label]
+                done += 1
+                seconds = time.monotonic() - started
+                result = _result(out)
+                if process.returncode and (result or {}).get("verdict", {}).get("ok", True):
+                    result = None  # it went wrong otherwise than by its verdict: nothing of it to table
+                rows[label] = sweep_rows(v.settings, label, str((root / label).resolve()), seconds, result,
+                                         (err.strip().splitlines() or [f"exit {process.returncode}"])[-1])
+                status = rows[label][0]["status"]
+                if status == "ok":
+                    say(f"{done}/{len(runs)} done: {label} in {seconds:.0f} s")
+                else:
+                    failed.append(label)
+                    say(f"{done}/{len(runs)} {status.upper()}: {label} after {seconds:.0f} s: "
+                        f"{rows[label][0]['error']}")
+            time.sleep(0.2)
+    except BaseException:
+        for _, process, _ in running.values():
+            process.terminate()  # dmosim run stops its roles on SIGTERM
+        for _, process, _ in running.values():
+            process.wait()
+        raise
+    return [row for v in runs for row in rows[v.label]], failed
+
+
+def _result(out: str) -> dict | None:
+    """The result a run printed (``dmosim run --json``), also when its verdict made it exit 1; None if it printed
+    none (it failed before its result was written)."""
+    try:
+        result = json.loads(out)
+    except ValueError:
+        return None
+    return result if isinstance(result, dict) and "settlement" in result else None
+
+
+def _render(table, keys: list[str]) -> str:
+    """Each run's total per agent, one line per run."""
+    ok = table[table["status"] == "ok"]
+    agents = sorted(ok["agent"].dropna().unique())
+    head = "".join(f"{k:>18}" for k in keys) + "".join(f"{a + ' $':>13}" for a in agents)
+    lines = [head, "-" * len(head)]
+    for label, run in table.groupby("label", sort=False):
+        first = run.iloc[0]
+        cells = "".join(f"{str(first[k]):>18}" for k in keys)
+        if first["status"] != "ok":
+            lines.append(cells + f"  {first['status']}: {first['error']}")
+            continue
+        totals = run.set_index("agent")["total"]
+        lines.append(cells + "".join(f"{totals.get(a, float('nan')):>13,.2f}" for a in agents))
+    return "\n".join(lines)

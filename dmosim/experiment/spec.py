@@ -1,0 +1,272 @@
+"""An experiment: one file (TOML) that fixes everything a run depends on: its agents, market, days, seed, each
+agent's solver settings, deadlines and faults (docs/experiments.md).
+
+Every key has a default, so an empty file (or none) is the default day of ``dmosim run``, and a flag given on the
+command line overrides the file. The resolved experiment, defaults included, is written into the run directory
+and into the recording, so any run can be repeated (``dmosim run --from RECORDING``).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import math
+import re
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+
+from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from microgrid_agent.solvers.routes import METHODS
+from scenarios.case import read_toml
+from scenarios.days import MAX_SEED, market_days
+from scenarios.fleet import MAX_SCALE
+from scenarios.generation import MAX_SCENARIOS
+from scenarios.horizon import HOURS
+
+from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
+from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
+
+# Bounds of the settings defined here (the others are where theirs are: docs/experiments.md, "Bounds").
+MAX_WORKERS = 64           # Benders processes per agent: each holds its scenarios' LPs; more than a host's cores
+                           # only adds memory
+MAX_SECONDS = 86_400.0     # a deadline or time limit: a day of wall-clock time, 170 x the longest solve measured
+MAX_PROFILE_DAYS = 366     # a profile pattern (load_scale...) is repeated over the days: a year's at most
+MAX_FAULTS = 100           # faults of one run; each process checks every message fault on every publication
+MAX_PATH = 4096            # a file's path (a case, a fleet), as Linux's PATH_MAX
+MAX_RULE = 500             # a settlement rule as named: what an award's settlement_rule may carry
+MAX_FAULT_SPEC = 200       # one fault as written
+MAX_NAME = 100             # an experiment's name: part of a sweep's directory name
+
+
+class ExperimentError(ValueError):
+    """An experiment file or setting that cannot be used; the message is one line naming the file and the key."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+Rate = Annotated[float, Field(ge=0, le=MAX_RATE, allow_inf_nan=False)]
+Megawatts = Annotated[float, Field(ge=0, le=MAX_MW, allow_inf_nan=False)]
+Seconds = Annotated[float, Field(gt=0, le=MAX_SECONDS, allow_inf_nan=False)]
+Scales = Annotated[list[Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)]],
+                   Field(max_length=MAX_PROFILE_DAYS)]
+PathText = Annotated[str, Field(min_length=1, max_length=MAX_PATH)]
+
+
+class Agents(_Section):
+    """Who takes part: ``count`` agents mg1..mgN drawn around the market's case, or the members of a fleet file."""
+
+    count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
+    fleet: PathText | None = None  # a fleet file, relative to the experiment file
+
+    @model_validator(mode="after")
+    def _one_way(self):
+        if self.fleet is not None and self.count != Agents.model_fields["count"].default:
+            raise ValueError("count and fleet exclude each other: a fleet file names its agents")
+        return self
+
+
+class Market(_Section):
+    """The DMO's terms: the case giving the ISO price, penalty and Table I awards; how awards are made; limits."""
+
+    case: PathText = "paper"
+    mode: Literal["bids", "fixed"] = "bids"
+    penalty: Rate | None = None  # $/MWh above the award (None: the case's)
+    credit: Rate = 0.0           # $/MWh below the award
+    # the settlement rule, docs/settlement.md (None: paper at penalty and credit)
+    settlement: Annotated[str, Field(max_length=MAX_RULE)] | None = None
+
+    @field_validator("settlement")
+    @classmethod
+    def _a_rule(cls, value: str | None) -> str | None:
+        if value is not None:
+            rule_name(value)  # a name only: parsing an experiment never imports a rule (the run that uses it loads it)
+        return value
+    import_limit: Megawatts | None = None  # MW (None: 8 x agents)
+    export_limit: Megawatts | None = None  # MW (None: 5 x agents)
+    island_hours: Annotated[int, Field(ge=0, le=HOURS)] = 1
+    subperiods: Annotated[int, Field(ge=1, le=MAX_SUBPERIODS)] = 6
+
+    @model_validator(mode="after")
+    def _rule_and_terms(self):
+        """A built-in rule and the market's penalty and credit agree (``rules.market_parameters``); a rule of one's
+        own takes them as the term its agents schedule against."""
+        chosen = built_in_rule(self.settlement) if self.settlement is not None else None
+        if chosen is not None:  # the case's penalty only fills in a rate; a disagreement does not depend on it
+            market_parameters(chosen.built_in, chosen.params, self.penalty, self.credit, case_penalty=0.0)
+        return self
+
+
+class ScheduleSettings(_Section):
+    """How each agent solves its stochastic schedule."""
+
+    scenarios: Annotated[int, Field(ge=1, le=MAX_SCENARIOS)] = 5
+    gap: Annotated[float, Field(ge=0, lt=1)] = 0.01
+    time_limit: Seconds = 600.0
+    method: Literal[METHODS] = "auto"  # type: ignore[valid-type]
+    workers: Annotated[int, Field(ge=1, le=MAX_WORKERS)] = 1
+
+
+class Profiles(_Section):
+    """Each day's forecasts scaled, a pattern repeated over the days (e.g. a week with a lighter weekend)."""
+
+    load_scale: Scales = []
+    renewable_scale: Scales = []
+
+
+class Deadlines(_Section):
+    """Seconds each phase may take: registration, bids, schedules, each hour's meter reports."""
+
+    registration: Seconds = 60.0
+    bid: Seconds = 600.0
+    schedule: Seconds = 1800.0
+    hour: Seconds = 300.0
+
+
+class Experiment(_Section):
+    """A whole run. ``market_day`` None means today (resolved when the run starts)."""
+
+    name: str = "run"
+    seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
+    days: Annotated[int, Field(ge=1, le=MAX_DAYS)] = 1
+    market_day: str | None = None
+    agents: Agents = Agents()
+    market: Market = Market()
+    schedule: ScheduleSettings = ScheduleSettings()
+    profiles: Profiles = Profiles()
+    deadlines: Deadlines = Deadlines()
+    faults: Annotated[list[Annotated[str, Field(max_length=MAX_FAULT_SPEC)]], Field(max_length=MAX_FAULTS)] = []
+
+    @field_validator("name")
+    @classmethod
+    def _a_name(cls, value: str) -> str:
+        if not 1 <= len(value) <= MAX_NAME or re.search(r"[/\\\x00-\x1f\x7f]", value):
+            raise ValueError(f"a name is 1..{MAX_NAME} characters with no / or \\ and no control characters "
+                             "(it names the sweep's directory)")
+        return value
+
+    @field_validator("market_day", mode="before")
+    @classmethod
+    def _a_toml_date(cls, value):
+        """A TOML date (``market_day = 2026-07-01``, unquoted) is the same day as its string."""
+        return value.isoformat() if type(value) is dt.date else value
+
+    @field_validator("market_day")
+    @classmethod
+    def _a_date(cls, value, info: ValidationInfo):
+        """A date YYYY-MM-DD (as the wire writes it) whose run of ``days`` ends by 9999-12-31."""
+        if value is not None:
+            try:
+                if not re.fullmatch(r"[0-9]{4}-[0-9]{2}-[0-9]{2}", value):
+                    raise ValueError
+                dt.date.fromisoformat(value)
+            except ValueError:
+                raise ValueError(f"{value!r} is not a date YYYY-MM-DD") from None
+            if "days" in info.data:
+                market_days(value, info.data["days"])  # a ValueError says when the run would end
+        return value
+
+
+# The settings a command-line flag can override: dotted key -> flag dest of ``dmosim run``.
+FLAGS = {
+    "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
+    "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
+    "market.settlement": "settlement",
+    "market.import_limit": "import_limit", "market.export_limit": "export_limit",
+    "market.island_hours": "island_hours", "market.subperiods": "subperiods",
+    "schedule.scenarios": "scenarios", "schedule.gap": "gap", "schedule.time_limit": "time_limit",
+    "schedule.method": "method", "schedule.workers": "workers",
+    "profiles.load_scale": "load_scale", "profiles.renewable_scale": "renewable_scale",
+    "deadlines.registration": "registration_timeout", "deadlines.bid": "bid_timeout",
+    "deadlines.schedule": "schedule_timeout", "deadlines.hour": "hour_timeout",
+}
+
+
+def built_in_rule(spec: str) -> ChosenRule | None:
+    """The built-in rule ``spec`` names, ``NAME`` or ``NAME:key=value,...`` (ValueError if its parameters are
+    wrong), or None for a rule of one's own, which is not loaded here."""
+    name, _, params = spec.strip().partition(":")
+    if name not in BUILT_IN or ":" in params or (params and "=" not in params):
+        return None
+    return choose(spec)
+
+
+def settled_by(market: Market, case_penalty: float) -> str:
+    """The rule the market's days are settled by, as the DMO names it (its case's penalty ``case_penalty``): a
+    built-in with every parameter, a rule of one's own as named."""
+    if market.settlement is None:
+        return paper_rule(case_penalty if market.penalty is None else market.penalty, market.credit).label
+    chosen = built_in_rule(market.settlement)
+    if chosen is None:
+        return market.settlement
+    params = market_parameters(chosen.built_in, chosen.params, market.penalty, market.credit, case_penalty)
+    return ChosenRule(chosen.name, chosen.rule, params).label
+
+
+def parse_experiment(data: dict, source: str = "<experiment>") -> Experiment:
+    """Validate an experiment given as a dict; any problem raises ExperimentError naming the source and the key."""
+    try:
+        return Experiment.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(p if re.fullmatch(r"[\w-]+", str(p), re.ASCII) else repr(p) for p in map(str, err["loc"]))
+        what = "unknown key" if err["type"] == "extra_forbidden" else err["msg"].removeprefix("Value error, ")
+        message = f"{source}: {where or 'experiment'}: {what}"
+        raise ExperimentError(message.replace("\n", "\\n")) from None  # one line, whatever a key or rule says
+
+
+def load_experiment(path: str | Path) -> Experiment:
+    """Read and validate an experiment file; a fleet it names is taken relative to the file."""
+    path = Path(path)
+    data = read_toml(path, "experiment", ExperimentError)
+    fleet = data.get("agents", {}).get("fleet") if isinstance(data.get("agents"), dict) else None
+    if isinstance(fleet, str) and not Path(fleet).is_absolute():
+        data["agents"]["fleet"] = str(path.parent / fleet)
+    return parse_experiment(data, str(path))
+
+
+def with_settings(experiment: Experiment, settings: dict[str, object], source: str) -> Experiment:
+    """The experiment with dotted keys replaced (``market.penalty``, ``seed``...), validated again."""
+    data = experiment.model_dump()
+    for key, value in settings.items():
+        *path, last = key.split(".")
+        node = data
+        for part in path:
+            if not isinstance(node.get(part), dict):
+                raise ExperimentError(f"{source}: {key}: unknown key")
+            node = node[part]
+        if last not in node:
+            raise ExperimentError(f"{source}: {key}: unknown key")
+        node[last] = value
+    return parse_experiment(data, source)
+
+
+def to_toml(experiment: Experiment) -> str:
+    """The experiment as a TOML file that ``load_experiment`` reads back to the same experiment."""
+    data = experiment.model_dump()
+    lines = [f"# dmosim experiment: {experiment.name}"]
+    tables = {k: v for k, v in data.items() if isinstance(v, dict)}
+    for key, value in data.items():
+        if not isinstance(value, dict) and value is not None:
+            lines.append(f"{key} = {_value(value)}")
+    for name, table in tables.items():
+        lines += ["", f"[{name}]"]
+        lines += [f"{key} = {_value(value)}" for key, value in table.items() if value is not None]
+    return "\n".join(lines) + "\n"
+
+
+def _value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return json.dumps(value)
+    if isinstance(value, str):  # JSON's escapes are TOML's, but for surrogate pairs (kept raw here) and DEL
+        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {value!r} to TOML")

@@ -1,0 +1,382 @@
+"""A run on this machine: the DMO, one process per agent and the recorder, started from an experiment over Zenoh on
+loopback with credentials made for the run, watched (process faults fire on the DMO's clock) and always stopped.
+
+``run_locally`` returns the DMO's result (``RunResult.report``) with where the recording went and the run's
+verdict (dmosim/results/verdict.py); it writes what the run makes into its run directory (experiment/rundir.py). The
+recorder is an observer: if it fails, the days go on and settle, and the tables come from the DMO's journal.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import queue
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+from typing import Callable
+
+from messages import Clock, Schedule
+from messages.keys import new_run_id
+from messages.recording import Recording, RecordingError, read_recording
+from messages.transport import Bus, BusConfig
+from messages.transport.access import bundle_settings
+from messages.transport.credentials import create_auth_dir
+from messages.transport.faults import MessageFault
+from scenarios.case import case_path
+from scenarios.fleet import FleetMember, load_fleet, make_fleet
+
+from ..experiment.rundir import RunDir
+from ..experiment.spec import Experiment, load_experiment, to_toml
+from dmo.replay.reproduce import differences, statements_of
+from ..results.journaled import journal_recording
+from ..results.verdict import problems, verdict
+from .faults import Fault, parse_fault
+from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
+
+OBSERVER = "run"  # the name this process watches the run's clock under
+DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
+RECORDER_STOP_S = 60.0  # how long the recorder may take to finish its file once the run is over
+AWAIT_RECORDER = ("--await-recorder", "60")  # the DMO's first message waits for the recorder (seconds)
+
+
+class RoleFailed(RuntimeError):
+    """A role of the run failed; ``names`` are the roles, and the message says where their logs are."""
+
+    def __init__(self, names: list[str], roles: Roles):
+        self.names = names
+        super().__init__("; ".join(f"{n} failed (its log: {roles.roles[n].log})" for n in names))
+
+
+def fleet_of(experiment: Experiment) -> list[FleetMember]:
+    a = experiment.agents
+    return load_fleet(a.fleet) if a.fleet else make_fleet(a.count, seed=experiment.seed)
+
+
+def resolved(experiment: Experiment) -> Experiment:
+    """The experiment with its market day fixed (today if it named none), so the run can be repeated."""
+    if experiment.market_day is not None:
+        return experiment
+    return experiment.model_copy(update={"market_day": dt.date.today().isoformat()})
+
+
+def run_experiment(experiment: Experiment | str | Path, out: str | Path | None = None, *, overwrite: bool = False,
+                   record: bool = True, say: Callable[[str], None] = lambda text: None) -> dict:
+    """A whole experiment (an ``Experiment`` or its file) run on this machine, as ``dmosim run EXPERIMENT`` runs it,
+    into the run directory ``out`` (default ``runs/<run_id>``); its result (docs/experiments.md, "The result").
+    Bad input raises ``ExperimentError`` or ``RunDirError``; a role that fails, ``RoleFailed``."""
+    e = resolved(load_experiment(experiment) if isinstance(experiment, (str, Path)) else experiment)
+    run_id = new_run_id()
+    rundir = RunDir.make(out, run_id, overwrite)
+    return run_locally(e, run_id, rundir, record=rundir.recording if record else None, say=say)
+
+
+def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
+                repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None) -> dict:
+    """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
+    ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
+    with before its result is written."""
+    e = experiment
+    fleet = fleet_of(e)
+    parsed = [parse_fault(f) for f in e.faults]
+    faults = [f for f in parsed if isinstance(f, Fault)]
+    # every role gets the message faults and applies those that match what it publishes
+    message_faults = [flag for f in parsed if isinstance(f, MessageFault) for flag in ("--fault", str(f))]
+    message_faults += ["--fault-seed", str(e.seed)] if message_faults else []
+    began = time.monotonic()
+    rundir.experiment.write_text(to_toml(e))
+    port = free_port()
+    endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
+    logs = rundir.logs
+    auth = create_auth_dir(logs / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
+                           valid_days=2, dmo_client=False, overwrite=True)  # the DMO is the router
+    common = ["--run-id", run_id, "--market-day", e.market_day]
+    m, s, d = e.market, e.schedule, e.deadlines
+    say(f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}, {e.days} day(s) from {e.market_day}; "
+        f"writing to {rundir.root}" + ("" if record else "; not recording"))
+    with Roles() as roles:
+        roles.start("dmo", dmosim_command(
+            "dmo", *common, "--listen", endpoint, "--agents", str(len(fleet)), "--case", m.case,
+            "--market", m.mode, "--seed", str(e.seed), "--island-hours", str(m.island_hours),
+            "--subperiods", str(m.subperiods), "--days", str(e.days), "--credit", repr(m.credit),
+            *_optional("--penalty", m.penalty), *_optional("--import-limit", m.import_limit),
+            *(["--settlement", m.settlement] if m.settlement else []),
+            *_optional("--export-limit", m.export_limit),
+            "--registration-timeout", repr(d.registration), "--bid-timeout", repr(d.bid),
+            "--schedule-timeout", repr(d.schedule), "--hour-timeout", repr(d.hour),
+            "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"), "--auth-dir", str(auth),
+            *(AWAIT_RECORDER if record else ()), *message_faults), log=logs / "dmo.log")
+        wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
+        observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
+        with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
+            watch = _Watch(roles, faults, say)
+            observer.subscribe(observer.keys.clock(), watch.on_clock)
+            observer.subscribe(observer.keys.schedule("*"), watch.on_schedule)
+            if record:
+                # The DMO waits for the recorder before its first message; the agents start once that message is
+                # out, so the recording has the run from its first message.
+                roles.start("recorder", dmosim_command(
+                    "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", endpoint,
+                    "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
+                _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
+            scales = [flag for name, values in (("--load-scale", e.profiles.load_scale),
+                                                ("--renewable-scale", e.profiles.renewable_scale)) if values
+                      for flag in (name, ",".join(repr(float(x)) for x in values))]
+            for member in fleet:
+                roles.start(member.id, dmosim_command(
+                    "agent", *common, "--id", member.id, "--connect", endpoint, "--case", member.case,
+                    "--scale", repr(member.scale), "--shift-hours", str(member.shift_hours),
+                    "--seed", str(member.seed), "--scenarios", str(s.scenarios),
+                    "--island-hours", str(m.island_hours), "--gap", repr(s.gap), "--time-limit", repr(s.time_limit),
+                    "--method", s.method, "--workers", str(s.workers), "--lease", "1", *scales,
+                    "--auth-dir", str(auth), *message_faults), log=logs / f"{member.id}.log")
+            failed = _wait_for_run(roles, watch)
+        if failed:
+            raise RoleFailed(failed, roles)
+        recorder = _stop_recorder(roles, watch, faults) if record else None
+        restarts = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
+    result = json.loads(rundir.result.read_text())
+    result.update(realised=realised_days(logs, [m.id for m in fleet]), wall_s=round(time.monotonic() - began, 3),
+                  memory_mib={str(day): roles_memory for day, roles_memory in sorted(watch.memory.items())})
+    result.update(experiment=e.name, run_dir=str(rundir.root.resolve()), logs=str(logs.resolve()),
+                  recording=str(record.resolve()) if record else None, faults=[str(f) for f in parsed],
+                  restarts=restarts)
+    # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.
+    rec, complete = None, False
+    if record:
+        rec, result["recorded"] = _recorded(record, recorder)
+        complete = result["recorded"]["complete"]
+    if record or repeat_of is not None:
+        said = rec if complete else journal_recording(logs / "dmo.journal", run_id, _run_metadata(e, fleet))
+        if repeat_of is not None:
+            result["reproduced"] = reproduction(repeat_of, said, say)
+        if record and said.messages:
+            result["recorded"]["tables_from"] = "recording" if complete else "journal"
+            say("writing the run's tables and figure" + ("" if complete else " from the DMO's journal (the "
+                                                                               "recording is incomplete)"))
+            result.update(_write_results(said, rundir, run_id))
+    found = problems(result, agents=[m.id for m in fleet], days=e.days,
+                     recorded=set(statements_of(rec)) if complete else None)
+    result["verdict"] = verdict(found)
+    rundir.result.write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def reproduction(source: str | Path, again: Recording, say: Callable[[str], None] = lambda text: None) -> dict:
+    """Whether the run (``again``: what it said) settled every agent as the recording ``source`` it was repeated
+    from; where not, which agent, day and hour differ (a fault, a missed deadline or a solve cut by its time limit
+    can make a run differ)."""
+    try:
+        before = read_recording(source)
+    except RecordingError as exc:
+        return {"source": str(source), "identical": False, "differences": [], "error": str(exc)}
+    diffs = differences(before, again)
+    if diffs:
+        say(f"{len(diffs)} statement line(s) differ from {source}:")
+        for line in diffs:
+            say(f"  {line}")
+    else:
+        say(f"every statement is the same as in {source}, to the cent")
+    return {"source": str(source), "identical": not diffs, "differences": diffs}
+
+
+def realised_days(logs: Path, agents: list[str]) -> dict[str, list[dict]]:
+    """Each agent's operated days as its log says (``<id> realised day D {...}``): its own cost by term ($), the
+    load it curtailed (MWh); of a day logged twice (a restarted agent), the last. What the DMO cannot see."""
+    out = {}
+    for agent in agents:
+        days: dict[int, dict] = {}
+        log = logs / f"{agent}.log"
+        for line in log.read_text(errors="replace").splitlines() if log.exists() else ():
+            _, sep, tail = line.partition(f"{agent} realised day ")
+            if sep:
+                day, _, data = tail.partition(" ")
+                try:
+                    days[int(day)] = {"day": int(day), **json.loads(data)}
+                except ValueError:
+                    continue
+        out[agent] = [days[d] for d in sorted(days)]
+    return out
+
+
+def _optional(flag: str, value) -> list[str]:
+    return [] if value is None else [flag, repr(value)]
+
+
+def _run_metadata(experiment: Experiment, fleet: list[FleetMember]) -> dict[str, str]:
+    """What the recording's metadata says of the run: the resolved experiment, seed, market day, days, agents."""
+    return {"config": json.dumps(experiment.model_dump(), sort_keys=True), "seed": str(experiment.seed),
+            "market_day": experiment.market_day, "days": str(experiment.days),
+            "agents": ",".join(m.id for m in fleet), "command": "dmosim run"}
+
+
+def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir: RunDir) -> list[str]:
+    """The recorder's --meta and --attach flags: the run's metadata, and the resolved experiment (so that the
+    recording can be run again), the case and fleet files as attachments."""
+    meta = _run_metadata(experiment, fleet)
+    fleet_file = rundir.logs / "fleet.toml"
+    fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
+                                  f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n\n"
+                                  for m in fleet))
+    cases = sorted({str(p) for p in map(case_path, [experiment.market.case, *(m.case for m in fleet)]) if p.is_file()})
+    flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
+    return flags + [flag for path in [str(rundir.experiment), *cases, str(fleet_file)] for flag in ("--attach", path)]
+
+
+def _write_results(rec: Recording, rundir: RunDir, run_id: str) -> dict:
+    """The run's recording as tables (``dmosim export``) and a figure (``dmosim plot``) in the run directory."""
+    from dmosim.studies.figures import save  # noqa: PLC0415  (pandas, matplotlib: only once a run is over)
+
+    from ..results.figures import days_label, recording_figure  # noqa: PLC0415
+    from ..results.tables import tables, write_tables  # noqa: PLC0415
+
+    frames = tables(rec)
+    rundir.tables.mkdir(exist_ok=True)
+    written = {"tables": {path.stem: str(path.resolve()) for path in write_tables(frames, rundir.tables)}}
+    if not frames["hours"].empty:
+        market_days = sorted(frames["hours"]["market_day"].unique())
+        save(recording_figure(frames, f"run {run_id}, {days_label(market_days)}"), rundir.figure)
+        written["figure"] = str(rundir.figure.resolve())
+    return written
+
+
+def _wait_until(event: threading.Event, roles: Roles, watched: tuple[str, ...], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not event.wait(0.1):
+        for name in watched:
+            if roles.roles[name].process.poll() is not None:
+                raise RuntimeError(f"{name} exited before {what}; its log: {roles.roles[name].log}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"no sign of {what} within {timeout_s:g} s")
+
+
+def _stop_recorder(roles: Roles, watch: _Watch, faults: list[Fault]) -> str | None:
+    """SIGTERM the recorder once the run is over: it writes its last chunk, the summary and the footer. None if it
+    did all that; else its failure in one line: killed by a fault, exited before the run ended, or failed to finish
+    its file."""
+    role = roles.roles["recorder"]
+    process = role.process
+    time.sleep(0.2)  # what the DMO sent last is still on its way to the recorder
+    if process.poll() is not None:
+        at = f" at {watch.recorder_exit}" if watch.recorder_exit else " before it was stopped"
+        if role.killed_on_purpose:
+            spec = next((str(f) for f in faults if f.agent == "recorder"), "")
+            return f"killed{at} (--fault {spec})"
+        return f"exited{at} ({_exit_status(process.returncode, role.log)}; its log: {role.log})"
+    process.send_signal(signal.SIGTERM)
+    try:
+        code = process.wait(timeout=RECORDER_STOP_S)
+    except subprocess.TimeoutExpired:
+        return f"did not finish its file within {RECORDER_STOP_S:g} s of being stopped (its log: {role.log})"
+    return None if code == 0 else f"failed to finish its file ({_exit_status(code, role.log)}; its log: {role.log})"
+
+
+def _exit_status(code: int, log: Path | None = None) -> str:
+    """How a process ended: the signal that killed it, or its exit code and, if it failed, the last line of its
+    ``log`` (a failing dmosim role's last line is its error)."""
+    if code < 0:
+        return f"killed by {signal.Signals(-code).name}"
+    lines = log.read_text(errors="replace").split("\n") if code and log and log.exists() else []
+    last = next((line.strip() for line in reversed(lines) if line.strip()), "")
+    return f"exit {code}" + (f": {last[:300]}" if last else "")
+
+
+def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, dict]:
+    """The recording read back, and what the result says of it: its counts, whether it is ``complete`` (the file
+    whole and the recorder never failed) and the ``recorder``'s failure (None if none)."""
+    try:
+        rec = read_recording(path)
+    except RecordingError as exc:
+        return None, {"error": str(exc), "complete": False, "recorder": recorder}
+    return rec, {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
+                 "complete": rec.complete and recorder is None, "recorder": recorder}
+
+
+def _wait_for_run(roles: Roles, watch: _Watch) -> list[str]:
+    """Block on process exits until the DMO is done and the agents have left; return the names that failed.
+
+    An agent that exits non-zero on its own stops the run. One killed on purpose is the DMO's problem: the day
+    goes on and settles it by the missing-data rule. The recorder is an observer: whenever it exits, the run goes
+    on (the DMO needs it only before its first message) and ``watch.recorder_exit`` notes when.
+    """
+    pending = set(roles.roles) - {"recorder"}
+    while pending:
+        timeout = 60.0 if "dmo" not in pending else None  # once the run is settled, agents get a minute to leave
+        try:
+            name, code = roles.exits.get(timeout=timeout)
+        except queue.Empty:
+            return sorted(pending)
+        if name == "recorder":
+            watch.recorder_exit = watch.when()
+            watch.say(f"the recorder exited at {watch.recorder_exit} ({_exit_status(code)}); the run goes on, and "
+                      "its tables will come from the DMO's journal")
+            continue
+        pending.discard(name)
+        if code != 0 and not roles.roles[name].killed_on_purpose:
+            return [name]
+    return []
+
+
+class _Watch:
+    """What the run shows of the DMO's clock and the agents' schedules, and the process faults it fires on the clock.
+
+    Scheduling can take minutes: each agent is shown as its schedule arrives, with the seconds since the awards
+    went out (the clock's ``scheduling`` step) and its solve's status and certified gap."""
+
+    def __init__(self, roles: Roles, faults: list[Fault], say: Callable[[str], None]):
+        self.roles, self.faults, self.say = roles, faults, say
+        self.started = threading.Event()
+        self.lock = threading.Lock()
+        self.fired: set[Fault] = set()
+        self.scheduling_since: float | None = None
+        self.day = ""
+        self.clock = "the start"  # where the DMO's clock stands, as the run's messages say it
+        self.recorder_exit: str | None = None  # where it stood when the recorder exited
+        self.memory: dict[int, dict[str, dict]] = {}  # day -> role -> its memory as the day is settled
+
+    def when(self) -> str:
+        with self.lock:
+            return self.clock
+
+    def on_clock(self, key, msg: Clock, received_at) -> None:
+        self.started.set()
+        with self.lock:
+            self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
+            self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
+            self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
+            if msg.phase == "settlement":
+                self.memory[msg.day] = {name: m for name, role in self.roles.roles.items()
+                                        if (m := memory_mib(role.process.pid)) is not None}
+            self.say(f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
+            for f in self.faults:
+                if msg.phase == "realtime" and (msg.day, msg.hour) == (f.day, f.hour) and f not in self.fired:
+                    self.fired.add(f)
+                    self._fire(f)
+
+    def on_schedule(self, key, msg: Schedule, received_at) -> None:
+        with self.lock:
+            since = self.scheduling_since
+            took = f" in {time.monotonic() - since:.1f} s" if since is not None else ""
+            gap = f", gap {100 * msg.mip_gap:.2f}%" if msg.mip_gap is not None else ""
+            self.say(f"{self.day}{msg.sender} scheduled{took} ({msg.status}{gap}, {msg.scenarios} scenario(s), "
+                     f"expected cost ${msg.expected_cost:,.2f})")
+
+    def _fire(self, f: Fault) -> None:
+        when = f"hour {f.hour} of day {f.day}"
+        if f.agent not in self.roles.roles:
+            self.say(f"fault {f}: this run has no {f.agent}")
+        elif f.kind == "restart" and f.agent == "dmo":
+            self.say(f"fault: restarting the DMO (SIGKILL, then start again) {DMO_KILL_AFTER_S:g} s into {when}")
+            recorder, dmo = self.roles.roles.get("recorder"), self.roles.roles["dmo"]
+            if recorder is not None and recorder.process.poll() is not None and AWAIT_RECORDER[0] in dmo.argv:
+                at = dmo.argv.index(AWAIT_RECORDER[0])  # the recorder is gone: the DMO must not wait for it again
+                dmo.argv = dmo.argv[:at] + dmo.argv[at + len(AWAIT_RECORDER):]
+            threading.Timer(DMO_KILL_AFTER_S, self.roles.restart, ("dmo",)).start()
+        elif f.kind == "restart":
+            self.say(f"fault: restarting {f.agent} (SIGKILL, then start again) at {when}")
+            self.roles.restart(f.agent)
+        else:
+            self.say(f"fault: killing {f.agent} (SIGKILL) at {when}")
+            self.roles.kill(f.agent)

@@ -1,0 +1,166 @@
+"""Start, watch and always stop the OS processes of one run: every role in its own process group."""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+# The directory that holds the dmo package: a role started with role_env() imports this very dmosim.
+SOURCE_ROOT = Path(__file__).resolve().parents[2]
+
+
+def dmosim_command(*args: str) -> list[str]:
+    """The command line of ``dmosim ARGS`` in a new process of this interpreter."""
+    return [sys.executable, "-m", "dmosim", *args]
+
+
+def role_env() -> dict:
+    """This environment, with the directory of this dmosim first on PYTHONPATH (for a checkout not installed)."""
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(SOURCE_ROOT), os.environ.get("PYTHONPATH")]))}
+
+
+def free_port() -> int:
+    """A TCP port on loopback that nobody listens on now (the OS picks it; no fixed ports)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_listening(port: int, timeout_s: float, alive) -> None:
+    """Return once something accepts connections on the port; fail if ``alive()`` turns false or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not alive():
+            raise RuntimeError("the DMO exited before it listened")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)  # a connect refused returns at once; this only paces the retries
+    raise RuntimeError(f"nothing listened on port {port} within {timeout_s:g} s")
+
+
+def wait_for_line(path: Path, pattern: str, timeout_s: float, alive) -> re.Match:
+    """Return the first match of ``pattern`` in the log file at ``path`` once it appears; fail if ``alive()`` turns
+    false first or time runs out."""
+    deadline, text = time.monotonic() + timeout_s, ""
+    while time.monotonic() < deadline:
+        text = path.read_text() if path.exists() else ""
+        found = re.search(pattern, text)
+        if found:
+            return found
+        if not alive():
+            raise RuntimeError(f"the process logging to {path.name} exited:\n{text[-3000:]}")
+        time.sleep(0.05)  # paces the reads of a file another process appends to
+    raise RuntimeError(f"no {pattern!r} in {path} within {timeout_s:g} s:\n{text[-3000:]}")
+
+
+def memory_mib(pid: int) -> dict[str, float] | None:
+    """A live process's resident memory now and its peak so far (VmRSS, VmHWM of /proc/PID/status), MiB; None
+    where there is no /proc or the process is gone. Its own children (Benders workers) are not counted."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = dict(line.split(":", 1) for line in status.splitlines() if line.startswith(("VmRSS", "VmHWM")))
+    if len(fields) < 2:
+        return None
+    return {"rss_mib": round(int(fields["VmRSS"].split()[0]) / 1024, 1),
+            "peak_mib": round(int(fields["VmHWM"].split()[0]) / 1024, 1)}
+
+
+@dataclass
+class Role:
+    name: str
+    process: subprocess.Popen
+    log: Path | None
+    killed_on_purpose: bool = False
+    argv: tuple[str, ...] = ()
+    env: dict | None = None
+    cwd: Path | None = None
+    restarts: int = 0
+
+
+class Roles:
+    """The processes of one run. As a context manager it stops every process it started, whatever happens.
+
+    ``exits`` is a queue of (name, returncode) filled by one waiter thread per process, so the caller can block
+    on the next exit instead of polling.
+    """
+
+    def __init__(self):
+        self.roles: dict[str, Role] = {}
+        self.exits: queue.Queue = queue.Queue()
+        self._replaced: set[int] = set()  # pids of processes restarted on purpose: their exits are not reported
+
+    def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None,
+              cwd: Path | None = None) -> Role:
+        role = Role(name, self._spawn(name, argv, log, env, cwd, "w"), log, argv=tuple(argv), env=env, cwd=cwd)
+        self.roles[name] = role
+        return role
+
+    def _spawn(self, name: str, argv, log: Path | None, env: dict | None, cwd: Path | None,
+               mode: str) -> subprocess.Popen:
+        out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
+        process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
+                                   stderr=out or None, start_new_session=True, env=env, cwd=cwd)
+
+        def waiter():
+            code = process.wait()
+            if out:
+                out.close()
+            if process.pid not in self._replaced:
+                self.exits.put((name, code))
+
+        threading.Thread(target=waiter, name=f"wait-{name}", daemon=True).start()
+        return process
+
+    def restart(self, name: str) -> None:
+        """SIGKILL one role and start it again with the same command line, its log continued (fault injection)."""
+        role = self.roles[name]
+        old = role.process
+        self._replaced.add(old.pid)
+        _signal_group(old, signal.SIGKILL)
+        old.wait()
+        role.restarts += 1
+        role.process = self._spawn(name, role.argv, role.log, role.env, role.cwd, "a")
+
+    def kill(self, name: str) -> None:
+        """SIGKILL one role (fault injection)."""
+        role = self.roles[name]
+        role.killed_on_purpose = True
+        _signal_group(role.process, signal.SIGKILL)
+
+    def stop_all(self, grace_s: float = 5.0) -> None:
+        running = [r.process for r in self.roles.values() if r.process.poll() is None]
+        for p in running:
+            _signal_group(p, signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for p in running:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                _signal_group(p, signal.SIGKILL)
+                p.wait()
+
+    def __enter__(self) -> Roles:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop_all()
+
+
+def _signal_group(process: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(process.pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass

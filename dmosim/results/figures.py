@@ -1,0 +1,188 @@
+"""The figure of a recorded day (``dmosim plot``): from a recording's tables (tables.py) to one matplotlib Figure.
+
+Left column, on one time axis: the hourly clearing price (congested hours marked), then for each agent its award P_sch against its metered
+import P_M per sub-period. Right column: the day's bill per agent (several days: each agent's daily total), then
+beside each agent its deviation penalty and credit per hour. Islanded hours are shaded on every time axis. A
+recording of several market days lays them end to end, each day's start marked.
+"""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")  # files only, never a window: plots are made on headless machines too
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+from matplotlib.ticker import FuncFormatter, MultipleLocator  # noqa: E402
+
+_AWARD, _IMPORT, _ENERGY = "black", "#1f77b4", "#8c9fc4"
+_PENALTY, _CREDIT, _ISLANDED = "#d62728", "#2ca02c", "0.85"
+_DOLLARS = FuncFormatter(lambda y, _: f"{y:,.0f}")
+
+
+def recording_figure(frames: dict[str, pd.DataFrame], title: str = "") -> Figure:
+    """The figure of the tables ``frames`` (``dmosim.results.tables.tables``); needs at least one statement."""
+    hours, meter, days = frames["hours"], frames["meter"], frames["days"]
+    if hours.empty:
+        raise ValueError("no settlement statement recorded: nothing to plot")
+    market_days = sorted(hours["market_day"].unique())
+    agents = sorted(hours["agent"].unique())
+    start = {day: 24 * i for i, day in enumerate(market_days)}  # x: hours from the start of the first day
+    hours = hours.assign(t=hours["market_day"].map(start) + hours["hour"] - 1).sort_values(["agent", "t"])
+
+    fig = plt.figure(figsize=(14, 2.6 * (1 + len(agents)) + 0.4), layout="constrained")
+    grid = fig.add_gridspec(1 + len(agents), 2, width_ratios=(3, 2))
+    price_ax = fig.add_subplot(grid[0, 0])
+    power_axes = [fig.add_subplot(grid[1 + i, 0], sharex=price_ax) for i in range(len(agents))]
+    money_axes = [fig.add_subplot(grid[1 + i, 1], sharex=price_ax) for i in range(len(agents))]
+
+    per_hour = hours.drop_duplicates(["market_day", "hour"])
+    _hourly_stairs(price_ax, per_hour, "clearing_price_per_mwh", color=_AWARD)
+    for direction, marker in (("import", "^"), ("export", "v")):
+        congested = per_hour[per_hour["congestion"] == direction]
+        if not congested.empty:
+            price_ax.plot(congested["t"] + 0.5, congested["clearing_price_per_mwh"], marker, color=_PENALTY, ms=5,
+                          ls="none", label=f"{direction} congestion (awards at the feeder limit)")
+    price_ax.set_ylabel("$/MWh")
+    price_ax.set_title("clearing price per hour", loc="left", fontsize=10)
+    for agent, power, money in zip(agents, power_axes, money_axes):
+        own = hours[hours["agent"] == agent]
+        _power(power, agent, own, meter[meter["agent"] == agent], start)
+        _penalties(money, agent, own)
+
+    islanded = hours.loc[hours["islanded"], "t"].drop_duplicates().to_numpy()
+    xlabel = "time of day, h" if len(market_days) == 1 else "market day (major ticks: its start; minor: 6 h)"
+    for ax in [price_ax, *power_axes, *money_axes]:
+        ax.broken_barh([(t, 1) for t in islanded], (0, 1), transform=ax.get_xaxis_transform(), color=_ISLANDED,
+                       zorder=0, lw=0)
+        _time_axis(ax, market_days)
+        ax.grid(axis="y", alpha=0.3)
+        if ax not in (power_axes[-1], money_axes[-1]):
+            ax.tick_params(labelbottom=False)
+        else:
+            ax.set_xlabel(xlabel)
+
+    totals_ax = fig.add_subplot(grid[0, 1])
+    if len(market_days) == 1:
+        _bill(totals_ax, days, agents)
+    else:
+        _daily_totals(totals_ax, days, market_days, agents)
+    handles = price_ax.get_legend_handles_labels()[0] + power_axes[0].get_legend_handles_labels()[0]
+    money_handles, _ = money_axes[0].get_legend_handles_labels()
+    handles += [Patch(color=_ISLANDED, label="islanded hour (grid state)"), *money_handles]
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 4), fontsize=9, frameon=False)
+    fig.suptitle(title or days_label(market_days), fontsize=12)
+    return fig
+
+
+def days_label(market_days: list[str]) -> str:
+    """"market day D", or "market days D1 to Dn (n)"."""
+    if len(market_days) == 1:
+        return f"market day {market_days[0]}"
+    return f"market days {market_days[0]} to {market_days[-1]} ({len(market_days)})"
+
+
+def _power(ax, agent: str, hours: pd.DataFrame, meter: pd.DataFrame, start: dict[str, int]) -> None:
+    """The agent's award, hour by hour, against its metered import, sub-period by sub-period, MW."""
+    _hourly_stairs(ax, hours, "p_sch_mw", color=_AWARD, lw=1.6, label="award P_sch")
+    label = "metered import P_M per sub-period (gap: not reported)"
+    for day, readings in meter.groupby("market_day", sort=False):
+        k = int(readings["subperiod"].max())
+        slot = (readings["hour"].to_numpy() - 1) * k + readings["subperiod"].to_numpy() - 1
+        values = np.full(24 * k, np.nan)
+        values[slot] = readings["p_m_mw"].to_numpy()
+        ax.stairs(values, start[day] + np.arange(24 * k + 1) / k, baseline=None, color=_IMPORT, lw=1.2, label=label)
+        label = None
+    ax.axhline(0, color="0.5", lw=0.6)
+    ax.set_ylabel("MW")
+    ax.set_title(f"{agent}: award and metered import (negative: export)", loc="left", fontsize=10)
+
+
+def _penalties(ax, agent: str, hours: pd.DataFrame) -> None:
+    """The agent's deviation penalty per hour, $, and its credit drawn below 0 (it lowers the bill)."""
+    middle = hours["t"].to_numpy() + 0.5
+    ax.bar(middle, hours["deviation_penalty"], width=0.8, color=_PENALTY, label="deviation penalty")
+    ax.bar(middle, -hours["deviation_credit"], width=0.8, color=_CREDIT, label="deviation credit (drawn below 0)")
+    ax.axhline(0, color="0.5", lw=0.6)
+    ax.set_ylabel("$")
+    ax.yaxis.set_major_formatter(_DOLLARS)
+    ax.set_title(f"{agent}: deviation penalty and credit per hour", loc="left", fontsize=10)
+
+
+def _hourly_stairs(ax, frame: pd.DataFrame, column: str, **style) -> None:
+    """One value per hour as a step line, each market day its own line."""
+    for _, day in frame.groupby("market_day", sort=False):
+        t = day["t"].to_numpy()
+        ax.stairs(day[column].to_numpy(), np.append(t, t[-1] + 1), baseline=None, **style)
+        style.pop("label", None)
+
+
+def _time_axis(ax, market_days: list[str]) -> None:
+    span = 24 * len(market_days)
+    ax.set_xlim(0, span)
+    if len(market_days) == 1:
+        ax.xaxis.set_major_locator(MultipleLocator(3))
+        ax.xaxis.set_minor_locator(MultipleLocator(1))
+        return
+    every = max(1, -(-len(market_days) // 8))  # at most eight dates along the axis
+    ax.set_xticks(range(0, span, 24 * every), _short(market_days)[::every])
+    ax.xaxis.set_minor_locator(MultipleLocator(6))
+    for boundary in range(24, span, 24):
+        ax.axvline(boundary, color="0.4", lw=0.8, ls=":")
+
+
+def _short(market_days: list[str]) -> list[str]:
+    """Dates as MM-DD when they share a year (the title says which), else as they are."""
+    return [d[5:] for d in market_days] if len({d[:4] for d in market_days}) == 1 else list(market_days)
+
+
+def _bill(ax, days: pd.DataFrame, agents: list[str]) -> None:
+    """One day's bill per agent, $: energy charge and deviation penalty stacked (a negative energy charge, an
+    export paid for, below 0), the credit below 0, the total marked and written above."""
+    bill = days.set_index("agent").reindex(agents)
+    x = np.arange(len(agents))
+    up, down = np.zeros(len(agents)), np.zeros(len(agents))
+    for label, values, color in (("energy charge", bill["energy_charge"], _ENERGY),
+                                 ("deviation penalty", bill["deviation_penalty"], _PENALTY),
+                                 ("deviation credit", -bill["deviation_credit"], _CREDIT)):
+        values = values.to_numpy(dtype=float)
+        ax.bar(x, values, bottom=np.where(values >= 0, up, down), width=0.6, color=color, label=label)
+        up, down = up + np.clip(values, 0, None), down + np.clip(values, None, 0)
+    total = bill["total"].to_numpy(dtype=float)
+    ax.hlines(total, x - 0.36, x + 0.36, color="black", lw=2, zorder=3, label="total")
+    for xi, top, value in zip(x, up, total):
+        ax.annotate(f"{'-' if value < 0 else ''}${abs(value):,.2f}", (xi, top), xytext=(0, 3),
+                    textcoords="offset points", ha="center", fontsize=8)
+    low, high = min(down.min(), 0.0), max(up.max(), 0.0)
+    ax.set_ylim(low - 0.1 * (high - low), high + 0.4 * (high - low) + 1e-9)  # room for the labels and the legend
+    ax.set_xticks(x, agents)
+    ax.set_xlim(-0.6, len(agents) - 0.4)
+    ax.axhline(0, color="0.5", lw=0.6)
+    ax.set_ylabel("$")
+    ax.yaxis.set_major_formatter(_DOLLARS)
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_title("the day's bill per agent: energy charge + penalty - credit", loc="left", fontsize=10)
+    ax.legend(fontsize=8, loc="upper center", frameon=False, ncol=4)
+
+
+def _daily_totals(ax, days: pd.DataFrame, market_days: list[str], agents: list[str]) -> None:
+    """Each agent's total of each day, $, one line per agent."""
+    totals = days.pivot_table(index="market_day", columns="agent", values="total", aggfunc="sum").reindex(
+        index=market_days, columns=agents)
+    x = np.arange(len(market_days))
+    for agent in agents:
+        ax.plot(x, totals[agent].to_numpy(dtype=float), "o-", label=agent)
+    every = max(1, -(-len(market_days) // 8))
+    ax.set_xticks(x[::every], _short(market_days)[::every])
+    ax.set_xlim(-0.5, len(market_days) - 0.5)
+    ax.axhline(0, color="0.5", lw=0.6)
+    ax.set_xlabel("market day")
+    ax.set_ylabel("$")
+    ax.yaxis.set_major_formatter(_DOLLARS)
+    ax.grid(alpha=0.3)
+    ax.set_title("daily total per agent (what it owes)", loc="left", fontsize=10)
+    ax.legend(fontsize=8, ncol=min(len(agents), 5), loc="best", frameon=False)

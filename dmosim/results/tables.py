@@ -1,0 +1,197 @@
+"""A recording as tidy pandas tables: one row per observation, columns named as the wire names them (units in the
+names: ``_mw``, ``_mwh``, ``_per_mwh``; money in $), every table with a ``market_day`` column.
+
+``tables(rec)`` is pure: it reads only the ``messages.recording.Recording`` it is given; ``open_recording(path)``
+reads the file first. Messages are read as the receivers read them (valid, from the key's owner), and grouped by
+the ``market_day`` each one carries, so a recording of several days gives rows of each. Of the DMO's own
+messages the first of each (day, agent) or (day, hour) counts, as in ``dmo.replay.resettle``; of the agents' bids
+and meter reports, those the DMO accepted (``dmo.replay.resettle.accepted_meter_reports``). The columns of each
+table, with their types, are ``TABLE_COLUMNS``; an empty table still has them.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from messages import relative_key
+from messages.recording import Recording, read_recording
+
+from dmo.replay.resettle import accepted_messages, accepted_meter_reports, day_messages
+
+CONGESTION_TOL_MW = 1e-6  # awards this close to a feeder limit take all of it
+_KEY_TYPES = {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64"}
+_MONEY = {"energy_charge": "float64", "deviation_penalty": "float64", "deviation_credit": "float64",
+          "total": "float64"}
+TABLE_COLUMNS: dict[str, dict[str, str]] = {
+    "hours": {"market_day": "string", "agent": "string", "hour": "int64", "clearing_price_per_mwh": "float64",
+              "p_sch_mw": "float64", "import_mwh": "float64", "deviation_mwh": "float64",
+              "under_import_mwh": "float64", **_MONEY, "missing_subperiods": "int64", "islanded": "bool",
+              "congestion": "string"},
+    "days": {"market_day": "string", "agent": "string", **_MONEY, "missing_subperiods": "int64",
+             "import_mwh": "float64", "deviation_mwh": "float64", "under_import_mwh": "float64",
+             "award_mwh": "float64"},
+    "meter": {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64", "p_m_mw": "float64",
+              "deviation_mw": "float64", "p_sch_mw": "float64", "connected": "boolean"},
+    "bids": {"market_day": "string", "agent": "string", "hour": "int64", "step": "int64",
+             "price_per_mwh": "float64", "quantity_mw": "float64"},
+    "incidents": {"market_day": "string", "agent": "string", "phase": "string", "hour": "Int64", "reason": "string"},
+    "rejections": {"market_day": "string", "key": "string", "code": "string", "reason": "string",
+                   "offender": "string", "rejected_kind": "string", "payload_size": "int64", "received_at": "int64"},
+}
+
+
+def open_recording(path: str | os.PathLike) -> dict[str, pd.DataFrame]:
+    """The tables of the recording at ``path`` (``read_recording``: a cut file gives what precedes the cut; a file
+    that is not a recording raises ``messages.recording.RecordingError``)."""
+    return tables(read_recording(path))
+
+
+def tables(rec: Recording) -> dict[str, pd.DataFrame]:
+    """Every table of the recording, by name, in the order of ``TABLE_COLUMNS``."""
+    grid, statements = _grid(rec), _statements(rec)
+    hours = _hours(statements, grid, _limits(rec))
+    return {"hours": hours, "days": _days(statements, hours), "meter": _meter(rec, grid), "bids": _bids(rec),
+            "incidents": _incidents(rec), "rejections": _rejections(rec)}
+
+
+def write_tables(frames: dict[str, pd.DataFrame], directory: Path, fmt: str = "csv") -> dict[Path, int]:
+    """Each table as ``directory/<name>.<fmt>`` (csv, or parquet with pyarrow), without an index column; the rows
+    of each file written. ``directory`` must exist."""
+    written = {}
+    for name, frame in frames.items():
+        path = directory / f"{name}.{fmt}"
+        if fmt == "csv":
+            frame.to_csv(path, index=False)
+        else:
+            frame.to_parquet(path, index=False)
+        written[path] = len(frame)
+    return written
+
+
+def _typed(name: str, frame: pd.DataFrame | None) -> pd.DataFrame:
+    """The table's columns, in order and with their types; an empty table keeps them."""
+    columns = TABLE_COLUMNS[name]
+    if frame is None or frame.empty:
+        return pd.DataFrame({c: pd.Series(dtype=t) for c, t in columns.items()})
+    return frame[list(columns)].astype(columns).reset_index(drop=True)
+
+
+def _dumps(rec: Recording, kind: str) -> list[dict]:
+    """The valid messages of one kind, of every day, from their key's owner, as JSON-like dicts, in log order."""
+    return [msg.model_dump(mode="json") for _, msg in day_messages(rec, None, kind)]
+
+
+def _frame(records: list[dict], columns: list[str]) -> pd.DataFrame:
+    """These columns of the records, the keys typed alike in every frame so that frames merge on them. The
+    ``agent`` of an agent's message is its sender; the DMO's messages name theirs."""
+    frame = pd.DataFrame(records)
+    if "agent" not in frame:
+        frame = frame.rename(columns={"sender": "agent"})
+    frame = frame.reindex(columns=columns)
+    return frame.astype({c: t for c, t in _KEY_TYPES.items() if c in frame})
+
+
+def _numbered(frame: pd.DataFrame, by: list[str], column: str) -> pd.DataFrame:
+    """Number the rows of each group 1, 2, ... in ``column``: the hour, sub-period or step of an exploded list."""
+    frame[column] = (frame.groupby(by, sort=False).cumcount() + 1).astype("int64")
+    return frame
+
+
+def _grid(rec: Recording) -> pd.DataFrame:
+    """(market_day, hour, subperiod, connected) of the first grid state recorded for each day and hour."""
+    states = _frame(_dumps(rec, "grid_state"), ["market_day", "hour", "connected"])
+    states = states.drop_duplicates(["market_day", "hour"]).explode("connected", ignore_index=True)
+    return _numbered(states, ["market_day", "hour"], "subperiod").astype({"connected": "bool"})
+
+
+def _statements(rec: Recording) -> list[dict]:
+    """The first statement recorded for each market day and agent."""
+    first: dict[tuple[str, str], dict] = {}
+    for st in _dumps(rec, "settlement_statement"):
+        first.setdefault((st["market_day"], st["agent"]), st)
+    return list(first.values())
+
+
+def _limits(rec: Recording) -> pd.DataFrame:
+    """(market_day, import_limit_mw, export_limit_mw) of the first call for bids recorded for each day."""
+    calls = _frame(_dumps(rec, "call_for_bids"), ["market_day", "import_limit_mw", "export_limit_mw"])
+    return calls.drop_duplicates("market_day")
+
+
+def _hours(statements: list[dict], grid: pd.DataFrame, limits: pd.DataFrame) -> pd.DataFrame:
+    if not statements:
+        return _typed("hours", None)
+    lines = pd.json_normalize(statements, record_path="lines", meta=["market_day", "agent"])
+    lines = lines.astype({c: t for c, t in _KEY_TYPES.items() if c in lines})
+    islanded = (~grid.groupby(["market_day", "hour"])["connected"].all()).rename("islanded").reset_index()
+    hours = lines.merge(islanded, on=["market_day", "hour"], how="left")
+    hours["islanded"] = hours["islanded"].astype("boolean").fillna(False)  # no grid state recorded: not islanded
+    hours["congestion"] = _congestion(hours, limits)
+    return _typed("hours", hours.sort_values(["market_day", "agent", "hour"]))
+
+
+def _congestion(hours: pd.DataFrame, limits: pd.DataFrame) -> pd.Series:
+    """Per row, its hour's congestion as the clearing defines it (docs/market.md): ``import`` where the awards
+    together take the feeder's whole import limit, ``export`` its whole export limit, else ``none`` (also where no
+    call for bids, hence no limit, is recorded)."""
+    net = hours.groupby(["market_day", "hour"])["p_sch_mw"].transform("sum")
+    terms = hours[["market_day"]].merge(limits, on="market_day", how="left")
+    at_import = (net >= terms["import_limit_mw"].to_numpy() - CONGESTION_TOL_MW).fillna(False)
+    at_export = (net <= -terms["export_limit_mw"].to_numpy() + CONGESTION_TOL_MW).fillna(False)
+    return pd.Series(np.select([at_import, at_export], ["import", "export"], "none"), index=hours.index)
+
+
+def _days(statements: list[dict], hours: pd.DataFrame) -> pd.DataFrame:
+    if not statements:
+        return _typed("days", None)
+    totals = _frame(statements, ["market_day", "agent", *_MONEY, "missing_subperiods"])
+    energy = (hours.groupby(["market_day", "agent"], as_index=False)
+              [["import_mwh", "deviation_mwh", "under_import_mwh", "p_sch_mw"]].sum()
+              .rename(columns={"p_sch_mw": "award_mwh"}))  # an award of P_sch MW for 1 h is P_sch MWh
+    return _typed("days", totals.merge(energy, on=["market_day", "agent"]).sort_values(["market_day", "agent"]))
+
+
+def _meter(rec: Recording, grid: pd.DataFrame) -> pd.DataFrame:
+    reports, _ = accepted_meter_reports(rec)
+    if not reports:
+        return _typed("meter", None)
+    meter = _frame([msg.model_dump(mode="json") for _, msg in reports],
+                   ["market_day", "agent", "hour", "p_m_mw", "deviation_mw"])
+    meter = _numbered(meter.explode(["p_m_mw", "deviation_mw"], ignore_index=True), ["market_day", "agent", "hour"],
+                      "subperiod")
+    awards = _frame(_dumps(rec, "award"), ["market_day", "agent", "p_sch_mw"]).drop_duplicates(["market_day", "agent"])
+    awards = _numbered(awards.explode("p_sch_mw", ignore_index=True), ["market_day", "agent"], "hour")
+    meter = meter.merge(awards, on=["market_day", "agent", "hour"], how="left")
+    meter = meter.merge(grid, on=["market_day", "hour", "subperiod"], how="left")  # no grid state: connected NA
+    return _typed("meter", meter.sort_values(["market_day", "agent", "hour", "subperiod"]))
+
+
+def _bids(rec: Recording) -> pd.DataFrame:
+    kept, _ = accepted_messages(rec, "bid")
+    bids = _frame([msg.model_dump(mode="json") for _, msg in kept], ["market_day", "agent", "hours"])
+    bids = bids.drop_duplicates(["market_day", "agent"])  # the DMO takes one bid per agent and day
+    hours = _numbered(bids.explode("hours", ignore_index=True), ["market_day", "agent"], "hour")
+    steps = hours.explode("hours", ignore_index=True).dropna(subset="hours")  # an empty hour: no offer, no row
+    if steps.empty:
+        return _typed("bids", None)
+    steps = _numbered(steps, ["market_day", "agent", "hour"], "step")
+    prices = pd.DataFrame(steps["hours"].tolist(), index=steps.index)
+    return _typed("bids", steps.join(prices).sort_values(["market_day", "agent", "hour", "step"]))
+
+
+def _incidents(rec: Recording) -> pd.DataFrame:
+    last = {summary["market_day"]: summary for summary in _dumps(rec, "day_summary")}  # the latest of each day
+    if not any(summary["incidents"] for summary in last.values()):
+        return _typed("incidents", None)
+    return _typed("incidents", pd.json_normalize(list(last.values()), record_path="incidents", meta=["market_day"]))
+
+
+def _rejections(rec: Recording) -> pd.DataFrame:
+    rejections = _frame(_dumps(rec, "rejection"), list(TABLE_COLUMNS["rejections"]))
+    prefix = rec.prefix
+    rejections["key"] = rejections["key"].map(lambda key: relative_key(key, prefix))
+    return _typed("rejections", rejections)

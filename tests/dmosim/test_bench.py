@@ -1,0 +1,139 @@
+"""Smoke tests of the benchmarks (messaging, day, recovery): each runs end to end on tiny parameters and returns
+the expected figures. No timing assertions: the figures themselves belong to the benchmark's output."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import pkgutil
+import re
+
+import pytest
+
+import dmosim.bench
+from dmosim.bench.day import read_compute, split_day
+from dmosim.bench.week import summarise
+from dmosim.cli import main
+
+
+def bench_json(capsys, *argv: str) -> dict:
+    assert main(["bench", *argv, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_every_benchmark_module_is_a_bench_command(capsys):
+    with pytest.raises(SystemExit):
+        main(["bench", "--help"])
+    commands = set(re.search(r"\{([a-z,]+)\}", capsys.readouterr().out).group(1).split(","))
+    assert commands == {m.name for m in pkgutil.iter_modules(dmosim.bench.__path__)}
+
+
+def test_messaging_runs_end_to_end(capsys):
+    out = bench_json(capsys, "messaging", "--messages", "20", "--burst", "200", "--warmup", "5",
+                     "--codec-iterations", "20")
+    assert [row["kind"] for row in out["codec_us"]] == ["grid_state", "meter_report"]
+    assert all(row["bytes"] > 0 and row["encode_us"] > 0 and row["decode_us"] > 0 for row in out["codec_us"])
+    assert [row["path"] for row in out["round_trip_ms"]] == ["dmosim Bus", "plain zenoh"]
+    for row in out["round_trip_ms"]:
+        assert row["n"] == 20
+        assert 0 < row["p50"] <= row["p90"] <= row["p99"] <= row["max"]
+    for row in out["throughput"]:
+        assert row["sent"] == 200 and 0 < row["received"] <= 200 and row["lost"] == 200 - row["received"]
+        assert row["sent_per_s"] > 0 and row["received_per_s"] > 0
+    assert out["ratios"]["round_trip_p50_bus_over_zenoh"] > 0
+    assert out["goal"]["p50_round_trip_ms"] == out["round_trip_ms"][0]["p50"]
+
+
+def test_day_runs_end_to_end(capsys):
+    out = bench_json(capsys, "day", "--agents", "1", "--scenarios", "1", "--gap", "0.05", "--timeout", "600")
+    (row,) = out["days"]
+    assert row["agents"] == 1 and row["incidents"] == 0
+    assert row["day_s"] > 0 and row["compute_s"] > 0 and row["startup_s"] > 0 and row["agent_cpu_s"] > 0
+    assert math.isclose(row["overhead_s"], row["day_s"] - row["compute_s"])
+    assert row["process_s"] > row["day_s"]
+    assert [p["phase"] for p in out["phases"]] == ["bidding", "clearing", "scheduling", "realtime", "settlement"]
+    assert math.isclose(sum(p["wall_s"] for p in out["phases"]), row["day_s"])
+    assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0
+
+
+def test_recovery_loses_messages_everywhere_and_settles_every_statement_the_same(capsys, tmp_path):
+    out = bench_json(capsys, "recovery", "--agents", "2", "--days", "1", "--scenarios", "1", "--subperiods", "1",
+                     "--drop", "0.1", "--out", str(tmp_path))
+    clean, dropped = out["runs"]
+    assert (clean["run"], dropped["run"]) == ("fault-free", "dropped")
+    assert clean["dropped_by_dmo"] == clean["dropped_by_agents"] == clean["sent_again"] == 0
+    assert dropped["dropped_by_dmo"] + dropped["dropped_by_agents"] > 0 and dropped["sent_again"] > 0
+    assert out["ratios"]["statement lines that differ"] == 0 and "differences" not in out
+    assert out["ratios"]["wall dropped / fault-free"] > 0
+    assert (tmp_path / "fault-free" / "recording.mcap").is_file() and (tmp_path / "dropped" / "result.json").is_file()
+
+
+def test_split_takes_the_slowest_agent_per_step_and_bounds_cpu_by_the_cores():
+    phase_s = {"registration": 2.0, "bidding": 3.0, "clearing": 0.1, "scheduling": 5.0, "realtime": 4.8,
+               "settlement": 0.1}
+    step = lambda kind, wall, cpu, hour=None: {"kind": kind, "hour": hour, "wall_s": wall, "cpu_s": cpu}  # noqa: E731
+    hours = lambda wall, cpu: [step("grid_state", wall, cpu, h) for h in range(1, 25)]  # noqa: E731
+    compute = {
+        "mg1": [step("call_for_bids", 2.0, 1.0), step("award", 4.0, 2.0), *hours(0.1, 0.1),
+                step("settlement_statement", 0.5, 0.5)],  # not a step the DMO waits for: ignored
+        "mg2": [step("call_for_bids", 2.5, 2.0), step("award", 1.0, 1.0), *hours(0.15, 0.05)],
+    }
+    split = split_day(phase_s, compute, cores=2)
+    phases = {row["phase"]: row for row in split["phases"]}
+    assert "registration" not in phases
+    assert phases["bidding"]["compute_s"] == 2.5 and phases["scheduling"]["compute_s"] == 4.0
+    assert phases["realtime"]["compute_s"] == pytest.approx(24 * 0.15)
+    assert phases["clearing"]["compute_s"] == 0 and phases["clearing"]["overhead_s"] == 0.1
+    assert phases["bidding"]["cpu_bound_s"] == 2.0  # max(2.0, (1.0 + 2.0) / 2)
+    assert phases["realtime"]["cpu_bound_s"] == pytest.approx(24 * 0.1)  # max(0.1, 0.15 / 2)
+    t = split["totals"]
+    assert t["startup_s"] == 2.0 and t["day_s"] == pytest.approx(13.0)
+    assert t["compute_s"] == pytest.approx(2.5 + 4.0 + 3.6)
+    assert t["overhead_s"] == pytest.approx(13.0 - 10.1)
+    assert t["overhead_pct"] == pytest.approx(100 * 2.9 / 13.0)
+    assert t["per_hour_ms"] == pytest.approx(1000 * (4.8 - 3.6) / 24)
+    assert t["agent_cpu_s"] == pytest.approx(1.0 + 2.0 + 2.0 + 1.0 + 24 * 0.15)
+
+
+def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_with_the_first():
+    phase_s = {"registration": 2.0, "bidding": 1.0, "clearing": 0.0, "scheduling": 2.0, "realtime": 2.4,
+               "settlement": 0.0}
+    day = lambda d: {"day": d, "market_day": f"2026-07-0{d}", "phase_s": phase_s, "incidents": []}  # noqa: E731
+    entry = lambda d, kind, wall: {"kind": kind, "hour": None, "day": d, "wall_s": wall, "cpu_s": wall}  # noqa: E731
+    compute = {"mg1": [entry(1, "call_for_bids", 0.5), entry(1, "award", 1.0), entry(2, "award", 1.8)]}
+    memory = {"1": {"dmo": {"rss_mib": 90.0, "peak_mib": 100.0}, "mg1": {"rss_mib": 200.0, "peak_mib": 250.0}},
+              "2": {"dmo": {"rss_mib": 91.0, "peak_mib": 110.0}, "mg1": {"rss_mib": 201.0, "peak_mib": 250.0}}}
+    result = {"agents": ["mg1"], "days": [day(1), day(2)], "memory_mib": memory, "recorded": {"bytes": 20_000}}
+    report = summarise(result, compute, cores=2)
+    assert [d["compute_s"] for d in report["days"]] == [1.5, 1.8]  # each day its own entries only
+    assert report["days"][0]["overhead_pct"] == pytest.approx(100 * (5.4 - 1.5) / 5.4, abs=0.01)
+    assert {r["role"]: r["peak_ratio"] for r in report["memory"]} == {"dmo": 1.1, "mg1": 1.0}
+    assert report["ratios"]["max peak_mib last / first day (any role)"] == 1.1
+    assert report["ratios"]["recording bytes per agent-day"] == 10_000
+
+
+def test_compute_is_read_from_the_agents_log_line(tmp_path):
+    log = tmp_path / "mg1.log"
+    log.write_text('01:02:03 mg1 INFO mg1 registered\n'
+                   '01:02:09 mg1 INFO mg1 compute [{"kind":"award","hour":null,"wall_s":0.5,"cpu_s":0.4}]\n')
+    assert read_compute(log) == [{"kind": "award", "hour": None, "wall_s": 0.5, "cpu_s": 0.4}]
+    (tmp_path / "mg2.log").write_text("01:02:03 mg2 INFO mg2 registered\n")
+    with pytest.raises(RuntimeError, match="no compute line"):
+        read_compute(tmp_path / "mg2.log")
+
+
+def test_solver_bench_runs_both_routes_and_verifies_showing_progress(capsys):
+    from dmosim.bench import solver
+
+    args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=0, skip_extensive=False)
+    result = solver.run(args)
+    routes = {r["route"]: r for r in result["rows"]}
+    assert set(routes) == {"benders", "extensive"} and all(r["verified"] for r in routes.values())
+    assert routes["benders"]["bound"] <= routes["extensive"]["objective"] * (1 + 1e-6)
+    assert result["ratios"][0]["scenarios"] == 2
+    # A paper-size run takes most of an hour: each solve announces itself and Benders reports every iteration.
+    lines = capsys.readouterr().err.splitlines()
+    iterations = [ln for ln in lines if ln.startswith("dmosim: bench solver, 2 scenarios: benders ") and "iteration" in ln]
+    assert len(iterations) == routes["benders"]["iterations"]
+    assert lines.index("dmosim: bench solver, 2 scenarios: extensive form (cap 60 s)") > lines.index(iterations[-1])
