@@ -57,6 +57,7 @@ def test_day_runs_end_to_end(capsys):
     assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0
 
 
+@pytest.mark.slow
 def test_recovery_loses_messages_everywhere_and_settles_every_statement_the_same(capsys, tmp_path):
     out = bench_json(capsys, "recovery", "--agents", "2", "--days", "1", "--scenarios", "1", "--subperiods", "1",
                      "--drop", "0.1", "--out", str(tmp_path))

@@ -115,6 +115,7 @@ def test_penalty_cost_grows_with_the_penalty():
     assert frame["penalty_cost"].iloc[-1] == 0
 
 
+@pytest.mark.slow
 def test_study_command_end_to_end(tmp_path):
     out = tmp_path / "new" / "dir"  # created, parents included
     env = os.environ | {"PYTHONPATH": str(REPO)}

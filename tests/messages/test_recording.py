@@ -488,6 +488,7 @@ def test_replay_loops_until_interrupted(tmp_path):
     assert result["loops"] >= 2 and result["interrupted"] and result["published"] >= 2 * len(mix)
 
 
+@pytest.mark.slow
 def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path):
     rec = read_recording(day[0])
     fleet = tomllib.loads(next(a for a in rec.attachments if a.name == "fleet.toml").data.decode())
@@ -532,6 +533,7 @@ def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path)
 
 # --- determinism -----------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_the_same_configuration_and_seed_record_the_same_contents(day, tmp_path):
     again, result = run_day(tmp_path)
     first, second = read_recording(day[0]), read_recording(again)

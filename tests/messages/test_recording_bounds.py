@@ -160,6 +160,7 @@ def flood(tmp_path_factory) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_every_verb_reads_a_flood_of_valid_messages_within_a_small_peak(flood, tmp_path):
     for verb, more in (("info", []), ("cat", []), ("settle", []), ("export", ["--out", str(tmp_path / "tables")]),
                        ("plot", ["--out", str(tmp_path / "day.png")])):
@@ -299,6 +300,7 @@ def test_a_cut_file_still_reads_what_precedes_the_cut(day):
         assert not rec.complete and "file cut after" in rec.cut_note
 
 
+@pytest.mark.slow
 def test_what_the_writer_writes_is_far_inside_the_caps(tmp_path):
     """A day of 100 agents at 60 sub-periods, as the recorder writes it: its largest chunk and its expansion,
     charged as the reader charges them, leave the caps a wide margin."""

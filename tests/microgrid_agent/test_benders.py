@@ -30,6 +30,7 @@ def small():
     return make_instance(load_case("paper"), scenarios=3, sample_size=3, subperiods=2, seed=2, island_hours=1)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("workers", [1, 2])
 def test_benders_agrees_with_the_extensive_form_within_the_gap(small, workers):
     reference = small.solve(gap=1e-6)
@@ -165,6 +166,7 @@ def test_the_relative_gap_is_closed_only_when_the_bound_reaches_a_zero_cost():
     assert _apart(-1e-3, 0.0) == np.inf
 
 
+@pytest.mark.slow
 def test_benders_agrees_with_the_extensive_form_under_an_announced_rule(small):
     """The decomposition is built from the same model functions, the rule's dC included."""
     pieces = [[(-20.0, 0.0), (0.0, 0.0), (90.0, -45.0)]] * HOURS  # a dead band of 0.5 MW above, a charge below
@@ -177,6 +179,7 @@ def test_benders_agrees_with_the_extensive_form_under_an_announced_rule(small):
     assert schedule.bound <= reference.objective * (1 + 1e-6) and schedule.cost.penalty > 0
 
 
+@pytest.mark.slow
 def test_benders_agrees_with_the_extensive_form_when_the_award_must_be_taken(small):
     """The floor P_M >= U P_sch - dP- and its price reach the master's relaxation and the scenario LPs alike."""
     params = replace(small.params, penalty=np.inf, take_award=True)

@@ -221,6 +221,7 @@ def paper_small():
     return lambda **kw: make_instance(load_case("paper"), scenarios=3, sample_size=3, subperiods=1, seed=4, **kw)
 
 
+@pytest.mark.slow
 def test_positive_part_matches_papers_big_m(paper_small):
     inst = paper_small(transfer_scale=0.6, penalty=150.0)
     exact = verified(inst.case, inst.scen, inst.params)
@@ -240,6 +241,7 @@ def test_islanding_forces_zero_transfer_and_infinite_penalty_caps_import(paper_s
     assert schedule.cost.penalty == 0.0
 
 
+@pytest.mark.slow
 def test_cheap_penalty_is_used_and_infinite_penalty_is_not(paper_small):
     low = paper_small(transfer_scale=0.5, penalty=10.0)
     cheap = verified(low.case, low.scen, low.params)
@@ -254,6 +256,7 @@ def nondecreasing(costs):
     return all(b >= a * (1 - 1e-6) for a, b in zip(costs, costs[1:]))
 
 
+@pytest.mark.slow
 def test_cost_grows_with_penalty_and_islanding_hours(paper_small):
     by_penalty = [paper_small(transfer_scale=0.6, penalty=c) for c in (0.0, 50.0, 150.0, float("inf"))]
     costs = [verified(i.case, i.scen, i.params).objective for i in by_penalty]
@@ -263,6 +266,7 @@ def test_cost_grows_with_penalty_and_islanding_hours(paper_small):
     assert nondecreasing(costs) and costs[-1] > costs[0]
 
 
+@pytest.mark.slow
 def test_vss_and_evpi_are_non_negative(paper_small):
     inst = paper_small(island_hours=1)
     rp = verified(inst.case, inst.scen, inst.params)
@@ -273,6 +277,7 @@ def test_vss_and_evpi_are_non_negative(paper_small):
     assert m.ws <= m.rp <= m.eev
 
 
+@pytest.mark.slow
 def test_ten_minute_resolution_schedule_verifies():
     inst = make_instance(load_case("paper"), scenarios=2, sample_size=4, subperiods=6, seed=1)
     schedule = inst.solve(gap=0.02, time_limit=120)

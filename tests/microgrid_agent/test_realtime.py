@@ -82,6 +82,7 @@ def test_realised_day_keeps_the_commitment_and_the_physics(case, first_stage, da
     assert math.fsum(h.cost.total for h in hours) == pytest.approx(result.cost.total)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rule, params", [("paper", {"penalty": PENALTY}),
                                           ("deadband", {"rate": PENALTY, "below_rate": 40.0, "band_mw": 0.5})])
 def test_the_operators_penalty_is_what_the_dmo_bills_for_its_reports(case, first_stage, rule, params):

@@ -101,3 +101,10 @@ def test_protocol_md_holds_the_message_reference_the_types_generate():
     held = doc[doc.index(BEGIN):doc.index(END) + len(END)]
     assert held == reference(), ("docs/protocol.md's message reference differs from messages/schemas.py: "
                                  "paste the output of `dmosim schemas --markdown` between its markers")
+
+
+def test_ci_runs_the_readmes_test_command():
+    """README.md opens with two commands; the second is the test command, and .ci/run runs exactly it."""
+    commands = text(ROOT / "README.md").split("```bash\n", 1)[1].split("```", 1)[0].splitlines()
+    assert len(commands) == 2 and "pytest" in commands[1]
+    assert commands[1] in text(ROOT / ".ci" / "run").splitlines()
