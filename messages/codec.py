@@ -68,9 +68,8 @@ def _upgrade(payload: bytes) -> bytes | None:
     """A message of an older schema version as this version reads it, or None if there is nothing to upgrade.
     Version 1 -> 2: a clock, which had no day, is day 1 of a one-day run. Version 2 -> 3: an award or a statement
     names no settlement rule, which is the paper's at its penalty and credit rates. Version 3 -> 4: a message is
-    bound to no run token and no incarnation (empty, 0), which a live DMO refuses and a recording reader accepts. Version 4 -> 5: an award states no congestion (null), which
-    the tables show as unknown.
-    An older message that already has a field of a later version is left as it is, for validation to refuse."""
+    bound to no run token and no incarnation (empty, 0), which a live DMO refuses and a recording reader accepts.
+    Version 4 -> 5: an award states no congestion (null), which the tables show as unknown. An older message that already has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):

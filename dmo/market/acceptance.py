@@ -96,7 +96,8 @@ def check_agent_day(msg: AgentDay, market_day: str, first_day: str, phase: str, 
         return "wrong_day", f"agent_day of market day {msg.market_day}, which this run has not operated"
     if msg.market_day == market_day and PHASE_ORDER[phase] < PHASE_ORDER["settlement"] and \
             not (phase == "realtime" and hour == HOURS):
-        return "invalid", f"agent_day of {market_day} before its last hour (now {phase}{f' hour {hour}' if hour else ''})"
+        now = f"{phase} hour {hour}" if hour else phase
+        return "invalid", f"agent_day of {market_day} before its last hour (now {now})"
     if msg.market_day in taken:
         return "duplicate", f"second agent_day of {msg.market_day} from {msg.sender}; the first one stands"
     return None

@@ -21,10 +21,10 @@ class DayState:
     ``run_token`` is the run's token, drawn when the run starts (kept in the journal for a resumed DMO): every
     message of the run carries it.
     ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``realised`` an agent to {market day: the
-    realised day it reported} (of the run: one may come after the next day began, and none changes a settlement); ``vanished`` maps an agent whose liveliness
-    was lost to the (phase, hour) it vanished in (it may come back); ``gone`` holds the agents not live now.
-    Registrations, presence, realised days and the replay guard belong to the run; the answers, incidents and counts to the
-    day ``day`` (1-based), whose date is ``market_day``: ``start_day`` closes one day and opens the next.
+    realised day it reported} (of the run: one may come after the next day began, and none changes a settlement);
+    ``vanished`` maps an agent whose liveliness was lost to the (phase, hour) it vanished in (it may come back);
+    ``gone`` holds the agents not live now. Registrations, presence, realised days and the replay guard belong to
+    the run; the answers, incidents and counts to the day ``day`` (1-based), whose date is ``market_day``: ``start_day`` closes one day and opens the next.
     """
 
     registered: dict[str, Registration] = field(default_factory=dict)

@@ -2,9 +2,10 @@
 
 For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
 (``phase_s``) and each agent reports, after its last meter report of the day, the wall and CPU time of every message
-it handled (the ``compute`` of its ``agent_day`` message, which the DMO's result gives under ``realised``). The split is ``split_day``: per step (the call for bids, the award,
-each hour's grid state) the slowest agent's compute time is on the critical path; the day's wall time minus that
-critical path is the overhead (definition in docs/benchmarks.md).
+it handled (the ``compute`` of its ``agent_day`` message, which the DMO's result gives under ``realised``). The
+split is ``split_day``: per step (the call for bids, the award, each hour's grid state) the slowest agent's compute
+time is on the critical path; the day's wall time minus that critical path is the overhead (definition in
+docs/benchmarks.md).
 """
 
 from __future__ import annotations

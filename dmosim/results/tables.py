@@ -124,7 +124,8 @@ def _statements(rec: Recording) -> list[dict]:
 def _congestion(rec: Recording) -> pd.DataFrame:
     """(market_day, agent, hour, congestion) from the first award recorded for each day and agent: the clearing's
     own decision. An award that states none (older than version 5) gives no rows."""
-    awards = _frame(_dumps(rec, "award"), ["market_day", "agent", "congestion"]).drop_duplicates(["market_day", "agent"])
+    awards = _frame(_dumps(rec, "award"), ["market_day", "agent", "congestion"])
+    awards = awards.drop_duplicates(["market_day", "agent"])
     awards = awards[awards["congestion"].notna()]
     return _numbered(awards.explode("congestion", ignore_index=True), ["market_day", "agent"], "hour")
 
