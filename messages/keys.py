@@ -4,7 +4,7 @@ Layout (``<run>`` is the run id, ``<agent>`` an agent id)::
 
     dmosim/<run>/dmo/call_for_bids | clock | grid | summary | rejected
     dmosim/<run>/dmo/award/<agent> | statement/<agent> | receipt/<agent>
-    dmosim/<run>/agent/<agent>/register | bid | schedule | meter
+    dmosim/<run>/agent/<agent>/register | bid | schedule | meter | day
     dmosim/<run>/alive/<name>            liveliness tokens: "dmo", "recorder" or an agent id
 
 The DMO publishes only under ``dmo/``, an agent only under its own ``agent/<agent>/``, so access control can be
@@ -46,6 +46,7 @@ ROUTES: dict[str, tuple[str, str, bool]] = {
     "bid": ("agent", "bid", True),
     "schedule": ("agent", "schedule", True),
     "meter_report": ("agent", "meter", True),
+    "agent_day": ("agent", "day", True),
 }
 TOPIC_KINDS: dict[tuple[str, str], str] = {(role, topic): kind for kind, (role, topic, _) in ROUTES.items()}
 
@@ -121,6 +122,9 @@ class Keys:
 
     def meter(self, agent: str) -> str:
         return self._agent(agent, "meter")
+
+    def agent_day(self, agent: str) -> str:
+        return self._agent(agent, "day")
 
     def agent_all(self, agent: str) -> str:
         return f"{self.prefix}/agent/{_agent_or_star(agent)}/**"

@@ -21,14 +21,16 @@ from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
 
 # 2: the clock says which day of how many (a run of several market days); 3: awards and statements name their
 # settlement rule, and awards carry its price of a deviation; 4: every message is bound to its run (``run``) and
-# its sender's process (``incarnation``), and the DMO answers every agent message with a receipt
-SCHEMA_VERSION = 4
+# its sender's process (``incarnation``), and the DMO answers every agent message with a receipt; 5: awards carry the
+# clearing's congestion per hour, and an agent may report its realised day (``agent_day``)
+SCHEMA_VERSION = 5
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
 MAX_PIECES = 8
 MAX_UNITS = 64
 MAX_AGENTS = 1024
+MAX_HANDLED = 1000  # entries of an agent_day's ``compute``: the messages of a day an agent handled, with room to spare
 CENT = 0.01
 KIND = "the message type: which schema the message follows and which key it travels on"
 
@@ -60,6 +62,9 @@ RejectCode = Literal["oversize", "not_json", "not_object", "unknown_kind", "unsu
                      "stale"]
 REJECT_CODES: tuple[str, ...] = get_args(RejectCode)
 Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
+# Whether a feeder limit bound an hour, as the clearing decided it (docs/market.md, "Price").
+Congestion = Literal["none", "import", "export"]
+CONGESTION: tuple[str, ...] = get_args(Congestion)
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 Piece = tuple[Float, Float]
 RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]
@@ -246,6 +251,12 @@ class Award(_FromDmo):
         "lists of at most 8 pieces [slope $/MWh, intercept $/h]: the charge is max(slope d + intercept) $/h; "
         "null when the rule cannot be written so (a rule of the user's own), and an agent then schedules against "
         "the paper's term at penalty_per_mwh"))] = None
+    congestion: Annotated[tuple[Congestion, ...] | None, Field(min_length=HOURS, max_length=HOURS), Field(
+        description=(
+            "24 hourly congestion states, hour 1 first, as the clearing decided them (docs/market.md): \"import\" "
+            "where the net import the ISO price calls for exceeds the feeder's import limit, \"export\" where the "
+            "net export exceeds its export limit, else \"none\" (bids summing exactly to a limit do not congest "
+            "it); the same for every agent. null only in awards older than version 5"))] = None
 
 
 # --- scheduling ---------------------------------------------------------------------------------------------
@@ -326,6 +337,75 @@ class MeterReport(_FromAgent):
     def _lengths(self):
         _check_length(self.p_m_mw, self.subperiods, "p_m_mw")
         _check_length(self.deviation_mw, self.subperiods, "deviation_mw")
+        return self
+
+
+class HandlingTime(_WireModel):
+    """The agent's computation on one message of the DMO's it handled: from taking it up to sending its answer (or,
+    for a message it does not answer, to being done with it)."""
+
+    kind: Annotated[Literal["clock", "call_for_bids", "award", "grid_state", "settlement_statement", "day_summary"],
+                    Field(description="the kind of the DMO's message handled")]
+    hour: Annotated[Hour | None, Field(description="its hour (a clock's or grid state's in real time), or null")]
+    wall_s: Annotated[NonNeg, Field(description="wall-clock seconds")]
+    cpu_s: Annotated[NonNeg, Field(description="CPU seconds of the agent's process")]
+
+
+Counts = Annotated[dict[Annotated[str, Strict(), Field(min_length=1, max_length=64)], Count], Field(max_length=64)]
+
+
+class MessageCounts(_WireModel):
+    """What an agent's process did with messages since it started (its incarnation), as its day was operated."""
+
+    published: Annotated[Count, Field(description="payloads it published, sends again included")]
+    received: Annotated[Count, Field(description="valid messages it received")]
+    rejected: Annotated[Counts, Field(description="received payloads it refused, by code")]
+    handler_errors: Annotated[Count, Field(description="messages whose handling failed")]
+    ignored: Annotated[Counts, Field(description=(
+        "messages it handled as no-ops, by why (e.g. award_again: the same award again)"))]
+    sent_again: Annotated[Count, Field(description="payloads it sent again for want of a receipt")]
+    asked: Annotated[Count, Field(description="messages it asked the DMO for after a silence, and handled")]
+    faults_injected: Annotated[Counts, Field(description="message faults its bus injected, by kind (e.g. drop)")]
+
+
+class MidnightUnit(_WireModel):
+    """One unit as the operated day ended: what it carries into the next day."""
+
+    on: Annotated[Bool, Field(description="whether it is committed in hour 24")]
+    output_mw: Annotated[Float, Field(description="its output in the last sub-period, MW")]
+    hours: Annotated[int, Strict(), Field(ge=1, le=HOURS), Field(description=(
+        "the whole hours it has been in that state, 24 meaning at least a day"))]
+
+
+class AgentDay(_FromAgent):
+    """Phase 5, agent -> DMO, once a day after its last meter report: the agent's own account of its operated day,
+    what the DMO cannot see (its cost, curtailment, state at midnight, computation and message counts). Informational:
+    it never changes a settlement, and an agent that does not send it takes part all the same."""
+
+    kind: Annotated[Literal["agent_day"], Field(description=KIND)] = "agent_day"
+    generation: Annotated[Float, Field(description="$: its units' generation cost over the operated day")]
+    startup: Annotated[Float, Field(description="$: its units' start-up cost")]
+    curtailment: Annotated[Float, Field(description="$: the cost of the load it curtailed")]
+    penalty: Annotated[Float, Field(description=(
+        "$: its deviations from the award priced as it scheduled against them (its own reckoning, not the "
+        "statement's)"))]
+    total: Annotated[Float, Field(description="$: generation + startup + curtailment + penalty")]
+    curtailment_mwh: Annotated[NonNeg, Field(description="MWh of load it curtailed")]
+    deviation_mwh: Annotated[NonNeg, Field(description=(
+        "MWh it imported above its award, the sum of max(P_M - P_sch, 0) dt"))]
+    units: Annotated[dict[Annotated[str, Strict(), Field(pattern=NAME_PATTERN)], MidnightUnit],
+                     Field(max_length=MAX_UNITS, description=(
+                         "unit name -> its state at midnight, which the next day starts from"))]
+    stored_mwh: Annotated[Annotated[float, Strict(), Field(ge=0)] | None, Field(description=(
+        "the energy in its storage at midnight, MWh, or null without a storage"))]
+    compute: Annotated[tuple[HandlingTime, ...], Field(max_length=MAX_HANDLED, description=(
+        "the messages of the day it handled up to its last meter report, in order, each with its computation "
+        "(at most 1000: the first ones)"))]
+    messages: Annotated[MessageCounts, Field(description="its process's message counts as the day was operated")]
+
+    @model_validator(mode="after")
+    def _adds_up(self):
+        _check_sum(self.total, self.generation + self.startup + self.curtailment + self.penalty, "total")
         return self
 
 
@@ -454,7 +534,7 @@ class Rejection(_FromDmo):
 
 class Receipt(_FromDmo):
     """DMO -> one agent: what became of one payload it received from that agent, accepted or refused. An agent sends
-    each registration, bid, schedule and meter report again until its receipt comes (docs/protocol.md)."""
+    each registration, bid, schedule, meter report and agent_day again until its receipt comes (docs/protocol.md)."""
 
     kind: Annotated[Literal["receipt"], Field(description=KIND)] = "receipt"
     agent: Annotated[AgentId, Field(description="the agent whose payload this is (the key names it too)")]
@@ -480,12 +560,12 @@ class Receipt(_FromDmo):
 
 MODELS: dict[str, type[Envelope]] = {
     model.model_fields["kind"].default: model
-    for model in (Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport,
+    for model in (Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport, AgentDay,
                   SettlementStatement, DaySummary, Rejection, Receipt)
 }
 KINDS = tuple(MODELS)
 
-Message = Annotated[Union[Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport,
+Message = Annotated[Union[Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport, AgentDay,
                           SettlementStatement, DaySummary, Rejection, Receipt], Field(discriminator="kind")]
 MESSAGE_ADAPTER: TypeAdapter[Message] = TypeAdapter(Message)
 

@@ -8,7 +8,11 @@ never changes an award or a settlement (docs/protocol.md, "Rejections").
 
 from __future__ import annotations
 
+from collections.abc import Container
+
 from messages import PHASES, MeterReport, Registration
+from messages.schemas import AgentDay
+from scenarios.horizon import HOURS
 
 from .settlement import READING_TOLERANCE_MW
 
@@ -16,7 +20,8 @@ Refusal = tuple[str, str]
 
 PHASE_ORDER = {phase: i for i, phase in enumerate(PHASES)}  # the clock's phases, in the order of the day
 # The phase in which each kind an agent sends is due.
-ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime"}
+ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime",
+                "agent_day": "realtime"}
 
 
 def check_run(msg, run_token: str) -> Refusal | None:
@@ -78,4 +83,21 @@ def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported, r
     if islanded:
         k = islanded[0]
         return "invalid", f"P_M {msg.p_m_mw[k]} MW in sub-period {k + 1}, which is islanded: P_M must be 0"
+    return None
+
+
+def check_agent_day(msg: AgentDay, market_day: str, first_day: str, phase: str, hour: int | None,
+                    taken: Container[str]) -> Refusal | None:
+    """An agent's realised day is accepted once its day has been operated: during the last real-time hour of the day
+    being run (``market_day``) or its settlement, or on a later day of the run (it may arrive after the next day
+    began: the run began on ``first_day``); once per agent and day (``taken`` holds the market days of the agent's
+    realised days already accepted). It is informational: accepting it changes no award and no settlement."""
+    if msg.market_day > market_day or msg.market_day < first_day:
+        return "wrong_day", f"agent_day of market day {msg.market_day}, which this run has not operated"
+    if msg.market_day == market_day and PHASE_ORDER[phase] < PHASE_ORDER["settlement"] and \
+            not (phase == "realtime" and hour == HOURS):
+        now = f"{phase} hour {hour}" if hour else phase
+        return "invalid", f"agent_day of {market_day} before its last hour (now {now})"
+    if msg.market_day in taken:
+        return "duplicate", f"second agent_day of {msg.market_day} from {msg.sender}; the first one stands"
     return None

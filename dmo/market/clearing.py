@@ -20,8 +20,6 @@ import numpy as np
 
 from scenarios.horizon import HOURS, finite, hourly
 
-CONGESTION = ("none", "import", "export")
-
 
 def _agent_id(agent: object) -> str:
     if not isinstance(agent, str) or not agent.strip():
@@ -69,7 +67,8 @@ class BidCurve:
 @dataclass(frozen=True)
 class ClearingResult:
     """Uniform price per hour ($/MWh), the award per microgrid per hour (MW, + import / - export, 24 values),
-    and per hour whether a feeder limit bound ("none", "import", "export"). ``awards`` is keyed in sorted
+    and per hour whether a feeder limit bound ("none", "import", "export": ``messages.schemas.CONGESTION``, the one
+    definition of congestion, which each award carries and every table and figure reads). ``awards`` is keyed in sorted
     agent order and must be treated as read-only."""
 
     price: tuple[float, ...]

@@ -18,11 +18,12 @@ import queue
 import secrets
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 from messages import PHASES, Bid, GridState, Schedule, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
+from messages.schemas import AgentDay, Envelope
 from messages.transport import Bus
 from scenarios.horizon import HOURS
 from scenarios.names import check_agent_id
@@ -82,6 +83,7 @@ class RunResult:
 
     days: list[DayResult]
     settlement_rule: str  # the rule every day was settled by, with every parameter
+    realised: dict[str, dict[str, AgentDay]] = field(default_factory=dict)  # agent -> market day -> its agent_day
 
     def report(self, run_id: str, transport: dict) -> dict:
         """The DMO's part of the ``dmosim run --json`` object (docs/experiments.md, "The result"). A one-day run
@@ -91,7 +93,7 @@ class RunResult:
         days = [d.report() for d in self.days]
         agents = sorted(self.days[-1].state.registered)
         out = {"run_id": run_id, "agents": agents, "days": days, "settlement_rule": self.settlement_rule,
-               "transport": transport}
+               "transport": transport, "realised": self.realised_days(agents)}
         if len(days) == 1:
             return {**out, **days[0], "days": days}
         money = ("energy_charge", "deviation_penalty", "credit", "total")
@@ -110,6 +112,15 @@ class RunResult:
                 "received_again": sum(d["received_again"] for d in days),
                 "locked_out": sorted({a for d in days for a in d["locked_out"]}),
                 "incidents": [{**i, "market_day": d["market_day"]} for d in days for i in d["incidents"]]}
+
+
+    def realised_days(self, agents: list[str]) -> dict[str, list[dict]]:
+        """Agent -> the realised days it reported (its ``agent_day`` messages, as received), in order of the day,
+        each with the run's ``day`` and its ``market_day``; an agent that reported none has an empty list."""
+        day_of = {d.market_day: d.day for d in self.days}
+        envelope = set(Envelope.model_fields)
+        return {a: [{"day": day_of.get(market_day), "market_day": market_day, **msg.model_dump(exclude=envelope)}
+                    for market_day, msg in sorted(self.realised.get(a, {}).items())] for a in agents}
 
 
 def bid_curve(bid: Bid) -> BidCurve:
@@ -185,7 +196,7 @@ class MarketDay:
         self._linger()
         if self.journal is not None:
             self.journal.close()
-        return RunResult(results, c.rule.label)
+        return RunResult(results, c.rule.label, s.realised)
 
     def _run_day(self, day: int) -> DayResult:
         s, c = self.state, self.config
@@ -436,10 +447,13 @@ class MarketDay:
                                        f"{self._resend(msg.sender)}")
 
     def _linger(self) -> None:
-        """Stay until the live agents have left (they leave once they have the summary), at most ``linger_s``:
-        the DMO is the agents' router, and closing at once could cut off the summary still on its way."""
+        """Stay until the live agents have left (they leave once they have the summary and what they sent is
+        receipted), at most ``linger_s``: the DMO is the agents' router, and closing at once could cut off the
+        summary still on its way. What agents send meanwhile is decided and receipted as in settlement: a realised
+        day of the last day is still taken."""
         waiting = set(self.state.live())
         deadline = time.monotonic() + self.config.linger_s
+        accept = intake.out_of_phase(self.state)
         while waiting and (left := deadline - time.monotonic()) > 0:
             try:
                 event = self.events.get(timeout=left)
@@ -447,6 +461,8 @@ class MarketDay:
                 break
             if event[0] == "leave":
                 waiting.discard(event[1])
+            elif event[0] in ("msg", "reject"):
+                self._handle(event, accept)
 
 
 PRESENCE_CHECK_S = 0.5  # how long a presence check may hold the DMO up (an answer on one host takes milliseconds)

@@ -1,5 +1,6 @@
 """What the DMO does with one valid message from an agent, decided on its state alone: bound to this run, an exact
-copy of a message taken before, admitted (day, sender, process, sequence number), a rejoin, or the phase's to take.
+copy of a message taken before, admitted (day, sender, process, sequence number), a rejoin, a realised day (taken in
+any phase once its day is operated, and never read by clearing or settlement), or the phase's to take.
 
 Pure but for the state it updates, so the live DMO (``day.py``) and the tests drive the same decisions; the DMO
 then journals, receipts, publishes and logs what the outcome says.
@@ -11,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from messages import GridState, MeterReport, Registration, Schedule
+from messages.schemas import AgentDay
 
 from ..market import acceptance
 from ..market.acceptance import Refusal
@@ -46,7 +48,8 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
         state.again += 1
         return Outcome(AGAIN)
     rejoining = isinstance(msg, Registration) and msg.sender in state.registered
-    refusal = ((None if rejoining else acceptance.check_day(msg, state.market_day))  # a rejoin is of the run
+    of_the_run = rejoining or isinstance(msg, AgentDay)  # a rejoin, or a realised day that came after midnight
+    refusal = ((None if of_the_run else acceptance.check_day(msg, state.market_day))
                or acceptance.check_registered(msg, state.registered)
                or state.guard.check(msg.sender, msg.incarnation, msg.seq, isinstance(msg, Registration)))
     what = ACCEPTED
@@ -56,6 +59,8 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
             if refusal is None:
                 rejoin.readmit(state, msg)
                 what = REJOINED
+        elif isinstance(msg, AgentDay):
+            refusal = realised_day(state, msg)
         elif isinstance(msg, Schedule) and msg.sender in state.rescheduling:
             state.schedules[msg.sender] = msg  # a rejoined agent's new schedule replaces the old one
             state.rescheduling.discard(msg.sender)
@@ -65,6 +70,15 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
         return Outcome(REFUSED, refusal)
     state.count_accepted(msg, sha256)
     return Outcome(what)
+
+
+def realised_day(state: DayState, msg: AgentDay) -> Refusal | None:
+    """An agent's realised day goes into ``state.realised`` (``acceptance.check_agent_day``), whatever the phase."""
+    taken = state.realised.setdefault(msg.sender, {})
+    refusal = acceptance.check_agent_day(msg, state.market_day, state.first_market_day, state.phase, state.hour, taken)
+    if refusal is None:
+        taken[msg.market_day] = msg
+    return refusal
 
 
 # --- each phase's rule (``Accept``), on the state alone ----------------------------------------------------------

@@ -16,6 +16,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, sha256
+from messages.schemas import AgentDay
 
 from . import rejoin
 from .state import DayState
@@ -114,6 +115,8 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
                 state.rescheduling.discard(msg.sender)
             elif isinstance(msg, MeterReport):
                 state.meter[msg.sender][msg.hour - 1] = msg.p_m_mw
+            elif isinstance(msg, AgentDay):
+                state.realised.setdefault(msg.sender, {})[msg.market_day] = msg
             state.count_accepted(msg, sha256(payload))
     return clock, finished
 

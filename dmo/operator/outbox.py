@@ -29,13 +29,15 @@ def call_for_bids(config: DayConfig, day: int, deadline_s: float) -> CallForBids
 
 
 def award(config: DayConfig, day: int, clearing: ClearingResult, agent: str) -> Award:
-    """One agent's award of day ``day``: its P_sch, the clearing prices and the settlement terms and rules."""
+    """One agent's award of day ``day``: its P_sch, the clearing prices and congestion, and the settlement terms and
+    rules."""
     c = config
     rule, (penalty, credit) = c.rule, c.rates
     return Award(sender=DMO, market_day=c.market_day_of(day), agent=agent, p_sch_mw=clearing.awards[agent],
                  clearing_price_per_mwh=clearing.price, penalty_per_mwh=penalty, credit_per_mwh=credit,
                  subperiods=c.subperiods, rules_version=RULES_VERSION, rules=rule.words, settlement_rule=rule.label,
-                 deviation_cost=rule.deviation_cost(clearing.awards[agent], clearing.price))
+                 deviation_cost=rule.deviation_cost(clearing.awards[agent], clearing.price),
+                 congestion=clearing.congested)
 
 
 def grid_state(config: DayConfig, day: int, hour: int) -> GridState:

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import collections
 import copy
+import datetime as dt
 from dataclasses import dataclass, field
 
 from messages import Bid, Incident, Registration, Schedule
+from messages.schemas import AgentDay
 
 from .guard import SequenceGuard
 from .incidents import IncidentLog
@@ -18,10 +20,11 @@ class DayState:
 
     ``run_token`` is the run's token, drawn when the run starts (kept in the journal for a resumed DMO): every
     message of the run carries it.
-    ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``vanished`` maps an agent whose liveliness
-    was lost to the (phase, hour) it vanished in (it may come back); ``gone`` holds the agents not live now.
-    Registrations, presence and the replay guard belong to the run; the answers, incidents and counts to the
-    day ``day`` (1-based), whose date is ``market_day``: ``start_day`` closes one day and opens the next.
+    ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``realised`` an agent to {market day: the
+    realised day it reported} (of the run: one may come after the next day began, and none changes a settlement);
+    ``vanished`` maps an agent whose liveliness was lost to the (phase, hour) it vanished in (it may come back);
+    ``gone`` holds the agents not live now. Registrations, presence, realised days and the replay guard belong to
+    the run; the answers, incidents and counts to the day ``day`` (1-based), whose date is ``market_day``: ``start_day`` closes one day and opens the next.
     """
 
     registered: dict[str, Registration] = field(default_factory=dict)
@@ -29,6 +32,7 @@ class DayState:
     bids: dict[str, Bid] = field(default_factory=dict)
     schedules: dict[str, Schedule] = field(default_factory=dict)
     meter: dict[str, dict[int, tuple[float, ...]]] = field(default_factory=dict)
+    realised: dict[str, dict[str, AgentDay]] = field(default_factory=dict)
     log: IncidentLog = field(default_factory=IncidentLog)
     accepted: collections.Counter = field(default_factory=collections.Counter)  # by kind
     guard: SequenceGuard = field(default_factory=SequenceGuard)
@@ -43,13 +47,18 @@ class DayState:
 
     def start_day(self, day: int, market_day: str) -> DayState:
         """Close the current day and open ``day``: returns the closed day's state (its answers, incidents and
-        counts, for its result); registrations, presence and the replay guard carry over."""
+        counts, for its result); registrations, presence, realised days and the replay guard carry over."""
         closed = copy.copy(self)
         self.day, self.market_day, self.phase, self.hour = day, market_day, "bidding", None
         self.bids, self.schedules, self.rescheduling = {}, {}, set()
         self.meter = {agent: {} for agent in self.registered}
         self.log, self.accepted, self.again = IncidentLog(), collections.Counter(), 0
         return closed
+
+    @property
+    def first_market_day(self) -> str:
+        """The date of the run's first day."""
+        return (dt.date.fromisoformat(self.market_day) - dt.timedelta(days=self.day - 1)).isoformat()
 
     def live(self) -> list[str]:
         return sorted(a for a in self.registered if a not in self.gone)

@@ -1,10 +1,11 @@
 """The wall time of a whole market day as processes, split into the agents' computation and protocol overhead.
 
 For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
-(``phase_s``) and each agent logs, at the end of its day, the wall and CPU time of every message it handled
-(``compute`` line of ``microgrid_agent.agent.process``). The split is ``split_day``: per step (the call for bids, the award,
-each hour's grid state) the slowest agent's compute time is on the critical path; the day's wall time minus that
-critical path is the overhead (definition in docs/benchmarks.md).
+(``phase_s``) and each agent reports, after its last meter report of the day, the wall and CPU time of every message
+it handled (the ``compute`` of its ``agent_day`` message, which the DMO's result gives under ``realised``). The
+split is ``split_day``: per step (the call for bids, the award, each hour's grid state) the slowest agent's compute
+time is on the critical path; the day's wall time minus that critical path is the overhead (definition in
+docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def run(args) -> dict:
 def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: int) -> dict:
     """Split the DMO's phase times into the agents' critical-path computation and overhead.
 
-    ``compute`` is agent -> the entries of its ``compute`` log line ({kind, hour, wall_s, cpu_s}). Per step, the
+    ``compute`` is agent -> its ``compute`` entries ({kind, hour, wall_s, cpu_s}, ``agents_reported``). Per step, the
     critical path is the largest wall time of any agent; the CPU bound the least wall time the step's CPU work could
     take on ``cores`` cores: max(largest CPU time, total CPU time / cores), so ``cpu_wait_s`` (critical path minus
     CPU bound) is time the slowest agents spent waiting for a core, taken by each other or by other work on the
@@ -126,31 +127,23 @@ def run_flags(args) -> list[str]:
             "--subperiods", str(args.subperiods), "--gap", repr(args.gap)]
 
 
-def read_compute(log: Path) -> list[dict]:
-    """The entries of the agent's ``compute`` line (the last one, should a log hold several)."""
-    return _last_line(log, "compute")
-
-
-def read_messages(log: Path) -> dict:
-    """The agent's ``messages`` line: what it received, ignored, sent again, asked for and injected as faults."""
-    return _last_line(log, "messages")
-
-
-def _last_line(log: Path, word: str):
-    """The JSON an agent logged after ``AGENT WORD`` at the end of its run (the last one, should a log hold several)."""
-    found = None
-    for line in log.read_text(errors="replace").splitlines():
-        head, sep, tail = line.partition(f" {word} ")
-        if sep and tail[:1] in "[{":
-            found = tail.strip()
-    if found is None:
-        raise RuntimeError(f"no {word} line in {log}: did the agent finish its day?")
-    return json.loads(found)
+def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict]]:
+    """What each agent reported of its days (``realised`` of the run's result: its ``agent_day`` messages, as the
+    DMO received them): its ``compute`` entries of every day, each with its ``day``, and the message counts of its
+    last day (its process's, since it started). An agent that reported no day stops the bench."""
+    realised = result.get("realised", {})
+    missing = [agent for agent in result["agents"] if not realised.get(agent)]
+    if missing:
+        raise RuntimeError(f"no realised day from {', '.join(missing)}: did the agents finish their days?")
+    compute = {agent: [{**entry, "day": day["day"]} for day in realised[agent] for entry in day["compute"]]
+               for agent in result["agents"]}
+    return compute, {agent: realised[agent][-1]["messages"] for agent in result["agents"]}
 
 
 def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None) -> dict:
     """One ``dmosim run FLAGS --json`` into a run directory: ``keep``, or a scratch one removed unless the run
-    fails. Its result, each agent's ``compute`` entries and ``messages`` counts, and the command's wall time."""
+    fails. Its result, each agent's ``compute`` entries and ``messages`` counts (``agents_reported``), and the
+    command's wall time."""
     rundir = keep or Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
     argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",
                           "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
@@ -174,9 +167,7 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None) -
         raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {err.strip()[-500:]} "
                            f"(run directory: {rundir})")
     result = json.loads(out)
-    logs = {agent: rundir / "logs" / f"{agent}.log" for agent in result["agents"]}
-    compute = {agent: read_compute(log) for agent, log in logs.items()}
-    messages = {agent: read_messages(log) for agent, log in logs.items()}
+    compute, messages = agents_reported(result)
     if keep is None:
         shutil.rmtree(rundir, ignore_errors=True)
     return {"result": result, "compute": compute, "messages": messages, "process_s": process_s}

@@ -1,8 +1,9 @@
 """A run on this machine: the DMO, one process per agent and the recorder, started from an experiment over Zenoh on
 loopback with credentials made for the run, watched (process faults fire on the DMO's clock) and always stopped.
 
-``run_locally`` returns the DMO's result (``RunResult.report``) with where the recording went and the run's
-verdict (dmosim/results/verdict.py); it writes what the run makes into its run directory (experiment/rundir.py). The
+``run_locally`` returns the DMO's result (``RunResult.report``: what the agents realised is in it, from their
+``agent_day`` messages, never from their logs) with where the recording went and the run's verdict
+(dmosim/results/verdict.py); it writes what the run makes into its run directory (experiment/rundir.py). The
 recorder is an observer: if it fails, the days go on and settle, and the tables come from the DMO's journal.
 """
 
@@ -138,7 +139,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         recorder = _stop_recorder(roles, watch, faults) if record else None
         restarts = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
     result = json.loads(rundir.result.read_text())
-    result.update(realised=realised_days(logs, [m.id for m in fleet]), wall_s=round(time.monotonic() - began, 3),
+    result.update(wall_s=round(time.monotonic() - began, 3),
                   memory_mib={str(day): roles_memory for day, roles_memory in sorted(watch.memory.items())})
     result.update(experiment=e.name, run_dir=str(rundir.root.resolve()), logs=str(logs.resolve()),
                   recording=str(record.resolve()) if record else None, faults=[str(f) for f in parsed],
@@ -180,25 +181,6 @@ def reproduction(source: str | Path, again: Recording, say: Callable[[str], None
     else:
         say(f"every statement is the same as in {source}, to the cent")
     return {"source": str(source), "identical": not diffs, "differences": diffs}
-
-
-def realised_days(logs: Path, agents: list[str]) -> dict[str, list[dict]]:
-    """Each agent's operated days as its log says (``<id> realised day D {...}``): its own cost by term ($), the
-    load it curtailed (MWh); of a day logged twice (a restarted agent), the last. What the DMO cannot see."""
-    out = {}
-    for agent in agents:
-        days: dict[int, dict] = {}
-        log = logs / f"{agent}.log"
-        for line in log.read_text(errors="replace").splitlines() if log.exists() else ():
-            _, sep, tail = line.partition(f"{agent} realised day ")
-            if sep:
-                day, _, data = tail.partition(" ")
-                try:
-                    days[int(day)] = {"day": int(day), **json.loads(data)}
-                except ValueError:
-                    continue
-        out[agent] = [days[d] for d in sorted(days)]
-    return out
 
 
 def _optional(flag: str, value) -> list[str]:

@@ -1,6 +1,6 @@
 """The figure of a recorded day (``dmosim plot``): from a recording's tables (tables.py) to one matplotlib Figure.
 
-Left column, on one time axis: the hourly clearing price (congested hours marked), then for each agent its award P_sch against its metered
+Left column, on one time axis: the hourly clearing price (congested hours marked, as the awards say), then for each agent its award P_sch against its metered
 import P_M per sub-period. Right column: the day's bill per agent (several days: each agent's daily total), then
 beside each agent its deviation penalty and credit per hour. Islanded hours are shaded on every time axis. A
 recording of several market days lays them end to end, each day's start marked.
@@ -43,10 +43,10 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "") -> Figure
     per_hour = hours.drop_duplicates(["market_day", "hour"])
     _hourly_stairs(price_ax, per_hour, "clearing_price_per_mwh", color=_AWARD)
     for direction, marker in (("import", "^"), ("export", "v")):
-        congested = per_hour[per_hour["congestion"] == direction]
+        congested = per_hour[(per_hour["congestion"] == direction).fillna(False)]  # <NA>: not stated, not marked
         if not congested.empty:
             price_ax.plot(congested["t"] + 0.5, congested["clearing_price_per_mwh"], marker, color=_PENALTY, ms=5,
-                          ls="none", label=f"{direction} congestion (awards at the feeder limit)")
+                          ls="none", label=f"{direction} congestion (as the clearing decided)")
     price_ax.set_ylabel("$/MWh")
     price_ax.set_title("clearing price per hour", loc="left", fontsize=10)
     for agent, power, money in zip(agents, power_axes, money_axes):

@@ -4,9 +4,12 @@ names: ``_mw``, ``_mwh``, ``_per_mwh``; money in $), every table with a ``market
 ``tables(rec)`` is pure: it reads only the ``messages.recording.Recording`` it is given; ``open_recording(path)``
 reads the file first. Messages are read as the receivers read them (valid, from the key's owner), and grouped by
 the ``market_day`` each one carries, so a recording of several days gives rows of each. Of the DMO's own
-messages the first of each (day, agent) or (day, hour) counts, as in ``dmo.replay.resettle``; of the agents' bids
-and meter reports, those the DMO accepted (``dmo.replay.resettle.accepted_meter_reports``). The columns of each
-table, with their types, are ``TABLE_COLUMNS``; an empty table still has them.
+messages the first of each (day, agent) or (day, hour) counts, as in ``dmo.replay.resettle``; of the agents' bids,
+meter reports and realised days, those the DMO accepted (``dmo.replay.resettle.accepted_meter_reports``). The
+columns of each table, with their types, are ``TABLE_COLUMNS``; an empty table still has them.
+
+An hour's congestion is the clearing's, as the award carries it (docs/market.md); an award older than version 5
+of the protocol carries none, and the hour's congestion is then unknown (``<NA>``), never inferred from the awards.
 """
 
 from __future__ import annotations
@@ -14,7 +17,6 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from messages import relative_key
@@ -22,7 +24,6 @@ from messages.recording import Recording, read_recording
 
 from dmo.replay.resettle import accepted_messages, accepted_meter_reports, day_messages
 
-CONGESTION_TOL_MW = 1e-6  # awards this close to a feeder limit take all of it
 _KEY_TYPES = {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64"}
 _MONEY = {"energy_charge": "float64", "deviation_penalty": "float64", "deviation_credit": "float64",
           "total": "float64"}
@@ -41,6 +42,10 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
     "incidents": {"market_day": "string", "agent": "string", "phase": "string", "hour": "Int64", "reason": "string"},
     "rejections": {"market_day": "string", "key": "string", "code": "string", "reason": "string",
                    "offender": "string", "rejected_kind": "string", "payload_size": "int64", "received_at": "int64"},
+    "agent_days": {"market_day": "string", "agent": "string", "generation": "float64", "startup": "float64",
+                   "curtailment": "float64", "penalty": "float64", "total": "float64", "curtailment_mwh": "float64",
+                   "deviation_mwh": "float64", "stored_mwh": "Float64", "wall_s": "float64", "cpu_s": "float64",
+                   "sent_again": "int64", "asked": "int64"},
 }
 
 
@@ -53,9 +58,9 @@ def open_recording(path: str | os.PathLike) -> dict[str, pd.DataFrame]:
 def tables(rec: Recording) -> dict[str, pd.DataFrame]:
     """Every table of the recording, by name, in the order of ``TABLE_COLUMNS``."""
     grid, statements = _grid(rec), _statements(rec)
-    hours = _hours(statements, grid, _limits(rec))
+    hours = _hours(statements, grid, _congestion(rec))
     return {"hours": hours, "days": _days(statements, hours), "meter": _meter(rec, grid), "bids": _bids(rec),
-            "incidents": _incidents(rec), "rejections": _rejections(rec)}
+            "incidents": _incidents(rec), "rejections": _rejections(rec), "agent_days": _agent_days(rec)}
 
 
 def write_tables(frames: dict[str, pd.DataFrame], directory: Path, fmt: str = "csv") -> dict[Path, int]:
@@ -116,13 +121,16 @@ def _statements(rec: Recording) -> list[dict]:
     return list(first.values())
 
 
-def _limits(rec: Recording) -> pd.DataFrame:
-    """(market_day, import_limit_mw, export_limit_mw) of the first call for bids recorded for each day."""
-    calls = _frame(_dumps(rec, "call_for_bids"), ["market_day", "import_limit_mw", "export_limit_mw"])
-    return calls.drop_duplicates("market_day")
+def _congestion(rec: Recording) -> pd.DataFrame:
+    """(market_day, agent, hour, congestion) from the first award recorded for each day and agent: the clearing's
+    own decision. An award that states none (older than version 5) gives no rows."""
+    awards = _frame(_dumps(rec, "award"), ["market_day", "agent", "congestion"])
+    awards = awards.drop_duplicates(["market_day", "agent"])
+    awards = awards[awards["congestion"].notna()]
+    return _numbered(awards.explode("congestion", ignore_index=True), ["market_day", "agent"], "hour")
 
 
-def _hours(statements: list[dict], grid: pd.DataFrame, limits: pd.DataFrame) -> pd.DataFrame:
+def _hours(statements: list[dict], grid: pd.DataFrame, congestion: pd.DataFrame) -> pd.DataFrame:
     if not statements:
         return _typed("hours", None)
     lines = pd.json_normalize(statements, record_path="lines", meta=["market_day", "agent"])
@@ -130,19 +138,8 @@ def _hours(statements: list[dict], grid: pd.DataFrame, limits: pd.DataFrame) -> 
     islanded = (~grid.groupby(["market_day", "hour"])["connected"].all()).rename("islanded").reset_index()
     hours = lines.merge(islanded, on=["market_day", "hour"], how="left")
     hours["islanded"] = hours["islanded"].astype("boolean").fillna(False)  # no grid state recorded: not islanded
-    hours["congestion"] = _congestion(hours, limits)
+    hours = hours.merge(congestion, on=["market_day", "agent", "hour"], how="left")  # no congestion stated: <NA>
     return _typed("hours", hours.sort_values(["market_day", "agent", "hour"]))
-
-
-def _congestion(hours: pd.DataFrame, limits: pd.DataFrame) -> pd.Series:
-    """Per row, its hour's congestion as the clearing defines it (docs/market.md): ``import`` where the awards
-    together take the feeder's whole import limit, ``export`` its whole export limit, else ``none`` (also where no
-    call for bids, hence no limit, is recorded)."""
-    net = hours.groupby(["market_day", "hour"])["p_sch_mw"].transform("sum")
-    terms = hours[["market_day"]].merge(limits, on="market_day", how="left")
-    at_import = (net >= terms["import_limit_mw"].to_numpy() - CONGESTION_TOL_MW).fillna(False)
-    at_export = (net <= -terms["export_limit_mw"].to_numpy() + CONGESTION_TOL_MW).fillna(False)
-    return pd.Series(np.select([at_import, at_export], ["import", "export"], "none"), index=hours.index)
 
 
 def _days(statements: list[dict], hours: pd.DataFrame) -> pd.DataFrame:
@@ -195,3 +192,19 @@ def _rejections(rec: Recording) -> pd.DataFrame:
     prefix = rec.prefix
     rejections["key"] = rejections["key"].map(lambda key: relative_key(key, prefix))
     return _typed("rejections", rejections)
+
+
+def _agent_days(rec: Recording) -> pd.DataFrame:
+    """The first realised day (``agent_day``) the DMO accepted of each agent and day: its own cost by term, what it
+    curtailed and deviated, its storage at midnight, the computation of the messages it handled (summed) and how
+    many payloads it sent again and asked for. An agent that sent none has no row."""
+    kept, _ = accepted_messages(rec, "agent_day")
+    days = {}
+    for _, msg in kept:
+        days.setdefault((msg.market_day, msg.sender), msg)
+    if not days:
+        return _typed("agent_days", None)
+    rows = [{**msg.model_dump(exclude={"compute", "messages", "units"}), "agent": msg.sender,
+             "wall_s": sum(e.wall_s for e in msg.compute), "cpu_s": sum(e.cpu_s for e in msg.compute),
+             "sent_again": msg.messages.sent_again, "asked": msg.messages.asked} for msg in days.values()]
+    return _typed("agent_days", pd.DataFrame(rows).sort_values(["market_day", "agent"]))

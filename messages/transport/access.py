@@ -38,7 +38,7 @@ READERS = ("recorder",)              # processes that may hear everything of the
 # payload); it is public so an agent learns why its own message was refused, e.g. a refused rejoin.
 PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "summary", "rejected")
 PRIVATE_TOPICS = ("award", "statement", "receipt")  # what the DMO says to one agent, each on dmo/<topic>/<id>
-AGENT_TOPICS = ("register", "bid", "schedule", "meter")        # what an agent says, each on agent/<id>/<topic>
+AGENT_TOPICS = ("register", "bid", "schedule", "meter", "day")      # what an agent says, each on agent/<id>/<topic>
 
 _ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
                  "liveliness_token", "declare_liveliness_subscriber", "liveliness_query")
@@ -58,7 +58,7 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
       prefix. A DMO that is the router itself is not a remote session, and no rule applies to it.
     - a reader (the recorder): subscribe to everything of the run and query it (the DMO's history of the day),
       publish nothing, announce only itself.
-    - agent X: publish only its own ``agent/X/{register,bid,schedule,meter}``; subscribe to, receive and query
+    - agent X: publish only its own ``agent/X/{register,bid,schedule,meter,day}``; subscribe to, receive and query
       only the public DMO topics and ``dmo/award/X``, ``dmo/statement/X``, ``dmo/receipt/X``; announce ``alive/X``; see the DMO's
       presence.
 

@@ -14,22 +14,26 @@ the statement and summary). What the DMO sends is handled idempotently: a repeat
 grid state of an hour already operated, changes nothing. A grid state after a gap (the agent restarted, or lost
 the DMO for a while) first brings the day up to that hour, unreported. A refusal in a receipt is logged with its
 reason, and a refused registration ends the agent with that reason (exit 1).
+
+What the agent realised is a message, not a log line: after the last meter report of each day it operated to its
+end it sends an ``agent_day`` (its own cost, curtailment and state at midnight, the computation of each message it
+handled, its message counts), receipted like everything it sends; its log lines are for people only.
 """
 
 from __future__ import annotations
 
 import collections
-import json
 import logging
 import queue
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 
 import numpy as np
 
 from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
                       Receipt, Registration, Schedule, SettlementStatement, check_route, decode)
 from messages.keys import parse_key
+from messages.schemas import MAX_HANDLED, AgentDay, HandlingTime, MessageCounts, MidnightUnit
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
@@ -82,7 +86,6 @@ class MicrogridAgent:
         self.day, self.days = 1, 1
         self.case = self._day_case(case, 1)
         self.events: queue.Queue = queue.Queue()
-        self.compute: list[dict] = []  # per message handled: kind, hour, wall_s, cpu_s (read by dmosim bench day)
         self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
         self.delivery = Delivery(bus.republish)
         self.asked = 0  # messages the agent asked the DMO for (it had heard nothing for a while) and handled
@@ -98,6 +101,8 @@ class MicrogridAgent:
         self.summary: DaySummary | None = None
         self._bid_sent = False
         self._grid_seen: dict[int, tuple[bool, ...]] = {}  # hour -> connection, of grid states not operated
+        self.compute: list[HandlingTime] = []  # the day's messages handled, each with its computation
+        self._realised_due = False  # the day has been operated to its end: its agent_day goes after its compute
 
     def _day_case(self, case: Case, day: int) -> Case:
         c = self.config
@@ -137,9 +142,9 @@ class MicrogridAgent:
             if self.day >= self.days:
                 break
             self._next_day()
-        # One line, so a benchmark can split the day's wall time into the agents' computation and the rest.
-        log.info("%s compute %s", self.id, json.dumps(self.compute, separators=(",", ":")))
-        log.info("%s messages %s", self.id, json.dumps(self.message_counts(), separators=(",", ":")))
+        # The DMO lingers after the last summary: what is still unreceipted (the last agent_day) has that long.
+        if not self.delivery.drained(RECEIPTS_WAIT_S):
+            log.warning("%s: leaving with %d payload(s) not receipted", self.id, self.delivery.waiting())
         return self.summary
 
     def _run_day(self) -> None:
@@ -152,8 +157,11 @@ class MicrogridAgent:
             started, self._answering = (time.perf_counter(), time.process_time()), None
             self._handle(msg)
             ended = self._answering or (time.perf_counter(), time.process_time())
-            self.compute.append({"kind": msg.kind, "hour": getattr(msg, "hour", None), "day": self.day,
-                                 "wall_s": ended[0] - started[0], "cpu_s": ended[1] - started[1]})
+            self.compute.append(HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
+                                             wall_s=ended[0] - started[0], cpu_s=ended[1] - started[1]))
+            if self._realised_due:  # after the compute of the last grid state, which it carries
+                self._realised_due = False
+                self._send_realised()
 
     def _next_message(self):
         """The next message from the DMO. When it has been silent for a while, ask it for the latest of what this
@@ -239,7 +247,8 @@ class MicrogridAgent:
         case = self._day_case(self.base, self.day + 1)
         if done:
             midnight = self.operator.midnight()
-            log.info("%s midnight after day %d %s", self.id, self.day, json.dumps(asdict(midnight)))
+            log.info("%s: day %d starts from midnight: units on %s, storage %s MWh", self.id, self.day + 1,
+                     [u.name for u, on in zip(self.case.units, midnight.unit_on) if on], midnight.stored_mwh)
             case = carry_over(case, midnight, name=f"{self.base.name}-day{self.day + 1}")
         else:
             log.warning("%s: day %d was not operated to its end: day %d starts from the case's initial state",
@@ -275,12 +284,14 @@ class MicrogridAgent:
             log.warning("%s: gave up waiting for my settlement statement %g s after the day summary", self.id,
                         self.config.statement_s)
 
-    def message_counts(self) -> dict:
-        """What the agent received and refused (transport), handled as no-ops, and injected as faults."""
+    def message_counts(self) -> MessageCounts:
+        """What the agent's process published, received and refused (transport), handled as no-ops, sent again,
+        asked for and injected as faults, since it started."""
         faults = self.bus.faults.summary() if getattr(self.bus, "faults", None) is not None else {}
-        return {"transport": self.bus.stats(), "ignored": dict(self.ignored), "sent_again": self.delivery.resent,
-                "asked": self.asked,
-                "faults_injected": faults}
+        stats = self.bus.stats()
+        return MessageCounts(published=stats["published"], received=stats["received"], rejected=stats["rejected"],
+                             handler_errors=stats["handler_errors"], ignored=dict(self.ignored),
+                             sent_again=self.delivery.resent, asked=self.asked, faults_injected=faults)
 
     def _publish(self, msg) -> None:
         """Publish, and send again until the DMO's receipt comes."""
@@ -402,18 +413,35 @@ class MicrogridAgent:
                                  subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
                                  deviation_mw=tuple(float(x) for x in result.deviation)))
         if self.operator.next_hour > HOURS:
-            self._log_realised()
+            self._realised_due = True
 
-    def _log_realised(self) -> None:
-        """The operated day's own cost, split by term ($), and the load it curtailed (MWh), for the run's result:
-        what the DMO's statement does not show."""
-        day = self.operator.day_result()
-        shed_mwh = float(day.schedule.dispatch.load_shed.sum()) / day.schedule.subperiods
-        log.info("%s realised day %d %s", self.id, self.day, json.dumps(
-            {**day.cost.as_dict(), "total": day.cost.total, "curtailment_mwh": shed_mwh}, separators=(",", ":")))
+    def _send_realised(self) -> None:
+        """The operated day as the agent alone knows it (docs/protocol.md, ``agent_day``): its own cost by term ($),
+        the load it curtailed and the import above its award (MWh), its state at midnight, the computation of the
+        day's messages handled so far and its message counts. The DMO records it and settles nothing by it."""
+        if not self.delivery.drained(RECEIPTS_WAIT_S):
+            log.warning("%s: my last meter report has no receipt after %g s; sending my realised day anyway", self.id,
+                        RECEIPTS_WAIT_S)
+        day, midnight = self.operator.day_result(), self.operator.midnight()
+        dispatch, k = day.schedule.dispatch, day.schedule.subperiods
+        cost = day.cost
+        msg = AgentDay(
+            sender=self.id, market_day=self.market_day, generation=cost.generation, startup=cost.startup,
+            curtailment=cost.curtailment, penalty=cost.penalty, total=cost.total,
+            curtailment_mwh=float(dispatch.load_shed.sum()) / k, deviation_mwh=float(dispatch.dp_plus.sum()) / k,
+            units={u.name: MidnightUnit(on=on, output_mw=out, hours=h) for u, on, out, h in
+                   zip(self.case.units, midnight.unit_on, midnight.unit_output_mw, midnight.unit_hours)},
+            stored_mwh=midnight.stored_mwh, compute=tuple(self.compute[:MAX_HANDLED]),
+            messages=self.message_counts())
+        self._publish(msg)
+        log.info("%s realised day %d: own cost $%.2f, curtailed %.3f MWh", self.id, self.day, cost.total,
+                 msg.curtailment_mwh)
 
 
 MAX_AHEAD = 1000  # messages of the next day kept while this one ends (the DMO sends a few dozen a day)
+# How long the agent waits for the receipts of what it sent: before its agent_day (which must not overtake the last
+# meter report: the DMO refuses a message older than one it took), and before it leaves (the DMO lingers as long).
+RECEIPTS_WAIT_S = 5.0
 ASK_AFTER_S = 1.0     # silence after which the agent asks the DMO for what it waits for ...
 ASK_AT_MOST_S = 8.0   # ... then at doubling intervals up to this
 

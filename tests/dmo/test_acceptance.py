@@ -10,9 +10,11 @@ import pytest
 from dmo.market import acceptance
 from dmo.market.settlement import READING_TOLERANCE_MW, settle
 from dmo.operator import intake
+from dmo.operator.day import RunResult
 from dmo.operator.state import DayState
 from dmo.replay.as_dmo import AsDmo
 from messages import Bid, GridState, Keys, MeterReport, Registration, Schedule, decode, encode, sha256
+from messages.schemas import AgentDay, MessageCounts
 from scenarios.horizon import HOURS
 
 DAY = "2026-07-01"
@@ -129,3 +131,46 @@ def test_the_dmo_takes_a_message_of_its_run_and_admitted_process_once_and_refuse
     assert sent(REG, incarnation=101, seq=0, market_day="2026-07-02").what == intake.REJOINED  # of the run
     assert state.guard.locked_out() == [] and state.rescheduling == {"mg1"}
     assert sent(report(), seq=6).refusal[0] == "stale"  # the old process is gone
+
+
+def agent_day(market_day: str, total: float = 115.0) -> AgentDay:
+    return AgentDay(sender="mg1", market_day=market_day, generation=total - 15.0, startup=10.0, curtailment=0.0,
+                    penalty=5.0, total=total, curtailment_mwh=0.0, deviation_mwh=0.1, units={}, stored_mwh=None,
+                    compute=(), messages=MessageCounts(published=1, received=1, rejected={}, handler_errors=0,
+                                                       ignored={}, sent_again=0, asked=0, faults_injected={}))
+
+
+def test_a_realised_day_is_taken_once_its_day_is_operated_whatever_the_phase_and_settles_nothing():
+    """intake.receive: an agent_day is taken from the day's last real-time hour on, also after the next day began,
+    once per agent and day; the phase's rule is never asked (here it refuses everything), and the day's meter
+    readings, which settlement reads, stay as they were."""
+    state = DayState(market_day=DAY, run_token="ab" * 16, phase="realtime", hour=23, day=2)  # the run began 06-30
+    state.registered["mg1"], state.meter["mg1"] = REG, {}
+    state.guard.admit("mg1", 100)
+    seq = iter(range(10, 100))
+
+    def sent(msg):
+        payload = encode(msg.model_copy(update={"run": state.run_token, "incarnation": 100, "seq": next(seq)}))
+        return intake.receive(state, decode(payload), sha256(payload), intake.out_of_phase(state))
+
+    assert sent(agent_day(DAY)).refusal == ("invalid",
+                                            f"agent_day of {DAY} before its last hour (now realtime hour 23)")
+    state.hour = HOURS
+    assert sent(agent_day(DAY)).what == intake.ACCEPTED and state.realised["mg1"][DAY].total == 115.0
+    assert sent(agent_day(DAY, total=215.0)).refusal[0] == "duplicate" and state.realised["mg1"][DAY].total == 115.0
+    state.start_day(3, "2026-07-02")  # the next day began: the first day's realised day still comes in
+    assert sent(agent_day("2026-06-30")).what == intake.ACCEPTED
+    assert sent(agent_day("2026-07-02")).refusal[0] == "invalid"  # being bid for, not operated
+    for never in ("2026-07-03", "2026-06-29"):  # not a day this run has operated
+        assert sent(agent_day(never)).refusal[0] == "wrong_day"
+    assert sorted(state.realised["mg1"]) == ["2026-06-30", DAY] and state.meter["mg1"] == {}
+    assert state.accepted["agent_day"] == 1  # today's count; the realised days belong to the run
+
+
+def test_the_dmos_result_gives_each_agents_realised_days_in_order_and_none_for_an_agent_that_sent_none():
+    days = [SimpleNamespace(day=1, market_day="2026-06-30"), SimpleNamespace(day=2, market_day=DAY)]
+    result = RunResult(days, "paper", {"mg1": {DAY: agent_day(DAY, 215.0), "2026-06-30": agent_day("2026-06-30")}})
+    realised = result.realised_days(["mg1", "mg2"])
+    assert [(d["day"], d["market_day"], d["total"]) for d in realised["mg1"]] == [(1, "2026-06-30", 115.0),
+                                                                                 (2, DAY, 215.0)]
+    assert realised["mg2"] == [] and "sender" not in realised["mg1"][0] and realised["mg1"][0]["messages"]["asked"] == 0

@@ -243,6 +243,7 @@ def test_the_dmos_messages_carry_its_terms_and_survive_the_wire():
     assert award.p_sch_mw == (2.0,) * HOURS and award.clearing_price_per_mwh == c.iso_price
     assert (award.penalty_per_mwh, award.credit_per_mwh, award.subperiods) == (150.0, 5.0, K)
     assert (award.rules_version, award.rules) == (RULES_VERSION, RULES)
+    assert award.congestion == clearing.congested == ("none",) * HOURS  # the clearing's own, on every award
     assert [outbox.grid_state(c, 1, h).connected for h in (4, 5, 6, 7)] == [(True,) * K, (False,) * K,
                                                                         (False,) * K, (True,) * K]
     call = outbox.call_for_bids(c, 1, 12.5)

@@ -12,7 +12,7 @@ import re
 import pytest
 
 import dmosim.bench
-from dmosim.bench.day import read_compute, split_day
+from dmosim.bench.day import agents_reported, split_day
 from dmosim.bench.week import summarise
 from dmosim.cli import main
 
@@ -114,14 +114,21 @@ def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_w
     assert report["ratios"]["recording bytes per agent-day"] == 10_000
 
 
-def test_compute_is_read_from_the_agents_log_line(tmp_path):
-    log = tmp_path / "mg1.log"
-    log.write_text('01:02:03 mg1 INFO mg1 registered\n'
-                   '01:02:09 mg1 INFO mg1 compute [{"kind":"award","hour":null,"wall_s":0.5,"cpu_s":0.4}]\n')
-    assert read_compute(log) == [{"kind": "award", "hour": None, "wall_s": 0.5, "cpu_s": 0.4}]
-    (tmp_path / "mg2.log").write_text("01:02:03 mg2 INFO mg2 registered\n")
-    with pytest.raises(RuntimeError, match="no compute line"):
-        read_compute(tmp_path / "mg2.log")
+def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
+    """What the agents reported in their agent_day messages, as the DMO's result gives it: never a log line."""
+    counts = lambda n: {"published": 9, "received": 9, "rejected": {}, "handler_errors": 0, "ignored": {},  # noqa: E731
+                        "sent_again": n, "asked": 0, "faults_injected": {"drop": n}}
+    entry = {"kind": "award", "hour": None, "wall_s": 0.5, "cpu_s": 0.4}
+    result = {"agents": ["mg1", "mg2"], "realised": {
+        "mg1": [{"day": 1, "compute": [entry], "messages": counts(1)},
+                {"day": 2, "compute": [entry], "messages": counts(3)}],
+        "mg2": [{"day": 1, "compute": [], "messages": counts(0)}]}}
+    compute, messages = agents_reported(result)
+    assert compute == {"mg1": [{**entry, "day": 1}, {**entry, "day": 2}], "mg2": []}
+    assert messages["mg1"]["sent_again"] == 3 and messages["mg2"]["faults_injected"] == {"drop": 0}  # the last day's
+    result["realised"]["mg2"] = []
+    with pytest.raises(RuntimeError, match="no realised day from mg2"):
+        agents_reported(result)
 
 
 def test_solver_bench_runs_both_routes_and_verifies_showing_progress(capsys):

@@ -21,8 +21,13 @@ import pytest
 from dmosim.bench.recording import synthetic_day
 from dmosim.cli import main
 from dmo.replay.resettle import as_message, recorded_day, resettle
+from dmo.market.clearing import BidCurve, Step, clear
+from dmo.operator import outbox
+from dmo.operator.config import DayConfig
+from dmosim.results.figures import recording_figure
 from dmosim.results.tables import TABLE_COLUMNS, open_recording, tables
-from messages import Incident, MessageError, decode, encode, make_rejection
+from messages import HOURS, Incident, Keys, MessageError, decode, encode, make_rejection
+from messages.schemas import AgentDay, HandlingTime, MessageCounts
 from messages.keys import new_run_id
 from messages.recording import RecordingWriter, read_recording, select
 
@@ -389,3 +394,63 @@ def test_a_day_settled_by_a_rule_that_cannot_be_loaded_here_is_refused_in_one_li
         assert main([*verb[:1], str(path), *verb[1:]]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "gone/rules.py:mine" in err, err
+
+
+def test_bids_summing_exactly_to_the_limit_congest_nothing_in_the_clearing_the_award_and_the_tables(tmp_path):
+    """The clearing alone decides congestion and the award carries it: bids that at the ISO price take exactly the
+    feeder's import limit ration nothing, so every hour is "none" in the clearing, on the award and in the tables
+    (which used to say "import", seeing the awards at the limit)."""
+    run_id = new_run_id()
+    day = synthetic_day(run_id, 2, K)
+    call = decode(day[find(day, "dmo/call_for_bids")][1])
+    limit, iso = call.import_limit_mw, call.iso_price_per_mwh
+    wants = {"mg1": 0.75 * limit, "mg2": 0.25 * limit}  # 3/4 and 1/4 of it: exactly the limit together
+    bids = [BidCurve(a, tuple((Step(p + 50.0, q),) for p in iso)) for a, q in wants.items()]
+    clearing = clear(bids, iso, limit, call.export_limit_mw)
+    assert clearing.congested == ("none",) * HOURS and clearing.net_import(0) == limit
+    config = DayConfig(market_day=DAY, agents=2, iso_price=iso, import_limit=limit, export_limit=call.export_limit_mw,
+                       penalty=150.0, subperiods=K, islanded_hours=(12,))
+    for agent in wants:
+        i = find(day, f"dmo/award/{agent}")
+        award = outbox.award(config, 1, clearing, agent)
+        assert award.congestion == ("none",) * HOURS
+        day[i] = (day[i][0], encode(award))
+    # the statements settled against these awards, as the DMO would have sent them
+    recorded = recorded_day(read_recording(write(tmp_path / "awarded.mcap", run_id, day)))
+    for agent, st in resettle(recorded).items():
+        i = find(day, f"dmo/statement/{agent}")
+        day[i] = (day[i][0], encode(as_message(recorded, st)))
+    hours = tables(read_recording(write(tmp_path / "day.mcap", run_id, day)))["hours"]
+    assert hours.groupby("hour")["p_sch_mw"].sum().to_numpy() == pytest.approx([limit] * HOURS)  # at the limit
+    assert (hours["congestion"] == "none").all()
+
+
+def test_an_award_older_than_version_5_states_no_congestion_and_the_tables_do_not_guess_it():
+    frames = open_recording(ROOT / "tests" / "data" / "schema-v2-two-days.mcap")
+    assert len(frames["hours"]) == 2 * 2 * HOURS and frames["hours"]["congestion"].isna().all()
+    recording_figure(frames)  # unknown congestion is simply not marked
+
+
+def test_the_agents_realised_days_are_a_table_of_what_the_dmo_accepted(tmp_path):
+    run_id = new_run_id()
+    day = synthetic_day(run_id, 2, K)
+    realised = {agent: AgentDay(
+        sender=agent, market_day=DAY, generation=100.0 * n, startup=10.0, curtailment=0.0, penalty=5.0,
+        total=100.0 * n + 15.0, curtailment_mwh=0.0, deviation_mwh=0.5 * n, units={},
+        stored_mwh=None if n == 1 else 2.0,
+        compute=(HandlingTime(kind="award", hour=None, wall_s=1.5, cpu_s=1.0),
+                 HandlingTime(kind="grid_state", hour=24, wall_s=0.5, cpu_s=0.25)),
+        messages=MessageCounts(published=50, received=60, rejected={}, handler_errors=0, ignored={}, sent_again=n,
+                               asked=0, faults_injected={}), seq=1000) for n, agent in enumerate(("mg1", "mg2"), 1)}
+    at = find(day, "dmo/summary")
+    key = Keys(run_id).agent_day
+    day[at:at] = [(key(a), encode(msg)) for a, msg in realised.items()]
+    other = realised["mg2"].model_copy(update={"total": 1e6 + 15.0, "generation": 1e6, "seq": 1001})
+    day[at + 2:at + 2] = [(key("mg2"), encode(other))]  # a second one of the day: refused, recorded as such
+    day.insert(at + 3, (f"dmosim/{run_id}/dmo/rejected", encode(make_rejection(
+        key("mg2"), encode(other), MessageError("second agent_day", "duplicate"), market_day=DAY, offender="mg2"))))
+    frame = tables(read_recording(write(tmp_path / "day.mcap", run_id, day)))["agent_days"]
+    assert list(frame.columns) == list(TABLE_COLUMNS["agent_days"])
+    assert frame["agent"].tolist() == ["mg1", "mg2"] and frame["total"].tolist() == [115.0, 215.0]
+    assert frame["wall_s"].tolist() == [2.0, 2.0] and frame["cpu_s"].tolist() == [1.25, 1.25]
+    assert frame["sent_again"].tolist() == [1, 2] and frame["stored_mwh"].isna().tolist() == [True, False]

@@ -14,7 +14,7 @@ from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, 
                       CallForBids, Clock, DaySummary, GridState, Incident, Keys, MessageError, MeterReport,
                       Registration, Schedule, SettlementStatement, StatementLine, check_route, decode, encode,
                       json_schema, make_receipt, make_rejection, new_run_id, parse_key, sender_matches_key)
-from messages.schemas import AgentTotals
+from messages.schemas import AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit
 
 DAY = "2024-07-01"
 K = 6
@@ -47,7 +47,8 @@ SAMPLES = {
                    clearing_price_per_mwh=[41.0] * HOURS, penalty_per_mwh=150.0, subperiods=K, rules_version=1,
                    rules="energy charge = price x award; penalty = c x max(P_M - P_sch, 0) x dt",
                    settlement_rule="deadband:rate=150,below_rate=0,band_mw=0.5,band_share=0",
-                   deviation_cost=[[[0.0, 0.0], [0.0, 0.0], [150.0, -75.0]]] * HOURS),
+                   deviation_cost=[[[0.0, 0.0], [0.0, 0.0], [150.0, -75.0]]] * HOURS,
+                   congestion=["none"] * 12 + ["import"] * 6 + ["none"] * 5 + ["export"]),
     "schedule": Schedule(sender="mg1", market_day=DAY, status="optimal",
                          commitment={"G1": [1] * HOURS, "G2": [0] * HOURS},
                          expected_cost=39566.0, p_m_expected_mw=[1.4] * HOURS, scenarios=10, mip_gap=0.004),
@@ -55,6 +56,15 @@ SAMPLES = {
     "grid_state": GridState(sender="dmo", market_day=DAY, hour=3, subperiods=K, connected=[True] * 4 + [False] * 2),
     "meter_report": MeterReport(sender="mg1", market_day=DAY, hour=3, subperiods=K, p_m_mw=[1.5] * K,
                                 deviation_mw=[0.0] * K),
+    "agent_day": AgentDay(sender="mg1", market_day=DAY, generation=30000.0, startup=120.0, curtailment=0.0,
+                          penalty=15.0, total=30135.0, curtailment_mwh=0.0, deviation_mwh=0.1,
+                          units={"G1": MidnightUnit(on=True, output_mw=2.5, hours=24),
+                                 "G2": MidnightUnit(on=False, output_mw=0.0, hours=3)}, stored_mwh=1.2,
+                          compute=[HandlingTime(kind="award", hour=None, wall_s=2.5, cpu_s=2.4),
+                                   HandlingTime(kind="grid_state", hour=24, wall_s=0.05, cpu_s=0.04)],
+                          messages=MessageCounts(published=60, received=80, rejected={}, handler_errors=0,
+                                                 ignored={"award_again": 1}, sent_again=2, asked=0,
+                                                 faults_injected={"drop": 1})),
     "settlement_statement": _statement(),
     "day_summary": DaySummary(sender="dmo", market_day=DAY, agents=["mg1", "mg2"],
                               clearing_price_per_mwh=[41.0] * HOURS,
@@ -135,13 +145,15 @@ BOUND = ("run", "incarnation")  # version 4's envelope fields
 
 def test_older_messages_read_as_they_were_meant():
     """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates; a
-    version-3 message is bound to no run and no process."""
+    version-3 message is bound to no run and no process; a version-4 award states no congestion."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
-    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", *BOUND))
+    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND))
     assert award.settlement_rule is None and award.deviation_cost is None
     assert award.p_sch_mw == SAMPLES["award"].p_sch_mw
     assert decode(_older("settlement_statement", 2, "settlement_rule", *BOUND)).settlement_rule is None
+    award = decode(_older("award", 4, "congestion"))
+    assert award.congestion is None and award.settlement_rule == SAMPLES["award"].settlement_rule
     bid = decode(_older("bid", 3, *BOUND))
     assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
     # a message of an older version that has a later version's field is not upgraded, and a current one that
@@ -149,6 +161,7 @@ def test_older_messages_read_as_they_were_meant():
     _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
     _rejects(_older("bid", 3, "run"), "invalid", "run")
     _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
+    _rejects(_older("award", SCHEMA_VERSION, "congestion"), "invalid", "congestion")
     _rejects(_older("bid", SCHEMA_VERSION, "run"), "invalid", "run")
 
 

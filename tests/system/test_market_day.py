@@ -166,6 +166,12 @@ def test_dmosim_run_prints_the_summary_and_json(tmp_path):
         assert total == pytest.approx(result["settlement"][agent]["total"], abs=0.01)
     per_hour = hours.drop_duplicates("hour").set_index("hour")["congestion"]
     assert [per_hour[h] for h in range(1, 25)] == result["congestion"]  # as the DMO's clearing says
+    # what each agent realised came as its agent_day, into the result and the tables alike, never from a log
+    agent_days = pd.read_csv(tmp_path / "tables" / "agent_days.csv").set_index("agent")
+    for agent in ("mg1", "mg2"):
+        (day,) = result["realised"][agent]
+        assert day["day"] == 1 and agent_days.loc[agent, "total"] == pytest.approx(day["total"])
+        assert {e["hour"] for e in day["compute"] if e["kind"] == "grid_state"} == set(range(1, 25))
     assert (tmp_path / "run.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and result["figure"].endswith("run.png")
     assert (tmp_path / "logs" / "mg1.log").is_file()
 
