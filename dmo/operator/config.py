@@ -15,7 +15,8 @@ from ..market.choice import ChosenRule, paper_rule
 @dataclass(frozen=True)
 class DayConfig:
     """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. Deadlines are
-    wall-clock seconds per phase (per hour in real time). ``settlement`` is the rule, checked (``market.choice``).
+    wall-clock seconds per phase (per hour in real time). What an experiment sets has no default here: its defaults
+    are the experiment's (dmosim/experiment/spec.py). ``settlement`` is the rule, checked (``market.choice``).
     ``fixed_awards`` (24 MW) replaces clearing by those
     awards for every agent (the paper's Table I). ``islanded_hours`` holds for every day unless
     ``islanding_by_day`` gives each day its own."""
@@ -28,14 +29,14 @@ class DayConfig:
     penalty: float
     subperiods: int
     islanded_hours: tuple[int, ...]
-    credit: float = 0.0
+    credit: float
+    registration_s: float
+    bids_s: float
+    schedule_s: float
+    hour_s: float
     fixed_awards: tuple[float, ...] | None = None
     price_floor: float = -1000.0
     price_cap: float = 10_000.0
-    registration_s: float = 60.0
-    bids_s: float = 600.0
-    schedule_s: float = 1800.0
-    hour_s: float = 300.0
     linger_s: float = 5.0  # after the summary, how long to wait for the agents to leave before closing
     journal: str | None = None  # where the DMO journals its day, to resume it if it is restarted
     resume_wait_s: float = 30.0  # a resumed DMO waits this long for its agents to reconnect

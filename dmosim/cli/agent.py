@@ -3,56 +3,42 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 from messages.keys import check_run_id
 from messages.transport import Bus
-from scenarios.case import load_case
-from scenarios.days import MAX_SEED
-from scenarios.fleet import MAX_SCALE, MAX_SHIFT_HOURS, derive_case
-from scenarios.generation import MAX_SCENARIOS
+from scenarios.fleet import MAX_SCALE, MAX_SHIFT_HOURS, FleetError
 
+from ..arguments import integer, number, seconds
 from ..console import UsageError
-from .flags import add_bus_flags, add_fault_flags, add_method_flags, bus_config, check_bus_flags, check_fault_flags, message_faults, setup_logging
-from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed, today
+from ..experiment.spec import ExperimentError
+from ..launch.roles import agent_config, member_case, member_of, resolved
+from .flags import (add_bus_flags, add_fault_flags, bus_config, check_bus_flags, check_fault_flags,
+                    message_faults, setup_logging)
+from .settings import AGENT_SETTINGS, add_experiment_flag, role_experiment
 
 HELP = "one microgrid agent role"
 
 
-def add_schedule_flags(p: argparse.ArgumentParser) -> None:
-    """How the agent schedules its days."""
-    p.add_argument("--scenarios", type=integer(1, MAX_SCENARIOS), default=5,
-                   help=f"scenarios of each agent's schedule, at most {MAX_SCENARIOS} (default: 5)")
-    p.add_argument("--gap", type=gap, default=0.01, help="relative MIP gap of each agent's schedule (default: 0.01)")
-    p.add_argument("--time-limit", type=seconds, default=600.0, help="seconds per agent solve (default: 600)")
-    p.add_argument("--load-scale", type=scales, default=(), metavar="X,Y,...",
-                   help="each day's fixed-load forecast times these, day after day, repeated (e.g. a week: "
-                        "1,1,1,1,1,0.8,0.8; default: 1)")
-    p.add_argument("--renewable-scale", type=scales, default=(), metavar="X,Y,...",
-                   help="each day's renewable forecasts times these, as --load-scale (default: 1)")
-    add_method_flags(p, workers=1)  # the agents of one machine share its cores
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--id", required=True, help="agent id, e.g. mg1")
+    p.add_argument("--id", required=True, help="agent id, e.g. mg1: the agent of the experiment's fleet it is")
     p.add_argument("--run-id", help="the run to join: the id its DMO (or router) was given or printed (required)")
-    p.add_argument("--case", default="paper", help="the microgrid's case (default: paper)")
-    p.add_argument("--scale", type=number(0, MAX_SCALE, above=True), default=1.0,
-                   help=f"size multiplier of the case, in (0, {MAX_SCALE:g}] (default: 1)")
-    p.add_argument("--shift-hours", type=integer(-MAX_SHIFT_HOURS, MAX_SHIFT_HOURS), default=0,
-                   help="shift of the load and renewable profiles (default: 0)")
-    p.add_argument("--seed", type=seed, default=0,
-                   help=f"seed of the agent's scenarios and realised day, 0..{MAX_SEED}")
-    p.add_argument("--island-hours", type=hours, default=1, help="islanding hours the schedule plans for (default: 1)")
-    p.add_argument("--market-day", type=market_day, default=None, help="the market day (default: today)")
-    p.add_argument("--idle-timeout", type=seconds, default=3600.0, help="give up after this long without news")
-    p.add_argument("--quiet", action="store_true")
-    add_schedule_flags(p)
+    add_experiment_flag(p, AGENT_SETTINGS)
+    member = p.add_argument_group("this agent (each overrides what the experiment's fleet says of it)")
+    member.add_argument("--case", dest="member_case", metavar="CASE", help="the microgrid's base case, built in or a file")
+    member.add_argument("--scale", type=number(0, MAX_SCALE, above=True),
+                        help=f"size multiplier of the case, in (0, {MAX_SCALE:g}]")
+    member.add_argument("--shift-hours", type=integer(-MAX_SHIFT_HOURS, MAX_SHIFT_HOURS),
+                        help="shift of the load and renewable profiles, hours")
+    p.add_argument("--idle-timeout", type=seconds, help="give up after this long without news from the DMO, s "
+                                                        "(default: an hour)")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
     add_fault_flags(p)
     add_bus_flags(p, "client")
 
 
 def run(args) -> int:
-    from microgrid_agent.agent.process import AgentConfig, MicrogridAgent  # noqa: PLC0415  (the solver stack)
+    from microgrid_agent.agent.process import MicrogridAgent  # noqa: PLC0415  (the solver stack)
 
     check_bus_flags(args, "client")
     check_fault_flags(args)
@@ -62,13 +48,18 @@ def run(args) -> int:
         check_run_id(args.run_id)
     except ValueError as exc:
         raise UsageError(f"--run-id: {exc}") from None
+    try:
+        experiment = resolved(role_experiment(args))
+        member = member_of(experiment, args.id)
+    except (ExperimentError, FleetError) as exc:
+        raise UsageError(str(exc)) from None
+    given = {"case": args.member_case, "scale": args.scale, "shift_hours": args.shift_hours}
+    member = dataclasses.replace(member, **{k: v for k, v in given.items() if v is not None})
+    config = agent_config(experiment, member)
+    if args.idle_timeout is not None:
+        config = dataclasses.replace(config, idle_s=args.idle_timeout)
     setup_logging(args.id, args.quiet)
-    name = args.case if args.scale == 1 else f"{args.case}x{args.scale:g}"
-    case = derive_case(load_case(args.case), args.scale, args.shift_hours, name)
-    config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,
-                         time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout, method=args.method,
-                         workers=args.workers, load_scale=args.load_scale, renewable_scale=args.renewable_scale)
     with Bus(args.run_id, args.id, bus_config(args, "client", args.id)) as bus:
-        bus.faults = message_faults(args, bus)
-        MicrogridAgent(bus, case, config, args.market_day or today()).run()
+        bus.faults = message_faults(args, bus, experiment)
+        MicrogridAgent(bus, member_case(member), config, experiment.market_day).run()
     return 0

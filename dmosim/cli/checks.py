@@ -10,7 +10,7 @@ from scenarios.fleet import FleetError, FleetMember
 
 from ..experiment.spec import Experiment, ExperimentError
 from ..launch.faults import Fault, parse_fault
-from ..launch.local import fleet_of
+from ..launch.roles import fleet_of
 from dmo.market.choice import choose
 
 

@@ -17,12 +17,12 @@ from messages.transport import MODES, BusConfig
 from messages.transport.access import READERS, USERS_FILE, AuthError, auth_settings
 from messages.transport.credentials import check_private, create_auth_dir, private_directory
 from messages.transport.faults import FaultSpecError, injector, parse_message_fault
-from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.days import MAX_SEED
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
-from ..arguments import integer, seed
-from ..experiment.spec import MAX_FAULTS, MAX_WORKERS
+from ..arguments import seed
+from ..experiment.spec import MAX_FAULTS, Experiment
+from ..launch.roles import message_faults as experiment_message_faults
 from ..console import UsageError
 
 log = logging.getLogger("dmosim")
@@ -32,21 +32,13 @@ DEFAULT_AGENTS = 3  # the agents credentials are made for, given neither --agent
 
 # --- flag groups --------------------------------------------------------------------------------------------------
 
-def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
-    """How a stochastic schedule is solved: ``solve``, ``study``, ``run``, ``agent``."""
-    p.add_argument("--method", choices=METHODS, default="auto",
-                   help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
-                        f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
-    p.add_argument("--workers", type=integer(1, MAX_WORKERS), default=workers,
-                   help=f"processes for the Benders subproblems, at most {MAX_WORKERS} (default: {workers})")
-
-
 def add_fault_flags(p: argparse.ArgumentParser) -> None:
     """Message faults on what one role publishes: ``dmo``, ``agent`` (``run`` takes process faults too)."""
     p.add_argument("--fault", action="append", default=[], metavar="SPEC",
-                   help="message fault on what this process publishes: drop|duplicate|corrupt:PATTERN:P or "
-                        "delay:PATTERN:SECONDS[:P] (repeatable; docs/faults.md)")
-    p.add_argument("--fault-seed", type=seed, default=0, help=f"seed of the fault draws, 0..{MAX_SEED} (default: 0)")
+                   help="message fault on what this process publishes, beside those of the experiment: "
+                        "drop|duplicate|corrupt:PATTERN:P or delay:PATTERN:SECONDS[:P] (repeatable; docs/faults.md)")
+    p.add_argument("--fault-seed", type=seed, help=f"seed of the fault draws, 0..{MAX_SEED} (default: the "
+                                                   "experiment's seed)")
 
 
 def add_bus_flags(parser: argparse.ArgumentParser, default_mode: str) -> None:
@@ -218,11 +210,13 @@ def check_fault_flags(args) -> None:
             raise UsageError(f"--fault: {exc}") from None
 
 
-def message_faults(args, bus):
-    """The FaultInjector of the ``--fault`` message faults (messages/transport/faults.py) for this process's bus,
-    or None."""
+def message_faults(args, bus, experiment: Experiment):
+    """The FaultInjector (messages/transport/faults.py) of the experiment's message faults and the ``--fault`` ones
+    for this process's bus, drawn from ``--fault-seed`` (else the experiment's seed); None without faults."""
+    specs = [str(f) for f in experiment_message_faults(experiment)] + args.fault
+    seed = experiment.seed if args.fault_seed is None else args.fault_seed
     try:
-        faults = injector(getattr(args, "fault", []), bus.keys.prefix, getattr(args, "fault_seed", 0), bus.name)
+        faults = injector(specs, bus.keys.prefix, seed, bus.name)
     except FaultSpecError as exc:
         raise UsageError(f"--fault: {exc}") from None
     if faults is not None:

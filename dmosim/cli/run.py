@@ -14,23 +14,20 @@ import sys
 from pathlib import Path
 
 from messages.keys import new_run_id
-from messages.schemas import MAX_DAYS, MAX_SUBPERIODS
 from scenarios.case import load_case, parse_toml
-from scenarios.days import MAX_SEED
-from scenarios.generation import MAX_SCENARIOS
 
 from ..experiment.rundir import RunDir, RunDirError
-from ..experiment.spec import (FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, parse_experiment,
+from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment,
                                settled_by, with_settings)
 from ..launch.faults import Fault, parse_fault
-from ..launch.local import RoleFailed, resolved, run_locally
+from ..launch.local import RoleFailed, run_locally
+from ..launch.roles import resolved
 from dmo.market.choice import Trust, UntrustedRule, choose
-from dmo.market.rules import MAX_MW, MAX_RATE
 from ..results.verdict import one_line
 from .checks import agent_list, check_inputs
+from .settings import add_setting_flags, experiment_with_flags
 from ..console import UsageError, print_json, progress
-from .flags import SETTLEMENT_HELP, add_trust_flag, load_recording, recording_path, untrusted
-from ..arguments import agents, gap, hours, integer, market_day, number, scales, seconds, seed
+from .flags import add_trust_flag, load_recording, recording_path, untrusted
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
@@ -43,56 +40,12 @@ FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    default = Experiment()
     p.add_argument("experiment", nargs="?", metavar="EXPERIMENT",
                    help="an experiment file (TOML, docs/experiments.md); the flags below override it")
     p.add_argument("--from", dest="source", metavar="RECORDING",
                    help="run again the experiment a recording of dmosim run holds (flags override it)")
     setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
-    setting.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {default.agents.count})")
-    setting.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (instead of --agents)")
-    setting.add_argument("--days", type=integer(1, MAX_DAYS),
-                         help="consecutive market days; agents register once and carry their state across midnight "
-                              f"(at most {MAX_DAYS}; default: {default.days})")
-    setting.add_argument("--market-day", type=market_day, help="the first market day, YYYY-MM-DD (default: today)")
-    setting.add_argument("--seed", type=seed, help=f"seed of the run: fleet, forecast errors, islanding, faults, "
-                                                   f"0..{MAX_SEED} (default: {default.seed})")
-    setting.add_argument("--case", help=f"case giving the ISO price, penalty and Table I awards "
-                                        f"(default: {default.market.case})")
-    setting.add_argument("--market", choices=("bids", "fixed"),
-                         help="bids: clear the agents' bids; fixed: award the case's Table I to every agent "
-                              f"(default: {default.market.mode})")
-    setting.add_argument("--penalty", type=number(0, MAX_RATE), help="$/MWh above the award (default: the case's)")
-    setting.add_argument("--credit", type=number(0, MAX_RATE),
-                         help=f"$/MWh below the award (default: {default.market.credit:g})")
-    setting.add_argument("--settlement", metavar="RULE", help=SETTLEMENT_HELP)
-    setting.add_argument("--import-limit", type=number(0, MAX_MW), help="feeder import limit, MW (default: 8 x agents)")
-    setting.add_argument("--export-limit", type=number(0, MAX_MW), help="feeder export limit, MW (default: 5 x agents)")
-    setting.add_argument("--island-hours", type=hours,
-                         help=f"hours each day is islanded (default: {default.market.island_hours})")
-    setting.add_argument("--subperiods", type=integer(1, MAX_SUBPERIODS),
-                         help=f"metering sub-periods per hour, at most {MAX_SUBPERIODS} "
-                              f"(default: {default.market.subperiods})")
-    setting.add_argument("--scenarios", type=integer(1, MAX_SCENARIOS),
-                         help=f"scenarios of each agent's schedule, at most {MAX_SCENARIOS} "
-                              f"(default: {default.schedule.scenarios})")
-    setting.add_argument("--gap", type=gap,
-                         help=f"relative MIP gap of each schedule (default: {default.schedule.gap:g})")
-    setting.add_argument("--time-limit", type=seconds,
-                         help=f"seconds per agent solve (default: {default.schedule.time_limit:g})")
-    setting.add_argument("--method", choices=("auto", "extensive", "benders"),
-                         help=f"route of the agents' solves (docs/solver.md; default: {default.schedule.method})")
-    setting.add_argument("--workers", type=integer(1, MAX_WORKERS),
-                         help=f"processes per agent for Benders subproblems, at most {MAX_WORKERS} "
-                              f"(default: {default.schedule.workers})")
-    setting.add_argument("--load-scale", type=scales, metavar="X,Y,...",
-                         help="each day's fixed-load forecast times these, repeated over the days (default: 1)")
-    setting.add_argument("--renewable-scale", type=scales, metavar="X,Y,...",
-                         help="each day's renewable forecasts times these, as --load-scale (default: 1)")
-    for name, what in (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
-                       ("hour", "each hour's meter reports")):
-        setting.add_argument(f"--{name}-timeout", type=seconds, metavar="S",
-                             help=f"deadline for {what}, s (default: {getattr(default.deadlines, name):g})")
+    add_setting_flags(setting, FLAGS)
     setting.add_argument("--fault", action="append", metavar="SPEC", help=FAULT_HELP)
     out = p.add_argument_group("output")
     out.add_argument("--out", metavar="DIR", help="the run directory (default: runs/<run_id>)")
@@ -121,14 +74,9 @@ def experiment_of(args) -> Experiment:
             base = experiment_in_recording(args.source)
         else:
             base = Experiment()
-        if args.agents is not None and (args.fleet or base.agents.fleet):
-            raise ExperimentError(f"--agents and a fleet ({args.fleet or base.agents.fleet}) exclude each other: a "
-                                  "fleet file names its agents")
-        flags = {key: getattr(args, dest) for key, dest in FLAGS.items() if getattr(args, dest) is not None}
-        flags = {k: list(v) if isinstance(v, tuple) else v for k, v in flags.items()}
+        experiment = experiment_with_flags(base, args)
         if args.fault is not None:
-            flags["faults"] = list(args.fault)
-        experiment = with_settings(base, flags, "flags") if flags else base
+            experiment = with_settings(experiment, {"faults": list(args.fault)}, "flags")
     except ExperimentError as exc:
         raise UsageError(str(exc)) from None
     _load_rule(args, experiment.market.settlement)

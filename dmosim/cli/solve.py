@@ -12,6 +12,7 @@ import time
 from typing import TYPE_CHECKING
 
 from messages.schemas import MAX_SUBPERIODS
+from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.case import load_case
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE
@@ -19,8 +20,8 @@ from scenarios.generation import MAX_SAMPLE, MAX_SCENARIOS
 
 from dmo.market.rules import MAX_RATE
 from ..console import UsageError, print_json, progress
-from .flags import add_method_flags
 from ..arguments import gap, hours, integer, number, seconds, seed
+from ..experiment.spec import MAX_WORKERS
 
 if TYPE_CHECKING:
     from microgrid_agent.instance import Instance
@@ -54,6 +55,15 @@ def add_instance_flags(p: argparse.ArgumentParser, scenarios: int) -> None:
                         "VOLL), not only kept below (docs/model.md, \"How the award binds\"); the transfer study "
                         "solves both readings")
     add_method_flags(p, workers=2)
+
+
+def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
+    """How the stochastic schedule is solved."""
+    p.add_argument("--method", choices=METHODS, default="auto",
+                   help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
+                        f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
+    p.add_argument("--workers", type=integer(1, MAX_WORKERS), default=workers,
+                   help=f"processes for the Benders subproblems, at most {MAX_WORKERS} (default: {workers})")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

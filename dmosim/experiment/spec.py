@@ -170,7 +170,8 @@ class Experiment(_Section):
         return value
 
 
-# The settings a command-line flag can override: dotted key -> flag dest of ``dmosim run``.
+# The settings a command-line flag can override: dotted key -> flag dest of ``dmosim run``, ``dmo`` and ``agent``
+# (dmosim/cli/settings.py).
 FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",

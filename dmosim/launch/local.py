@@ -9,7 +9,6 @@ recorder is an observer: if it fails, the days go on and settle, and the tables 
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 import queue
 import signal
@@ -25,9 +24,8 @@ from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import Bus, BusConfig
 from messages.transport.access import bundle_settings
 from messages.transport.credentials import create_auth_dir
-from messages.transport.faults import MessageFault
 from scenarios.case import case_path
-from scenarios.fleet import FleetMember, load_fleet, make_fleet
+from scenarios.fleet import FleetMember
 
 from ..experiment.rundir import RunDir
 from ..experiment.spec import Experiment, load_experiment, to_toml
@@ -35,6 +33,7 @@ from dmo.replay.reproduce import differences, statements_of
 from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
 from .faults import Fault, parse_fault
+from .roles import fleet_of, resolved
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
 
 OBSERVER = "run"  # the name this process watches the run's clock under
@@ -49,18 +48,6 @@ class RoleFailed(RuntimeError):
     def __init__(self, names: list[str], roles: Roles):
         self.names = names
         super().__init__("; ".join(f"{n} failed (its log: {roles.roles[n].log})" for n in names))
-
-
-def fleet_of(experiment: Experiment) -> list[FleetMember]:
-    a = experiment.agents
-    return load_fleet(a.fleet) if a.fleet else make_fleet(a.count, seed=experiment.seed)
-
-
-def resolved(experiment: Experiment) -> Experiment:
-    """The experiment with its market day fixed (today if it named none), so the run can be repeated."""
-    if experiment.market_day is not None:
-        return experiment
-    return experiment.model_copy(update={"market_day": dt.date.today().isoformat()})
 
 
 def run_experiment(experiment: Experiment | str | Path, out: str | Path | None = None, *, overwrite: bool = False,
@@ -82,10 +69,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     e = experiment
     fleet = fleet_of(e)
     parsed = [parse_fault(f) for f in e.faults]
-    faults = [f for f in parsed if isinstance(f, Fault)]
-    # every role gets the message faults and applies those that match what it publishes
-    message_faults = [flag for f in parsed if isinstance(f, MessageFault) for flag in ("--fault", str(f))]
-    message_faults += ["--fault-seed", str(e.seed)] if message_faults else []
+    faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     began = time.monotonic()
     rundir.experiment.write_text(to_toml(e))
     port = free_port()
@@ -93,22 +77,13 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     logs = rundir.logs
     auth = create_auth_dir(logs / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
                            valid_days=2, dmo_client=False, overwrite=True)  # the DMO is the router
-    common = ["--run-id", run_id, "--market-day", e.market_day]
-    m, s, d = e.market, e.schedule, e.deadlines
+    common = ["--run-id", run_id, "--experiment", str(rundir.experiment), "--auth-dir", str(auth)]
     say(f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}, {e.days} day(s) from {e.market_day}; "
         f"writing to {rundir.root}" + ("" if record else "; not recording"))
     with Roles() as roles:
         roles.start("dmo", dmosim_command(
-            "dmo", *common, "--listen", endpoint, "--agents", str(len(fleet)), "--case", m.case,
-            "--market", m.mode, "--seed", str(e.seed), "--island-hours", str(m.island_hours),
-            "--subperiods", str(m.subperiods), "--days", str(e.days), "--credit", repr(m.credit),
-            *_optional("--penalty", m.penalty), *_optional("--import-limit", m.import_limit),
-            *(["--settlement", m.settlement] if m.settlement else []),
-            *_optional("--export-limit", m.export_limit),
-            "--registration-timeout", repr(d.registration), "--bid-timeout", repr(d.bid),
-            "--schedule-timeout", repr(d.schedule), "--hour-timeout", repr(d.hour),
-            "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"), "--auth-dir", str(auth),
-            *(AWAIT_RECORDER if record else ()), *message_faults), log=logs / "dmo.log")
+            "dmo", *common, "--listen", endpoint, "--result", str(rundir.result),
+            "--journal", str(logs / "dmo.journal"), *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
@@ -122,17 +97,9 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                     "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", endpoint,
                     "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
-            scales = [flag for name, values in (("--load-scale", e.profiles.load_scale),
-                                                ("--renewable-scale", e.profiles.renewable_scale)) if values
-                      for flag in (name, ",".join(repr(float(x)) for x in values))]
             for member in fleet:
-                roles.start(member.id, dmosim_command(
-                    "agent", *common, "--id", member.id, "--connect", endpoint, "--case", member.case,
-                    "--scale", repr(member.scale), "--shift-hours", str(member.shift_hours),
-                    "--seed", str(member.seed), "--scenarios", str(s.scenarios),
-                    "--island-hours", str(m.island_hours), "--gap", repr(s.gap), "--time-limit", repr(s.time_limit),
-                    "--method", s.method, "--workers", str(s.workers), "--lease", "1", *scales,
-                    "--auth-dir", str(auth), *message_faults), log=logs / f"{member.id}.log")
+                roles.start(member.id, dmosim_command("agent", *common, "--id", member.id, "--connect", endpoint,
+                                                      "--lease", "1"), log=logs / f"{member.id}.log")
             failed = _wait_for_run(roles, watch)
         if failed:
             raise RoleFailed(failed, roles)
@@ -181,10 +148,6 @@ def reproduction(source: str | Path, again: Recording, say: Callable[[str], None
     else:
         say(f"every statement is the same as in {source}, to the cent")
     return {"source": str(source), "identical": not diffs, "differences": diffs}
-
-
-def _optional(flag: str, value) -> list[str]:
-    return [] if value is None else [flag, repr(value)]
 
 
 def _run_metadata(experiment: Experiment, fleet: list[FleetMember]) -> dict[str, str]:

@@ -10,13 +10,15 @@ from .reader import Recording
 
 # What differs between two runs of one experiment: clocks, the run's token and processes, and so the numbering and
 # the hashes of what was sent (a message sent again for want of a receipt shifts its sender's later numbers).
-_STAMPS = ("sent_at", "received_at", "run", "incarnation", "seq", "payload_sha256")
+# what differs between two runs of one configuration: stamps, and an agent's measurements of itself (its compute
+# times and message counts, on its realised day)
+_STAMPS = ("sent_at", "received_at", "run", "incarnation", "seq", "payload_sha256", "compute", "messages")
 
 
 def content_signature(rec: Recording) -> dict[str, set[str]]:
     """What a recording says, apart from what differs between runs: per key relative to the run prefix, the set
     of its payloads without their stamps (time, run token, incarnation, sequence number, the hash a receipt or a
-    rejection names), as canonical JSON. A message sent again says nothing new. Two runs of the same configuration
+    rejection names) and an agent's measurements of itself, as canonical JSON. A message sent again says nothing new. Two runs of the same configuration
     and seed give equal signatures; run ids, clocks and retransmissions differ, contents do not."""
     out: dict[str, set[str]] = collections.defaultdict(set)
     for m in rec.messages:

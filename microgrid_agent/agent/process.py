@@ -56,17 +56,17 @@ class AgentConfig:
     ``load_scale`` and ``renewable_scale`` scale each day's forecasts, a pattern repeated over the days (e.g. a
     week: five weekdays, two lighter weekend days)."""
 
-    scenarios: int = 5
-    island_hours: int = 1
-    gap: float = 0.01
-    time_limit: float = 600.0
-    seed: int = 0
-    idle_s: float = 3600.0
-    method: str = "auto"
-    workers: int = 1
+    scenarios: int
+    island_hours: int
+    gap: float
+    time_limit: float
+    seed: int
+    method: str
+    workers: int
+    load_scale: tuple[float, ...]
+    renewable_scale: tuple[float, ...]
+    idle_s: float = 3600.0  # without news from the DMO for this long, the agent gives up
     statement_s: float = 30.0  # after the day summary, how long to wait for the agent's own statement
-    load_scale: tuple[float, ...] = ()
-    renewable_scale: tuple[float, ...] = ()
 
 
 class AgentTimeout(RuntimeError):

@@ -37,7 +37,8 @@ def meter(agent="mg1", hour=1, p_m=(1.0, 2.0), seq=0, incarnation=1):
 
 def config(**kw):
     settings = dict(market_day=DAY, agents=2, iso_price=(40.0,) * HOURS, import_limit=16.0, export_limit=10.0,
-                    penalty=150.0, subperiods=K, islanded_hours=(5, 6))
+                    penalty=150.0, credit=0.0, subperiods=K, islanded_hours=(5, 6), registration_s=60.0, bids_s=60.0,
+                    schedule_s=60.0, hour_s=60.0)
     return DayConfig(**(settings | kw))
 
 

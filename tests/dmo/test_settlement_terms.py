@@ -10,7 +10,7 @@ import pytest
 
 from dmosim.cli import main
 from dmosim.console import UsageError
-from dmosim.cli.dmo import day_config
+from dmosim.cli.dmo import day_config_of, experiment_of
 from dmosim.cli.main import build_parser
 from dmosim.experiment.spec import Experiment, ExperimentError, parse_experiment, settled_by, with_settings
 from dmosim.experiment.sweep import parse_setting, variants
@@ -124,17 +124,18 @@ def test_a_sweep_of_the_penalty_under_a_named_rule_settles_each_run_at_its_own_r
         variants(under_deadband, [parse_setting("market.penalty=50,150")])
 
 
-def dmo_args(*flags: str):
-    return build_parser("dmo").parse_args(["dmo", "--agents", "1", *flags])
+def dmo_config(*flags: str):
+    """The DMO's days as ``dmosim dmo`` reads them from its flags."""
+    return day_config_of(experiment_of(build_parser("dmo").parse_args(["dmo", "--agents", "1", *flags])), None)
 
 
 def test_the_dmo_settles_by_the_rule_with_the_markets_rates():
-    config = day_config(dmo_args("--settlement", "paper", "--penalty", "50", "--credit", "5"), 1)
+    config = dmo_config("--settlement", "paper", "--penalty", "50", "--credit", "5")
     assert config.rule.label == "paper:penalty=50,credit=5" and config.rates == (50.0, 5.0)
-    assert day_config(dmo_args("--settlement", "paper"), 1).rule.label == "paper:penalty=150,credit=0"
-    assert day_config(dmo_args("--settlement", "paper:penalty=70"), 1).rates == (70.0, 0.0)
-    assert day_config(dmo_args("--settlement", "symmetric:below=10"), 1).rule.label == "symmetric:above=150,below=10"
+    assert dmo_config("--settlement", "paper").rule.label == "paper:penalty=150,credit=0"
+    assert dmo_config("--settlement", "paper:penalty=70").rates == (70.0, 0.0)
+    assert dmo_config("--settlement", "symmetric:below=10").rule.label == "symmetric:above=150,below=10"
     for flags in (("--settlement", "paper:penalty=70", "--penalty", "50"),
                   ("--settlement", "deadband", "--penalty", "50")):
-        with pytest.raises(UsageError, match="--settlement: settlement rule"):
-            day_config(dmo_args(*flags), 1)
+        with pytest.raises(UsageError, match="flags: market: settlement rule"):
+            dmo_config(*flags)

@@ -57,7 +57,7 @@ def test_flags_override_the_file(tmp_path, capsys):
     (["run", "--fault", "kill:mg7:3", "--check"], "unknown agent mg7"),
     (["run", "--from", "nothing.mcap", "--check"], "nothing.mcap: no such file"),
     (["run", "--settlement", "tests/dmo/test_rules.py:_raises", "--check"], "raised KeyError: 'mg1'"),
-    (["dmo", "--agents", "1", "--settlement", "nosuch"], "--settlement: unknown settlement rule 'nosuch'"),
+    (["dmo", "--agents", "1", "--settlement", "nosuch"], "market.settlement: unknown settlement rule 'nosuch'"),
 ])
 def test_bad_input_to_run_is_one_line_and_exit_2(argv, says, capsys):
     assert main(argv) == 2

@@ -409,7 +409,8 @@ def test_bids_summing_exactly_to_the_limit_congest_nothing_in_the_clearing_the_a
     clearing = clear(bids, iso, limit, call.export_limit_mw)
     assert clearing.congested == ("none",) * HOURS and clearing.net_import(0) == limit
     config = DayConfig(market_day=DAY, agents=2, iso_price=iso, import_limit=limit, export_limit=call.export_limit_mw,
-                       penalty=150.0, subperiods=K, islanded_hours=(12,))
+                       penalty=150.0, credit=0.0, subperiods=K, islanded_hours=(12,), registration_s=60.0,
+                       bids_s=60.0, schedule_s=60.0, hour_s=60.0)
     for agent in wants:
         i = find(day, f"dmo/award/{agent}")
         award = outbox.award(config, 1, clearing, agent)

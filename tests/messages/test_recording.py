@@ -81,8 +81,9 @@ def test_dmosim_run_records_every_message_of_the_day(day):
     expected = {"dmo/clock": 29, "dmo/call_for_bids": 1, "dmo/grid": 24, "dmo/summary": 1}
     for agent in ("mg1", "mg2"):
         expected.update({f"agent/{agent}/register": 1, f"agent/{agent}/bid": 1, f"agent/{agent}/schedule": 1,
-                         f"agent/{agent}/meter": 24, f"dmo/award/{agent}": 1, f"dmo/statement/{agent}": 1,
-                         f"dmo/receipt/{agent}": 27})  # one per message of the agent, each accepted
+                         f"agent/{agent}/meter": 24, f"agent/{agent}/day": 1, f"dmo/award/{agent}": 1,
+                         f"dmo/statement/{agent}": 1,
+                         f"dmo/receipt/{agent}": 28})  # one per message of the agent, each accepted
     assert distinct_messages(rec) == expected
     receipts = [json.loads(m.payload) for m in rec.messages if m.kind == "receipt"]
     assert all(r["accepted"] for r in receipts)
@@ -115,7 +116,7 @@ def test_a_plain_mcap_reader_opens_it_and_every_message_fits_its_channel_schema(
         reader = make_reader(f)
         summary = reader.get_summary()
         assert summary.statistics.message_count == len(read_recording(path).messages)
-        assert len(summary.channels) == 18
+        assert len(summary.channels) == 20
         assert summary.chunk_indexes and {c.compression for c in summary.chunk_indexes} == {"zstd"}
         assert all(c.message_index_offsets for c in summary.chunk_indexes)
         validators = {}
@@ -127,7 +128,7 @@ def test_a_plain_mcap_reader_opens_it_and_every_message_fits_its_channel_schema(
                 jsonschema.Draft202012Validator.check_schema(document)
                 validators[schema.id] = jsonschema.Draft202012Validator(document)
             validators[schema.id].validate(json.loads(message.data))
-        assert len(validators) == 11  # one schema per kind
+        assert len(validators) == 12  # one schema per kind
         [meta] = list(reader.iter_metadata())
         assert meta.name == "dmosim" and "config" in meta.metadata
         assert {a.name for a in reader.iter_attachments()} == {"experiment.toml", "paper.toml", "fleet.toml"}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import dataclasses
 import json
 import os
 import queue
@@ -221,7 +222,7 @@ def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=No
     ``outcome`` fills in with "result" (the DayResult) or "error" once the DMO's day is over."""
     run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
     config = DayConfig(market_day=DAY, agents=len(agents), iso_price=(50.0,) * HOURS, import_limit=100.0,
-                       export_limit=100.0, penalty=150.0, subperiods=K, islanded_hours=(7,),
+                       export_limit=100.0, penalty=150.0, credit=0.0, subperiods=K, islanded_hours=(7,),
                        fixed_awards=(AWARD,) * HOURS, registration_s=20.0, bids_s=10.0, schedule_s=10.0,
                        hour_s=hour_s, linger_s=1.0)
     outcome: dict = {}
@@ -377,7 +378,9 @@ def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline,
 
 
 def test_an_agent_that_may_not_join_is_told_why_and_exits_1(tmp_path):
-    from microgrid_agent.agent.process import AgentConfig, AgentRefused, MicrogridAgent  # noqa: PLC0415
+    from dmosim.experiment.spec import Experiment  # noqa: PLC0415
+    from dmosim.launch.roles import agent_config, member_of  # noqa: PLC0415
+    from microgrid_agent.agent.process import AgentRefused, MicrogridAgent  # noqa: PLC0415
     from scenarios.case import load_case  # noqa: PLC0415
 
     reached = threading.Event()
@@ -390,7 +393,8 @@ def test_an_agent_that_may_not_join_is_told_why_and_exits_1(tmp_path):
     with scripted_day(hour_s=5.0, before_meter=wait_at_hour_3) as (day, agents, outcome):
         assert reached.wait(60)
         with Bus(outcome["run_id"], "mg9", BusConfig(mode="client", connect=(outcome["endpoint"],))) as bus:
-            late = MicrogridAgent(bus, load_case("paper"), AgentConfig(idle_s=30), DAY)
+            config = dataclasses.replace(agent_config(Experiment(), member_of(Experiment(), "mg1")), idle_s=30)
+            late = MicrogridAgent(bus, load_case("paper"), config, DAY)
             with pytest.raises(AgentRefused, match=r"mg9: the DMO refused the registration \(late\): registration "
                                                    r"is closed \(now realtime\): mg9 is not an agent of this day"):
                 late.run()

@@ -1,0 +1,127 @@
+"""The experiment's settings as flags: ``dmosim run`` takes them all, ``dmosim dmo`` and ``dmosim agent`` those of
+their role. Each flag overrides the experiment file's setting (``--experiment``, or ``run``'s EXPERIMENT); its
+default, shown in its help, is the experiment's (dmosim/experiment/spec.py), defined there once.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Iterable
+
+from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
+from scenarios.days import MAX_SEED
+from scenarios.generation import MAX_SCENARIOS
+
+from dmo.market.rules import MAX_MW, MAX_RATE
+from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
+from ..experiment.spec import FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
+from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT
+from .flags import SETTLEMENT_HELP
+
+DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
+             ("hour", "each hour's meter reports"))
+# The settings of each role: what it reads of the experiment and may be told on its command line.
+RUN_SETTINGS = ("agents.count", "agents.fleet", "days", "market_day", "seed")
+MARKET_SETTINGS = tuple(k for k in FLAGS if k.startswith("market."))
+DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
+AGENT_SETTINGS = RUN_SETTINGS + ("market.island_hours",) + tuple(
+    k for k in FLAGS if k.startswith(("schedule.", "profiles.")))
+
+
+def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
+    """Setting -> (flag, add_argument keywords), every default as the experiment ``default`` has it."""
+    m, s = default.market, default.schedule
+    flags = {
+        "agents.count": ("--agents", dict(type=integer(1, MAX_AGENTS),
+                                         help=f"agents mg1..mgN (default: {default.agents.count})")),
+        "agents.fleet": ("--fleet", dict(help="fleet TOML file naming the agents and their cases (instead of "
+                                              "--agents)")),
+        "days": ("--days", dict(type=integer(1, MAX_DAYS),
+                                help="consecutive market days; agents register once and carry their state across "
+                                     f"midnight (at most {MAX_DAYS}; default: {default.days})")),
+        "market_day": ("--market-day", dict(type=market_day, help="the first market day, YYYY-MM-DD "
+                                                                  "(default: today)")),
+        "seed": ("--seed", dict(type=seed, help="seed of the run: fleet, forecast errors, islanding, faults, "
+                                                f"0..{MAX_SEED} (default: {default.seed})")),
+        "market.case": ("--case", dict(help=f"case giving the ISO price, penalty and Table I awards "
+                                            f"(default: {m.case})")),
+        "market.mode": ("--market", dict(choices=("bids", "fixed"),
+                                         help="bids: clear the agents' bids; fixed: award the case's Table I to "
+                                              f"every agent (default: {m.mode})")),
+        "market.penalty": ("--penalty", dict(type=number(0, MAX_RATE),
+                                             help="$/MWh above the award (default: the case's)")),
+        "market.credit": ("--credit", dict(type=number(0, MAX_RATE),
+                                           help=f"$/MWh below the award (default: {m.credit:g})")),
+        "market.settlement": ("--settlement", dict(metavar="RULE", help=SETTLEMENT_HELP)),
+        "market.import_limit": ("--import-limit", dict(type=number(0, MAX_MW), help="feeder import limit, MW "
+                                                       f"(default: {IMPORT_LIMIT_PER_AGENT:g} x agents)")),
+        "market.export_limit": ("--export-limit", dict(type=number(0, MAX_MW), help="feeder export limit, MW "
+                                                       f"(default: {EXPORT_LIMIT_PER_AGENT:g} x agents)")),
+        "market.island_hours": ("--island-hours", dict(type=hours, help="hours each day is islanded (default: "
+                                                                        f"{m.island_hours})")),
+        "market.subperiods": ("--subperiods", dict(type=integer(1, MAX_SUBPERIODS),
+                                                   help=f"metering sub-periods per hour, at most {MAX_SUBPERIODS} "
+                                                        f"(default: {m.subperiods})")),
+        "schedule.scenarios": ("--scenarios", dict(type=integer(1, MAX_SCENARIOS),
+                                                   help=f"scenarios of each agent's schedule, at most "
+                                                        f"{MAX_SCENARIOS} (default: {s.scenarios})")),
+        "schedule.gap": ("--gap", dict(type=gap, help=f"relative MIP gap of each schedule (default: {s.gap:g})")),
+        "schedule.time_limit": ("--time-limit", dict(type=seconds, help=f"seconds per agent solve (default: "
+                                                                        f"{s.time_limit:g})")),
+        "schedule.method": ("--method", dict(choices=METHODS,
+                                             help="route of the agents' solves: extensive, one MILP; benders, "
+                                                  f"decomposed (docs/solver.md); auto, benders from "
+                                                  f"{AUTO_BENDERS_SCENARIOS} scenarios on (default: {s.method})")),
+        "schedule.workers": ("--workers", dict(type=integer(1, MAX_WORKERS),
+                                               help=f"processes per agent for Benders subproblems, at most "
+                                                    f"{MAX_WORKERS} (default: {s.workers})")),
+        "profiles.load_scale": ("--load-scale", dict(type=scales, metavar="X,Y,...",
+                                                     help="each day's fixed-load forecast times these, repeated "
+                                                          "over the days (default: 1)")),
+        "profiles.renewable_scale": ("--renewable-scale", dict(type=scales, metavar="X,Y,...",
+                                                               help="each day's renewable forecasts times these, as "
+                                                                    "--load-scale (default: 1)")),
+    }
+    for name, what in DEADLINES:
+        flags[f"deadlines.{name}"] = (f"--{name}-timeout", dict(
+            type=seconds, metavar="S", help=f"deadline for {what}, s (default: {getattr(default.deadlines, name):g})"))
+    return flags
+
+
+def add_setting_flags(group, keys: Iterable[str]) -> None:
+    """The flags of the settings ``keys`` (dotted, as in an experiment file), on a parser or argument group."""
+    flags = _flags(Experiment())
+    for key in keys:
+        flag, kwargs = flags[key]
+        group.add_argument(flag, dest=FLAGS[key], **kwargs)
+
+
+def add_experiment_flag(p: argparse.ArgumentParser, keys: Iterable[str]) -> None:
+    """``--experiment FILE`` for a role, and the flags of its settings, which override the file."""
+    p.add_argument("--experiment", metavar="FILE",
+                   help="the run's experiment (TOML, docs/experiments.md): the experiment.toml of the run directory "
+                        "for a role of a dmosim run (default: the defaults below)")
+    add_setting_flags(p.add_argument_group("the experiment (each overrides --experiment; default: its setting, "
+                                           "else shown)"), keys)
+
+
+def settings_given(args) -> dict[str, object]:
+    """Dotted setting -> value, of every setting flag the command line gave (lists where the experiment has them)."""
+    given = {key: getattr(args, dest) for key, dest in FLAGS.items() if getattr(args, dest, None) is not None}
+    return {key: list(value) if isinstance(value, tuple) else value for key, value in given.items()}
+
+
+def experiment_with_flags(base: Experiment, args) -> Experiment:
+    """``base`` with the settings the flags give; ExperimentError if they contradict it (a count beside a fleet)."""
+    given = settings_given(args)
+    fleet = given.get("agents.fleet") or base.agents.fleet
+    if "agents.count" in given and fleet:
+        raise ExperimentError(f"--agents and a fleet ({fleet}) exclude each other: a fleet file names its agents")
+    return with_settings(base, given, "flags") if given else base
+
+
+def role_experiment(args) -> Experiment:
+    """The experiment a role runs: ``--experiment FILE`` (else the defaults) with its flags given."""
+    base = load_experiment(args.experiment) if args.experiment else Experiment()
+    return experiment_with_flags(base, args)

@@ -1,0 +1,100 @@
+"""What each role of a run takes from the resolved experiment: the DMO its days (``DayConfig``), an agent its member
+of the fleet, its case and how it schedules (``AgentConfig``), every role the message faults it applies.
+
+``dmosim run`` writes the resolved experiment into the run directory and starts each role with that file
+(``--experiment``); a role started by hand reads the same file, or none (the defaults of spec.py), and its flags
+override it. Every setting's default is the one of spec.py: nothing here has a default of its own.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+from messages.transport.faults import MessageFault
+from scenarios.case import Case, load_case
+from scenarios.fleet import FleetMember, derive_case, load_fleet, make_fleet
+
+from dmo.market.choice import ChosenRule, choose
+from dmo.market.rules import market_parameters
+from dmo.operator.config import DayConfig, islanding_by_day
+from ..experiment.spec import Experiment, ExperimentError
+from .faults import parse_fault
+
+IMPORT_LIMIT_PER_AGENT = 8.0  # MW of feeder import per agent, where the experiment sets no import limit
+EXPORT_LIMIT_PER_AGENT = 5.0  # MW of feeder export per agent, where the experiment sets no export limit
+
+
+def resolved(experiment: Experiment) -> Experiment:
+    """The experiment as a run fixes it: its market day (today if it named none) and its fleet file as an absolute
+    path, so each role reads the same run from the run directory's copy, whatever directory it starts in."""
+    update = {}
+    if experiment.market_day is None:
+        update["market_day"] = dt.date.today().isoformat()
+    fleet = experiment.agents.fleet
+    if fleet is not None and not Path(fleet).is_absolute():
+        update["agents"] = experiment.agents.model_copy(update={"fleet": str(Path(fleet).resolve())})
+    return experiment.model_copy(update=update) if update else experiment
+
+
+def fleet_of(experiment: Experiment) -> list[FleetMember]:
+    """The agents of the run: the members of its fleet file, else mg1..mgN drawn from its seed."""
+    a = experiment.agents
+    return load_fleet(a.fleet) if a.fleet else make_fleet(a.count, seed=experiment.seed)
+
+
+def member_of(experiment: Experiment, agent_id: str) -> FleetMember:
+    """Agent ``agent_id`` of the run; an id the run has no agent of is an ExperimentError."""
+    fleet = fleet_of(experiment)
+    for member in fleet:
+        if member.id == agent_id:
+            return member
+    names = f"{fleet[0].id}..{fleet[-1].id}" if len(fleet) > 3 else ", ".join(m.id for m in fleet)
+    raise ExperimentError(f"{agent_id} is not an agent of the experiment ({names}; --agents N or --fleet FILE)")
+
+
+def member_case(member: FleetMember) -> Case:
+    """The member's microgrid: its base case, scaled and shifted as the fleet says."""
+    name = member.case if member.scale == 1 else f"{member.case}x{member.scale:g}"
+    return derive_case(load_case(member.case), member.scale, member.shift_hours, name)
+
+
+def agent_config(experiment: Experiment, member: FleetMember):
+    """How ``member`` schedules its days (``AgentConfig``): the experiment's schedule settings and profiles, the
+    islanding hours the market announces, the member's own seed."""
+    from microgrid_agent.agent.process import AgentConfig  # noqa: PLC0415  (the solver stack: for agents only)
+
+    s, p = experiment.schedule, experiment.profiles
+    return AgentConfig(scenarios=s.scenarios, island_hours=experiment.market.island_hours, gap=s.gap,
+                       time_limit=s.time_limit, seed=member.seed, method=s.method, workers=s.workers,
+                       load_scale=tuple(p.load_scale), renewable_scale=tuple(p.renewable_scale))
+
+
+def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConfig:
+    """The DMO's days of the (resolved) experiment; a settlement rule of the user's own is loaded here (the run
+    checked that it may be), and a rule whose parameters disagree with the market's is a ValueError."""
+    e, m, d = experiment, experiment.market, experiment.deadlines
+    case = load_case(m.case)
+    agents = len(fleet_of(e))
+    rule = None
+    if m.settlement is not None:
+        chosen = choose(m.settlement)
+        if chosen.built_in is not None:
+            params = market_parameters(chosen.built_in, chosen.params, m.penalty, m.credit, case.grid.penalty)
+            chosen = ChosenRule(chosen.name, chosen.rule, params)
+        rule = chosen
+    return DayConfig(
+        market_day=e.market_day, agents=agents, iso_price=tuple(case.grid.iso_price),
+        import_limit=m.import_limit if m.import_limit is not None else IMPORT_LIMIT_PER_AGENT * agents,
+        export_limit=m.export_limit if m.export_limit is not None else EXPORT_LIMIT_PER_AGENT * agents,
+        penalty=case.grid.penalty if m.penalty is None else m.penalty, credit=m.credit, subperiods=m.subperiods,
+        islanded_hours=(), days=e.days, islanding_by_day=islanding_by_day(m.island_hours, e.seed, e.days),
+        fixed_awards=tuple(case.grid.p_sch) if m.mode == "fixed" else None,
+        registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, journal=journal,
+        settlement=rule)
+
+
+def message_faults(experiment: Experiment) -> list[MessageFault]:
+    """The experiment's faults on messages: every role applies those that match what it publishes (the launcher
+    fires the faults on processes)."""
+    return [f for f in map(parse_fault, experiment.faults) if isinstance(f, MessageFault)]
