@@ -19,7 +19,7 @@ from scenarios.case import load_case, parse_toml
 from scenarios.days import MAX_SEED
 from scenarios.generation import MAX_SCENARIOS
 
-from ..experiment.rundir import RunDir, RunDirError
+from ..experiment.rundir import RunDir, RunDirError, check_directory
 from ..experiment.spec import (FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, parse_experiment,
                                settled_by, with_settings)
 from ..launch.faults import Fault, parse_fault
@@ -103,7 +103,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--json", action="store_true", help="print one JSON object (docs/experiments.md, \"The result\")")
     out.add_argument("--quiet", action="store_true", help="no progress lines")
     out.add_argument("--check", action="store_true",
-                     help="check the inputs (experiment, cases, fleet, faults, paths) and exit without running")
+                     help="check the inputs (experiment, cases, fleet, faults, paths, --out) and exit without running")
     add_trust_flag(p)
     p.add_argument("--tls", action="store_true",
                    help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
@@ -185,6 +185,11 @@ def run(args) -> int:
     if args.no_record and recorder_faults:
         raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
     if args.check:
+        if args.out is not None:
+            try:
+                check_directory(Path(args.out), args.overwrite)  # where the run itself would stop
+            except RunDirError as exc:
+                raise UsageError(str(exc)) from None
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
               f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, "

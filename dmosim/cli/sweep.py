@@ -18,7 +18,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..experiment.rundir import RUNS, RunDirError, claim_directory
+from ..experiment.rundir import RUNS, RunDirError, check_directory, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
 from ..launch.local import resolved
@@ -63,6 +63,11 @@ def run(args) -> int:
     keys = list(runs[0].settings)
     parallel = args.parallel or max(1, (os.cpu_count() or 1) // agents)
     if args.check:
+        if args.out is not None:
+            try:
+                check_directory(Path(args.out), args.overwrite)  # where the sweep itself would stop
+            except RunDirError as exc:
+                raise UsageError(str(exc)) from None
         print(f"dmosim sweep: {len(runs)} valid run(s) of {args.experiment}, sweeping {', '.join(keys)}:")
         for v in runs:
             print(f"  {v.label}")
