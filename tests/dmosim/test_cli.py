@@ -223,3 +223,18 @@ def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios():
     bad = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1
     assert "--evaluate: expected an integer in 2.." in bad.stderr
+
+
+def test_info_prints_the_recorded_experiment_as_the_toml_of_its_run_directory(capsys):
+    recording = Path(__file__).resolve().parents[1] / "data" / "schema-v2-two-days.mcap"
+    assert main(["info", str(recording)]) == 0
+    out = capsys.readouterr().out
+    head, sep, block = out.partition("experiment (TOML")
+    assert sep and "{'" not in out  # no Python dict anywhere
+    toml = "\n".join(line.removeprefix("  ") for line in block.splitlines()[1:])
+    assert tomllib.loads(toml)["market"]["penalty"] == 150.0 and tomllib.loads(toml)["days"] == 2
+    from dmosim.experiment.spec import parse_experiment  # noqa: PLC0415
+    from messages.recording import read_recording  # noqa: PLC0415
+
+    config = json.loads(read_recording(recording).metadata["config"])
+    assert parse_experiment(tomllib.loads(toml)) == parse_experiment(config)
