@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--island-hours", type=hours, default=1, help="islanding hours the schedule plans for (default: 1)")
     p.add_argument("--market-day", type=market_day, default=None, help="the market day (default: today)")
     p.add_argument("--idle-timeout", type=seconds, default=3600.0, help="give up after this long without news")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
     add_schedule_flags(p)
     add_fault_flags(p)
     add_bus_flags(p, "client")

@@ -11,13 +11,13 @@ from messages.recording import BACKFILL_METADATA, Recording
 from dmo.replay.resettle import accepted_meter_reports, day_messages, gaps, hour_ranges, rule_named
 from ..console import print_json
 from ..experiment.spec import ExperimentError, parse_experiment, to_toml
-from .flags import load_recording
+from .flags import RECORDING_HELP, load_recording
 
-HELP = "summary of a recording: run, market days, agents, channels, counts, what it lacks"
+HELP = "summary of a recording or a run directory: run, market days, agents, channels, counts, what it lacks"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording, or a run directory")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 

@@ -8,13 +8,13 @@ import argparse
 from pathlib import Path
 
 from ..console import UsageError
-from .flags import load_recording
+from .flags import RECORDING_HELP, load_recording
 
-HELP = "recorded market days as one PNG: prices, awards against metered imports, penalties and credits, totals"
+HELP = "the market days of a recording or a run directory as one PNG: prices, awards against metered imports, penalties and credits, totals"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--out", metavar="FILE",
                    help="the PNG to write (default: <recording stem>.png beside the recording)")
 

@@ -47,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("experiment", nargs="?", metavar="EXPERIMENT",
                    help="an experiment file (TOML, docs/experiments.md); the flags below override it")
     p.add_argument("--from", dest="source", metavar="RECORDING",
-                   help="run again the experiment a recording of dmosim run holds (flags override it)")
+                   help="run again the experiment that a recording, or a run directory, of dmosim run holds (flags override it)")
     setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
     setting.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {default.agents.count})")
     setting.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (instead of --agents)")

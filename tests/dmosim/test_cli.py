@@ -238,3 +238,39 @@ def test_info_prints_the_recorded_experiment_as_the_toml_of_its_run_directory(ca
 
     config = json.loads(read_recording(recording).metadata["config"])
     assert parse_experiment(tomllib.loads(toml)) == parse_experiment(config)
+
+
+def _flags_of(parser: argparse.ArgumentParser, prog: str):
+    """(where, action) of every argument of ``parser`` and of its sub-verbs (``bench solver``...)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _flags_of(sub, f"{prog} {name}")
+        elif not isinstance(action, argparse._HelpAction):
+            yield prog, action
+
+
+def _verb_parser(name: str) -> argparse.ArgumentParser:
+    from dmosim.cli.main import build_parser  # noqa: PLC0415
+
+    parser = build_parser(name)
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+
+
+def test_every_flag_of_every_verb_has_help_text():
+    from dmosim.cli.main import VERBS  # noqa: PLC0415
+
+    bare = [f"{prog} {'/'.join(action.option_strings) or action.dest}" for name in VERBS
+            for prog, action in _flags_of(_verb_parser(name), name)
+            if not action.help or action.help == argparse.SUPPRESS]
+    assert bare == []
+    quiet = [prog for name in VERBS for prog, action in _flags_of(_verb_parser(name), name)
+             if "--quiet" in action.option_strings]
+    assert len(quiet) >= 6  # run, sweep, dmo, agent, record, router, replay: each checked above
+
+
+@pytest.mark.parametrize("verb", ["info", "cat", "export", "plot", "replay", "settle"])
+def test_the_verbs_that_read_run_directories_say_so(verb):
+    path = next(a for a in _verb_parser(verb)._actions if a.dest == "path")
+    said = "a recording, a run directory or a sweep directory" if verb == "settle" else "or a run directory"
+    assert said in path.help
