@@ -16,11 +16,19 @@ HELP = "the market days of a recording or a run directory as one PNG: prices, aw
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--out", metavar="FILE",
-                   help="the PNG to write (default: <recording stem>.png beside the recording)")
+                   help="the PNG to write (default: a run directory's run.png, else <recording stem>.png beside "
+                        "the recording)")
+
+
+def default_figure(path: Path) -> Path:
+    """Where the figure goes without ``--out``: a run directory's ``run.png``, else beside the recording."""
+    from ..experiment.rundir import RunDir  # noqa: PLC0415
+
+    return RunDir(path).figure if path.is_dir() else path.with_suffix(".png")
 
 
 def run(args) -> int:
-    out = Path(args.out) if args.out else Path(args.path).with_suffix(".png")
+    out = Path(args.out) if args.out else default_figure(Path(args.path))
     if out.is_dir():
         raise UsageError(f"{out} is a directory; give a file name, e.g. {out / 'day.png'}")
     if not out.parent.is_dir():

@@ -389,3 +389,14 @@ def test_a_day_settled_by_a_rule_that_cannot_be_loaded_here_is_refused_in_one_li
         assert main([*verb[:1], str(path), *verb[1:]]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "gone/rules.py:mine" in err, err
+
+
+def test_plot_of_a_run_directory_writes_its_run_png_inside_it(recording, tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "runs" / "r1"
+    run_dir.mkdir(parents=True)
+    (run_dir / "recording.mcap").write_bytes(recording.read_bytes())
+    monkeypatch.chdir(tmp_path)
+    assert main(["plot", "runs/r1"]) == 0
+    assert capsys.readouterr().out.strip() == str(Path("runs/r1/run.png"))
+    assert (run_dir / "run.png").read_bytes().startswith(b"\x89PNG") and not (tmp_path / "runs" / "r1.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]
