@@ -400,3 +400,31 @@ def test_plot_of_a_run_directory_writes_its_run_png_inside_it(recording, tmp_pat
     assert capsys.readouterr().out.strip() == str(Path("runs/r1/run.png"))
     assert (run_dir / "run.png").read_bytes().startswith(b"\x89PNG") and not (tmp_path / "runs" / "r1.png").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]
+
+
+def test_every_table_has_a_timestamp_that_pandas_resamples(tmp_path):
+    run_id = new_run_id()
+    two = synthetic_day(run_id, 2, K, market_day=DAY) + synthetic_day(run_id, 2, K, market_day=NEXT_DAY, seed=1)
+    frames = tables(read_recording(write(tmp_path / "two.mcap", run_id, two)))
+    hours = frames["hours"]
+    assert str(hours["timestamp"].dtype) == "datetime64[ns]" and hours["timestamp"].dt.tz is None
+    first = hours[(hours["market_day"] == NEXT_DAY) & (hours["hour"] == 1)]["timestamp"]
+    assert (first == pd.Timestamp(f"{NEXT_DAY} 00:00")).all()
+    assert (hours["timestamp"] == pd.to_datetime(hours["market_day"].astype(str))
+            + pd.to_timedelta(hours["hour"] - 1, unit="h")).all()
+    daily = hours.set_index("timestamp").resample("D")["total"].sum()
+    assert list(daily.index.strftime("%Y-%m-%d")) == [DAY, NEXT_DAY]
+    assert daily.round(2).tolist() == frames["days"].groupby("market_day")["total"].sum().round(2).tolist()
+    meter = frames["meter"]
+    second = meter[(meter["market_day"] == DAY) & (meter["hour"] == 5) & (meter["subperiod"] == 2)]["timestamp"]
+    assert (second == pd.Timestamp(f"{DAY} 04:20")).all()  # the second of K = 3 sub-periods of hour 5
+    assert meter.set_index("timestamp").resample("h")["p_m_mw"].count().max() == 2 * K
+    for name, frame in frames.items():
+        assert "timestamp" in frame and str(frame["timestamp"].dtype) == "datetime64[ns]", name
+
+
+def test_docs_api_names_every_column_of_every_table():
+    text = (ROOT / "docs" / "api.md").read_text()
+    for name, columns in TABLE_COLUMNS.items():
+        row = next(line for line in text.splitlines() if line.startswith(f"| `{name}` |"))
+        assert [c for c in columns if f"`{c}`" not in row] == [], name
