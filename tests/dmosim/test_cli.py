@@ -274,3 +274,16 @@ def test_the_verbs_that_read_run_directories_say_so(verb):
     path = next(a for a in _verb_parser(verb)._actions if a.dest == "path")
     said = "a recording, a run directory or a sweep directory" if verb == "settle" else "or a run directory"
     assert said in path.help
+
+
+def test_a_scenarios_py_in_the_current_directory_is_named_not_imported(tmp_path):
+    """python -m puts the current directory first on sys.path, where a user's scenarios.py would pass for ours."""
+    (tmp_path / "scenarios.py").write_text("raise SystemExit('the user file ran')\n")
+    env = {**os.environ, "PYTHONPATH": ""}
+    done = subprocess.run([sys.executable, "-m", "dmosim", "--version"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr == (f"error: {tmp_path / 'scenarios.py'} shadows dmosim's package 'scenarios' (Python finds "
+                           "it first on sys.path: the current directory, with python -m, or PYTHONPATH); rename it, "
+                           "or run the installed dmosim command from another directory (README.md)\n")
+
