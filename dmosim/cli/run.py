@@ -28,7 +28,7 @@ from dmo.market.choice import Trust, UntrustedRule, choose
 from dmo.market.rules import MAX_MW, MAX_RATE
 from ..results.verdict import one_line
 from .checks import agent_list, check_inputs
-from ..console import UsageError, print_json, progress
+from ..console import Progress, UsageError, print_json
 from .flags import SETTLEMENT_HELP, add_trust_flag, load_recording, recording_path, untrusted
 from ..arguments import agents, gap, hours, integer, market_day, number, scales, seconds, seed
 
@@ -101,7 +101,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     record.add_argument("--record", metavar="PATH", help="the recording (default: DIR/recording.mcap)")
     record.add_argument("--no-record", action="store_true", help="run without a recorder")
     out.add_argument("--json", action="store_true", help="print one JSON object (docs/experiments.md, \"The result\")")
-    out.add_argument("--quiet", action="store_true", help="no progress lines")
+    out.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
     out.add_argument("--check", action="store_true",
                      help="check the inputs (experiment, cases, fleet, faults, paths, --out) and exit without running")
     add_trust_flag(p)
@@ -201,14 +201,21 @@ def run(args) -> int:
     except RunDirError as exc:
         raise UsageError(str(exc)) from None
     record = None if args.no_record else (record_to or rundir.recording)
-    say = (lambda text: None) if args.quiet else progress
+    bar = None if args.quiet else Progress("hours")
+    say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
     signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
     try:
-        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say)
+        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say,
+                             tick=tick)
     except RoleFailed as exc:
+        if bar:
+            bar.close()
         for name in exc.names:
             _tail(rundir.logs / f"{name}.log")
         raise
+    finally:
+        if bar:
+            bar.close()
     if args.json:
         print_json(result)
     else:

@@ -24,7 +24,7 @@ from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
 from ..launch.local import resolved
 from ..launch.processes import dmosim_command, role_env
 from .checks import Checked, check_inputs
-from ..console import UsageError, print_json, progress
+from ..console import Progress, UsageError, print_json
 from ..arguments import integer
 
 HELP = "run an experiment once per combination of swept settings, into one table and figure"
@@ -44,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--overwrite", action="store_true", help="use --out DIR even if it is not empty")
     p.add_argument("--check", action="store_true", help="validate every variant, list them and exit")
     p.add_argument("--json", action="store_true", help="print one JSON object at the end")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
 
 
 def run(args) -> int:
@@ -78,9 +78,14 @@ def run(args) -> int:
                                args.overwrite)
     except RunDirError as exc:
         raise UsageError(str(exc)) from None
-    say = (lambda text: None) if args.quiet else progress
+    bar = None if args.quiet else Progress("runs")
+    say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
     say(f"sweep of {args.experiment}: {len(runs)} run(s), {parallel} at a time, into {root}")
-    rows, failed = _run_all(runs, root, parallel, say)
+    try:
+        rows, failed = _run_all(runs, root, parallel, say, tick)
+    finally:
+        if bar:
+            bar.close()
 
     import pandas as pd  # noqa: PLC0415  (pandas, matplotlib: once the runs are done)
 
@@ -120,8 +125,10 @@ def _portable(experiment: Experiment) -> Experiment:
         update={"fleet": str(Path(fleet).resolve())})})
 
 
-def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[dict], list[str]]:
-    """Every variant as ``dmosim run``, at most ``parallel`` at once; the table's rows and the failed labels."""
+def _run_all(runs: list[Variant], root: Path, parallel: int, say, tick) -> tuple[list[dict], list[str]]:
+    """Every variant as ``dmosim run``, at most ``parallel`` at once; the table's rows and the failed labels.
+    ``tick(runs done, runs in all, what is under way)`` follows them (``dmosim.console.Progress.update``); ``say``
+    reports a run that did not end ok."""
     from ..results.sweeps import sweep_rows  # noqa: PLC0415
 
     (root / "experiments").mkdir(exist_ok=True)
@@ -136,7 +143,7 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[
                 process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                            env=role_env())
                 running[v.label] = (v, process, time.monotonic())
-                say(f"started {v.label}")
+                tick(done, len(runs), f"started {v.label}")
             for label, (v, process, started) in list(running.items()):
                 if process.poll() is None:
                     continue
@@ -151,8 +158,9 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[
                                          (err.strip().splitlines() or [f"exit {process.returncode}"])[-1])
                 status = rows[label][0]["status"]
                 if status == "ok":
-                    say(f"{done}/{len(runs)} done: {label} in {seconds:.0f} s")
+                    tick(done, len(runs), f"{label} done in {seconds:.0f} s")
                 else:
+                    tick(done, len(runs), f"{label} {status}")
                     failed.append(label)
                     say(f"{done}/{len(runs)} {status.upper()}: {label} after {seconds:.0f} s: "
                         f"{rows[label][0]['error']}")

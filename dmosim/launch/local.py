@@ -74,10 +74,12 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
 
 
 def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
-                repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None) -> dict:
+                repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None,
+                tick: Callable[[int, int, str], None] | None = None) -> dict:
     """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
     ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
-    with before its result is written."""
+    with before its result is written. ``tick(hours done, hours in all, where the clock is)`` follows the DMO's
+    clock (``dmosim.console.Progress.update``); without it, ``say`` gets a line per clock message."""
     e = experiment
     fleet = fleet_of(e)
     parsed = [parse_fault(f) for f in e.faults]
@@ -111,7 +113,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
-            watch = _Watch(roles, faults, say)
+            watch = _Watch(roles, faults, say, tick)
             observer.subscribe(observer.keys.clock(), watch.on_clock)
             observer.subscribe(observer.keys.schedule("*"), watch.on_schedule)
             if record:
@@ -325,8 +327,11 @@ class _Watch:
     Scheduling can take minutes: each agent is shown as its schedule arrives, with the seconds since the awards
     went out (the clock's ``scheduling`` step) and its solve's status and certified gap."""
 
-    def __init__(self, roles: Roles, faults: list[Fault], say: Callable[[str], None]):
+    def __init__(self, roles: Roles, faults: list[Fault], say: Callable[[str], None],
+                 tick: Callable[[int, int, str], None] | None = None):
         self.roles, self.faults, self.say = roles, faults, say
+        self.tick = tick or (lambda done, total, text: say(text))
+        self.hours = (0, 1)  # hours of the run done, and in all, as the DMO's clock last said
         self.started = threading.Event()
         self.lock = threading.Lock()
         self.fired: set[Fault] = set()
@@ -349,7 +354,9 @@ class _Watch:
             if msg.phase == "settlement":
                 self.memory[msg.day] = {name: m for name, role in self.roles.roles.items()
                                         if (m := memory_mib(role.process.pid)) is not None}
-            self.say(f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
+            done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
+            self.hours = (done, 24 * msg.days)
+            self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
             for f in self.faults:
                 if msg.phase == "realtime" and (msg.day, msg.hour) == (f.day, f.hour) and f not in self.fired:
                     self.fired.add(f)
@@ -360,7 +367,7 @@ class _Watch:
             since = self.scheduling_since
             took = f" in {time.monotonic() - since:.1f} s" if since is not None else ""
             gap = f", gap {100 * msg.mip_gap:.2f}%" if msg.mip_gap is not None else ""
-            self.say(f"{self.day}{msg.sender} scheduled{took} ({msg.status}{gap}, {msg.scenarios} scenario(s), "
+            self.tick(*self.hours, f"{self.day}{msg.sender} scheduled{took} ({msg.status}{gap}, {msg.scenarios} scenario(s), "
                      f"expected cost ${msg.expected_cost:,.2f})")
 
     def _fire(self, f: Fault) -> None:
