@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="runs at a time (default: what the machine's cores fit: cores / agents of a run, at least "
                         "1; each run is a DMO and its agents, each agent solving on a core)")
     p.add_argument("--out", metavar="DIR",
-                   help="the sweep's directory: one run directory per variant, sweep.csv, sweep.png "
+                   help="the sweep's directory: one run directory per variant, sweep.csv (sweep-seeds.csv), sweep.png "
                         "(default: runs/sweep-<experiment name>-<time>)")
     p.add_argument("--overwrite", action="store_true", help="use --out DIR even if it is not empty")
     p.add_argument("--check", action="store_true", help="validate every variant, list them and exit")
@@ -91,10 +91,13 @@ def run(args) -> int:
 
     from dmosim.studies.figures import save  # noqa: PLC0415
 
-    from ..results.sweeps import sweep_figure  # noqa: PLC0415
+    from ..results.sweeps import SEED, seed_summary, sweep_figure  # noqa: PLC0415
 
     table = pd.DataFrame(rows)
     table.to_csv(root / "sweep.csv", index=False)
+    seeds = root / "sweep-seeds.csv" if SEED in keys else None
+    if seeds:
+        seed_summary(table, keys).to_csv(seeds, index=False)
     figure = None
     if (table["status"] == "ok").any():
         figure = save(sweep_figure(table, keys, f"{experiment.name}: each agent's bill over the run"),
@@ -102,12 +105,14 @@ def run(args) -> int:
     status = table.drop_duplicates("label").set_index("label")["status"]
     summary = {"sweep": str(root.resolve()), "table": str((root / "sweep.csv").resolve()),
                "figure": str(figure.resolve()) if figure else None, "keys": keys, "runs": len(runs),
+               "seeds_table": str(seeds.resolve()) if seeds else None,
                **{name: [label for label in failed if status[label] == name] for name in ("failed", "untrusted")}}
     if args.json:
         print_json(summary)
     else:
         print(_render(table, keys))
-        print(f"table: {summary['table']}" + (f"; figure: {summary['figure']}" if figure else ""))
+        print(f"table: {summary['table']}" + (f"; over the seeds: {summary['seeds_table']}" if seeds else "")
+              + (f"; figure: {summary['figure']}" if figure else ""))
         for label in failed:
             print(f"{status[label].upper()}: {label} (its logs: {root / label / 'logs'})")
     if failed:  # one line, also with --quiet and --json, as dmosim run gives it
