@@ -36,15 +36,13 @@ def run(args) -> int:
     rec = load_recording(args.path)
     from dmosim.studies.figures import save  # noqa: PLC0415  (matplotlib: only for the verb that needs it)
 
-    from ..results.figures import days_label, recording_figure  # noqa: PLC0415
+    from ..results.figures import figure_of  # noqa: PLC0415
     from ..results.tables import tables  # noqa: PLC0415
 
     frames = tables(rec)
     if frames["hours"].empty:
         raise UsageError(f"{rec.path}: no settlement statement recorded, nothing to plot"
                          + (f" ({rec.cut_note})" if rec.cut_note else ""))
-    market_days = sorted(frames["hours"]["market_day"].unique())
-    title = f"{Path(rec.path).name}: run {rec.run_id or '?'}, {days_label(market_days)}"
-    save(recording_figure(frames, title), out)
+    save(figure_of(rec, frames, f"{Path(rec.path).name}: run {rec.run_id or '?'}"), out)
     print(out)
     return 0

@@ -231,15 +231,14 @@ def _write_results(rec: Recording, rundir: RunDir, run_id: str) -> dict:
     """The run's recording as tables (``dmosim export``) and a figure (``dmosim plot``) in the run directory."""
     from dmosim.studies.figures import save  # noqa: PLC0415  (pandas, matplotlib: only once a run is over)
 
-    from ..results.figures import days_label, recording_figure  # noqa: PLC0415
+    from ..results.figures import figure_of  # noqa: PLC0415
     from ..results.tables import tables, write_tables  # noqa: PLC0415
 
     frames = tables(rec)
     rundir.tables.mkdir(exist_ok=True)
     written = {"tables": {path.stem: str(path.resolve()) for path in write_tables(frames, rundir.tables)}}
     if not frames["hours"].empty:
-        market_days = sorted(frames["hours"]["market_day"].unique())
-        save(recording_figure(frames, f"run {run_id}, {days_label(market_days)}"), rundir.figure)
+        save(figure_of(rec, frames, f"run {run_id}"), rundir.figure)
         written["figure"] = str(rundir.figure.resolve())
     return written
 

@@ -428,3 +428,34 @@ def test_docs_api_names_every_column_of_every_table():
     for name, columns in TABLE_COLUMNS.items():
         row = next(line for line in text.splitlines() if line.startswith(f"| `{name}` |"))
         assert [c for c in columns if f"`{c}`" not in row] == [], name
+
+
+def test_the_figure_names_the_rule_marks_restarts_and_missing_hours_and_stays_a_sane_size(tmp_path):
+    """Five agents; mg2's process restarted before its hour-10 report (a later incarnation) and its hour-11 report
+    lost; no credit anywhere. The figure is titled by the settlement rule, marks both, names no credit, and is at
+    most 1,400 px wide."""
+    from PIL import Image  # noqa: PLC0415
+
+    from dmosim.results.figures import figure_of, restarts  # noqa: PLC0415
+    from dmosim.studies.figures import save  # noqa: PLC0415
+
+    run_id = new_run_id()
+    day = synthetic_day(run_id, 5, K, market_day=DAY)
+    for i, (key, payload) in enumerate(day):
+        msg = decode(payload)
+        if "/agent/mg2/" in key:
+            later = key.endswith("/meter") and msg.hour >= 10
+            day[i] = (key, encode(msg.model_copy(update={"incarnation": 2_000 if later else 1_000})))
+    day = [(k, p) for k, p in day if not (k.endswith("agent/mg2/meter") and decode(p).hour == 11)]
+    rec = read_recording(write(tmp_path / "five.mcap", run_id, day))
+    assert restarts(rec).to_dict("records") == [{"sender": "mg2", "market_day": DAY, "hour": 10}]
+    frames = tables(rec)
+    assert (frames["hours"]["deviation_credit"] == 0).all()
+    figure = figure_of(rec, frames, "five")
+    assert "settled by paper:penalty=" in figure.get_suptitle()
+    labels = [t.get_text() for legend in figure.legends for t in legend.get_texts()]
+    assert "process restarted (the agent)" in labels
+    assert "hour with no accepted meter report (missing-data rule)" in labels
+    assert not any("credit" in label for label in labels)
+    width, height = Image.open(save(figure, tmp_path / "five.png")).size
+    assert width <= 1_400 and height <= 1_600, (width, height)
