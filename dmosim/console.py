@@ -2,17 +2,128 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
+import shutil
 import sys
+import threading
+import time
+from pathlib import Path
+from typing import Callable, TextIO
 
 
 class UsageError(Exception):
     """Bad input from the user: printed as one line, exit 2."""
 
 
+SIBLINGS = ("scenarios", "messages", "microgrid_agent", "dmo")  # the packages installed beside dmosim
+_HOME = Path(__file__).resolve().parents[1]  # where they are: the directory that holds dmosim/
+
+
+def shadowing(packages: tuple[str, ...] = SIBLINGS, home: Path = _HOME) -> str | None:
+    """The one line saying which file Python would import instead of one of our ``packages``, else None.
+
+    ``python -m`` and scripts put the current directory first on ``sys.path``, so a user's own ``scenarios.py``
+    (or ``messages/``) there is found before the package installed beside dmosim, and an import of ours fails far
+    away from the cause. Found without importing (``find_spec`` of a top-level name runs nothing)."""
+    for name in packages:
+        module = sys.modules.get(name)
+        spec = module.__spec__ if module is not None else importlib.util.find_spec(name)
+        if spec is None:
+            continue  # not installed at all: the import itself says so
+        found = spec.origin or next(iter(spec.submodule_search_locations or ()), None)
+        if found is None or Path(found).resolve() != (home / name / "__init__.py").resolve():
+            return (f"{found or name} shadows dmosim's package {name!r} (Python finds it first on sys.path: the "
+                    "current directory, with python -m, or PYTHONPATH); rename it, or run the installed dmosim "
+                    "command from another directory (README.md)")
+    return None
+
+
+def refuse_shadowed_packages() -> None:
+    """Exit 2 with ``shadowing``'s line, before anything of ours imports the wrong package."""
+    why = shadowing()
+    if why is not None:
+        print(f"error: {why}", file=sys.stderr)
+        raise SystemExit(2)
+
+
 def progress(message: str) -> None:
     print(f"dmosim: {message}", file=sys.stderr, flush=True)
+
+
+class Progress:
+    """How far a long command has got (hours of a run, runs of a sweep) and an estimate of the time left.
+
+    On a terminal (``stream`` is a tty), one line that updates in place, with what is happening now after it; the
+    lines ``say`` prints go above it. Elsewhere (a log, CI), where a line rewritten in place would pile up, a plain
+    line each time another tenth of the work is done. The estimate assumes the rest goes at the pace so far."""
+
+    STEPS = 10  # the plain lines of a whole run, off a terminal
+
+    def __init__(self, unit: str, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic):
+        self.unit, self.stream, self.clock = unit, stream or sys.stderr, clock
+        self.tty = self.stream.isatty()
+        self.started = clock()
+        self.lock = threading.Lock()  # updates come from the bus's threads too
+        self.shown = ""  # the bar now on screen (tty), or ""
+        self.step = -1  # the last tenth reported (off a terminal)
+
+    def say(self, message: str) -> None:
+        """A line of its own (a fault fired, a run failed), above the bar."""
+        with self.lock:
+            bar = self.shown
+            self._draw("")
+            self.stream.write(f"dmosim: {message}\n")
+            self.stream.flush()
+            self._draw(bar)
+
+    def update(self, done: int, total: int, note: str = "") -> None:
+        """``done`` of ``total`` units are done; ``note`` says what is under way."""
+        with self.lock:
+            line = f"{done}/{total} {self.unit} ({100 * done // max(total, 1)}%), {self.left(done, total)}"
+            if self.tty:
+                self._draw(f"dmosim: {line}" + (f"; {note}" if note else ""))
+            elif (step := self.STEPS * done // max(total, 1)) > self.step:
+                self.step = step
+                self.stream.write(f"dmosim: {line}\n")
+                self.stream.flush()
+
+    def left(self, done: int, total: int) -> str:
+        """The time left as the pace so far gives it."""
+        if done >= total:
+            return "done"
+        elapsed = self.clock() - self.started
+        if done <= 0 or elapsed <= 0:
+            return "time left not known yet"
+        return f"about {duration(elapsed / done * (total - done))} left"
+
+    def close(self) -> None:
+        """Leave the last bar on its own line, so that what is printed next starts on a fresh one."""
+        with self.lock:
+            if self.shown:
+                self.stream.write("\n")
+                self.stream.flush()
+            self.shown = ""
+
+    def _draw(self, bar: str) -> None:
+        """Replace the line on screen by ``bar`` (cut to the terminal's width: a wrapped line cannot be redrawn)."""
+        if not self.tty or bar == self.shown == "":
+            return
+        width = shutil.get_terminal_size().columns - 1
+        self.stream.write("\r" + bar[:width] + "\x1b[K")
+        self.stream.flush()
+        self.shown = bar
+
+
+def duration(seconds: float) -> str:
+    """Seconds as a person reads them: 45 s, 3 min 20 s, 2 h 05 min."""
+    s = round(seconds)
+    if s < 60:
+        return f"{s} s"
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    return f"{s // 3600} h {s % 3600 // 60:02d} min"
 
 
 def jsonable(obj):

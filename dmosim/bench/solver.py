@@ -23,12 +23,14 @@ from ..arguments import gap, nonneg_float, positive_int
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scenarios", type=positive_int, nargs="+", default=[10, 20, 50, 100])
-    parser.add_argument("--subperiods", type=positive_int, default=6)
-    parser.add_argument("--gap", type=gap, default=0.005)
+    parser.add_argument("--scenarios", type=positive_int, nargs="+", default=[10, 20, 50, 100],
+                        help="scenario counts to time (default: 10 20 50 100)")
+    parser.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
+    parser.add_argument("--gap", type=gap, default=0.005, help="relative MIP gap (default: 0.005)")
     parser.add_argument("--cap", type=nonneg_float, default=600.0, help="time cap of each solve, seconds")
-    parser.add_argument("--workers", type=positive_int, default=2)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--workers", type=positive_int, default=2,
+                        help="processes for the Benders subproblems (default: 2)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scenarios (default: 0)")
     parser.add_argument("--skip-extensive", action="store_true", help="time the decomposition only")
 
 

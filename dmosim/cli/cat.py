@@ -14,15 +14,15 @@ import sys
 
 from messages.recording import RecordedMessage, select
 
-from .flags import load_recording, recorded_day_flag
+from .flags import RECORDING_HELP, load_recording, recorded_day_flag
 
 from ..arguments import market_day
 
-HELP = "print every recorded message as one JSON line, in log-time order"
+HELP = "print every message of a recording or a run directory as one JSON line, in log-time order"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--topics", action="append", default=[], metavar="PATTERN",
                    help="only keys matching this pattern, relative to the run prefix, e.g. 'dmo/*' or "
                         "'agent/*/meter' (* one level, ** any; repeatable)")

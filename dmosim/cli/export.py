@@ -13,14 +13,14 @@ import sys
 from pathlib import Path
 
 from ..console import UsageError
-from .flags import load_recording, recorded_day_flag
+from .flags import RECORDING_HELP, load_recording, recorded_day_flag
 from ..arguments import market_day
 
-HELP = "a recording's tables (hours, days, meter, bids, incidents, rejections) as CSV or Parquet files"
+HELP = "a recording's or a run directory's tables (hours, days, meter, bids, incidents, rejections) as CSV or Parquet files"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--out", metavar="DIR", help="directory to write the tables to (default: <recording stem>-tables "
                                                 "beside the recording)")
     p.add_argument("--day", action="append", type=market_day, metavar="YYYY-MM-DD",

@@ -177,6 +177,9 @@ def recording_path(path: str, overwrite: bool) -> Path:
     return out
 
 
+RECORDING_HELP = "a recording (MCAP file) or a run directory (its recording.mcap)"  # what load_recording reads
+
+
 def load_recording(path: str) -> Recording:
     """A recording (a file, or a run directory's), or the one-line UsageError (exit 2) of a file that is not one."""
     from ..experiment.rundir import RunDir  # noqa: PLC0415  (only for verbs that read recordings)

@@ -10,13 +10,14 @@ from messages.recording import BACKFILL_METADATA, Recording
 
 from dmo.replay.resettle import accepted_meter_reports, day_messages, gaps, hour_ranges, rule_named
 from ..console import print_json
-from .flags import load_recording
+from ..experiment.spec import ExperimentError, parse_experiment, to_toml
+from .flags import RECORDING_HELP, load_recording
 
-HELP = "summary of a recording: run, market days, agents, channels, counts, what it lacks"
+HELP = "summary of a recording or a run directory: run, market days, agents, channels, counts, what it lacks"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording, or a run directory")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -123,9 +124,9 @@ def render(info: dict) -> str:
             f"market day{'s:' if len(info['market_days']) > 1 else ': '} {', '.join(info['market_days']) or '-'}",
             f"agents:      {', '.join(info['agents']) or '-'}",
             f"seed:        {info['seed'] if info['seed'] is not None else '-'}"]
-    if isinstance(info["config"], dict):
-        shown = {k: v for k, v in info["config"].items() if v not in (None, [], False)}
-        rows.append("config:      " + ", ".join(f"{k}={v}" for k, v in shown.items()))
+    experiment = experiment_toml(info["config"])
+    if experiment is None and info["config"] is not None:  # a configuration this version does not read
+        rows.append(f"config:      {json.dumps(info['config'], sort_keys=True)}")
     versions = info["versions"] if isinstance(info["versions"], dict) else {}
     rows.append(f"versions:    message schemas v{info['schema_version'] or '?'}"
                 + "".join(f", {k} {v}" for k, v in sorted(versions.items())))
@@ -153,7 +154,21 @@ def render(info: dict) -> str:
     for c in info["channels"]:
         rows.append(f"{c['key']:<{width}}  {c['messages']:>8}  {c['schema'] or '-'} ({c['schema_encoding'] or 'none'}, "
                     f"{c['message_encoding']})")
+    if experiment is not None:  # last: the summary above stays on one screen
+        rows.append("experiment (TOML, as the run directory's experiment.toml holds it; `dmosim run FILE` runs it):")
+        rows += [f"  {line}" if line else "" for line in experiment.splitlines()[1:]]
     return "\n".join(rows)
+
+
+def experiment_toml(config) -> str | None:
+    """The recorded configuration as an experiment file (``dmosim.experiment.spec.to_toml``, the writer of the run
+    directory's experiment.toml), or None if it is not an experiment this version reads."""
+    if not isinstance(config, dict):
+        return None
+    try:
+        return to_toml(parse_experiment(config, "config"))
+    except ExperimentError:
+        return None
 
 
 def _meter_gap(m: dict) -> str:

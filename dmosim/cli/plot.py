@@ -8,19 +8,27 @@ import argparse
 from pathlib import Path
 
 from ..console import UsageError
-from .flags import load_recording
+from .flags import RECORDING_HELP, load_recording
 
-HELP = "recorded market days as one PNG: prices, awards against metered imports, penalties and credits, totals"
+HELP = "the market days of a recording or a run directory as one PNG: prices, awards against metered imports, penalties and credits, totals"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--out", metavar="FILE",
-                   help="the PNG to write (default: <recording stem>.png beside the recording)")
+                   help="the PNG to write (default: a run directory's run.png, else <recording stem>.png beside "
+                        "the recording)")
+
+
+def default_figure(path: Path) -> Path:
+    """Where the figure goes without ``--out``: a run directory's ``run.png``, else beside the recording."""
+    from ..experiment.rundir import RunDir  # noqa: PLC0415
+
+    return RunDir(path).figure if path.is_dir() else path.with_suffix(".png")
 
 
 def run(args) -> int:
-    out = Path(args.out) if args.out else Path(args.path).with_suffix(".png")
+    out = Path(args.out) if args.out else default_figure(Path(args.path))
     if out.is_dir():
         raise UsageError(f"{out} is a directory; give a file name, e.g. {out / 'day.png'}")
     if not out.parent.is_dir():
@@ -28,15 +36,13 @@ def run(args) -> int:
     rec = load_recording(args.path)
     from dmosim.studies.figures import save  # noqa: PLC0415  (matplotlib: only for the verb that needs it)
 
-    from ..results.figures import days_label, recording_figure  # noqa: PLC0415
+    from ..results.figures import figure_of  # noqa: PLC0415
     from ..results.tables import tables  # noqa: PLC0415
 
     frames = tables(rec)
     if frames["hours"].empty:
         raise UsageError(f"{rec.path}: no settlement statement recorded, nothing to plot"
                          + (f" ({rec.cut_note})" if rec.cut_note else ""))
-    market_days = sorted(frames["hours"]["market_day"].unique())
-    title = f"{Path(rec.path).name}: run {rec.run_id or '?'}, {days_label(market_days)}"
-    save(recording_figure(frames, title), out)
+    save(figure_of(rec, frames, f"{Path(rec.path).name}: run {rec.run_id or '?'}"), out)
     print(out)
     return 0

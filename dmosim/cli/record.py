@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-backfill", action="store_true",
                    help="record only what arrives from now on; by default the recorder first asks the DMO for what "
                         "the run said before it joined (docs/recording.md, \"Late joiners\")")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
     add_bus_flags(p, "client")
 
 

@@ -23,10 +23,10 @@ from dmo.market.choice import Trust, UntrustedRule
 from dmo.replay.as_dmo import AsDmo, dmo_steps, render
 from dmo.replay.resettle import ResettleError, recorded_day, recorded_rule
 from ..console import UsageError, print_json, progress
-from .flags import TRUST_FLAG, add_bus_flags, add_trust_flag, bus_config, credentials_for, load_recording, recorded_day_flag, recording_path, setup_logging, untrusted
+from .flags import RECORDING_HELP, TRUST_FLAG, add_bus_flags, add_trust_flag, bus_config, credentials_for, load_recording, recorded_day_flag, recording_path, setup_logging, untrusted
 from ..arguments import market_day, nonneg_float
 
-HELP = "republish a recording over Zenoh under a new run prefix"
+HELP = "republish a recording (or a run directory's) over Zenoh under a new run prefix"
 
 
 def rate(text: str) -> float:
@@ -39,7 +39,7 @@ def rate(text: str) -> float:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="an MCAP recording")
+    p.add_argument("path", help=RECORDING_HELP)
     p.add_argument("--rate", type=rate, default=1.0, help="speed-up of the original spacing, or max (default: 1)")
     p.add_argument("--topics", action="append", default=[], metavar="PATTERN",
                    help="only keys matching this pattern, relative to the run prefix, e.g. 'dmo/*' or "
@@ -62,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="PATH", help="with --as-dmo: record the replayed day to this MCAP file")
     p.add_argument("--overwrite", action="store_true", help="replace an existing file at --record PATH")
     p.add_argument("--json", action="store_true", help="print one JSON object at the end")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="log warnings only, no progress lines")
     add_trust_flag(p)
     add_bus_flags(p, "peer; router with --as-dmo")
 

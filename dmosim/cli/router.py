@@ -21,7 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--agents", type=agents, help="agents mg1..mgN the credentials are made for, without --auth-dir "
                                                  f"(default: {DEFAULT_AGENTS})")
     p.add_argument("--fleet", help="fleet TOML file naming the agents instead of --agents")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="log warnings only")
     add_bus_flags(p, "router")
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from messages.keys import new_run_id
 from scenarios.case import load_case, parse_toml
 
-from ..experiment.rundir import RunDir, RunDirError
+from ..experiment.rundir import RunDir, RunDirError, check_directory
 from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment,
                                settled_by, with_settings)
 from ..launch.faults import Fault, parse_fault
@@ -26,7 +26,7 @@ from dmo.market.choice import Trust, UntrustedRule, choose
 from ..results.verdict import one_line
 from .checks import agent_list, check_inputs
 from .settings import add_setting_flags, experiment_with_flags
-from ..console import UsageError, print_json, progress
+from ..console import Progress, UsageError, print_json
 from .flags import add_trust_flag, load_recording, recording_path, untrusted
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
@@ -43,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("experiment", nargs="?", metavar="EXPERIMENT",
                    help="an experiment file (TOML, docs/experiments.md); the flags below override it")
     p.add_argument("--from", dest="source", metavar="RECORDING",
-                   help="run again the experiment a recording of dmosim run holds (flags override it)")
+                   help="run again the experiment that a recording, or a run directory, of dmosim run holds (flags override it)")
     setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
     add_setting_flags(setting, FLAGS)
     setting.add_argument("--fault", action="append", metavar="SPEC", help=FAULT_HELP)
@@ -54,9 +54,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     record.add_argument("--record", metavar="PATH", help="the recording (default: DIR/recording.mcap)")
     record.add_argument("--no-record", action="store_true", help="run without a recorder")
     out.add_argument("--json", action="store_true", help="print one JSON object (docs/experiments.md, \"The result\")")
-    out.add_argument("--quiet", action="store_true", help="no progress lines")
+    out.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
     out.add_argument("--check", action="store_true",
-                     help="check the inputs (experiment, cases, fleet, faults, paths) and exit without running")
+                     help="check the inputs (experiment, cases, fleet, faults, paths, --out) and exit without running")
     add_trust_flag(p)
     p.add_argument("--tls", action="store_true",
                    help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
@@ -133,6 +133,11 @@ def run(args) -> int:
     if args.no_record and recorder_faults:
         raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
     if args.check:
+        if args.out is not None:
+            try:
+                check_directory(Path(args.out), args.overwrite)  # where the run itself would stop
+            except RunDirError as exc:
+                raise UsageError(str(exc)) from None
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
               f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, "
@@ -144,14 +149,21 @@ def run(args) -> int:
     except RunDirError as exc:
         raise UsageError(str(exc)) from None
     record = None if args.no_record else (record_to or rundir.recording)
-    say = (lambda text: None) if args.quiet else progress
+    bar = None if args.quiet else Progress("hours")
+    say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
     signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
     try:
-        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say)
+        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say,
+                             tick=tick)
     except RoleFailed as exc:
+        if bar:
+            bar.close()
         for name in exc.names:
             _tail(rundir.logs / f"{name}.log")
         raise
+    finally:
+        if bar:
+            bar.close()
     if args.json:
         print_json(result)
     else:

@@ -25,7 +25,7 @@ from ..console import UsageError, print_json
 from .flags import add_trust_flag, load_recording, recorded_day_flag, untrusted
 from ..arguments import market_day, nonneg_float
 
-HELP = "re-settle recorded market days: compare with the recorded statements, or under other settlement rules"
+HELP = "re-settle the market days of recordings, run directories or sweep directories: compare with the recorded statements, or under other settlement rules"
 FIXED = ("re-settled with the agents' recorded behaviour held fixed: their metered imports are what they were under "
          "the recorded rule; to see how agents respond to a rule, run the experiment under it")
 COLUMNS = ("recording", "agent", "rule", "energy_charge", "deviation_penalty", "deviation_credit", "total",
@@ -33,7 +33,7 @@ COLUMNS = ("recording", "agent", "rule", "energy_charge", "deviation_penalty", "
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", nargs="+", help="MCAP recordings, run directories or sweep directories")
+    p.add_argument("path", nargs="+", help="each a recording, a run directory or a sweep directory (every run in it)")
     p.add_argument("--rule", action="append", default=[], metavar="RULE",
                    help="re-settle under this rule (repeatable): a built-in, NAME[:key=value,...] (paper, symmetric, "
                         "deadband, price-linked; docs/settlement.md), or path/to/rules.py:function[:key=value,...]")

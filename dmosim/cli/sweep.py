@@ -18,13 +18,13 @@ import sys
 import time
 from pathlib import Path
 
-from ..experiment.rundir import RUNS, RunDirError, claim_directory
+from ..experiment.rundir import RUNS, RunDirError, check_directory, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
 from ..launch.local import resolved
 from ..launch.processes import dmosim_command, role_env
 from .checks import Checked, check_inputs
-from ..console import UsageError, print_json, progress
+from ..console import Progress, UsageError, print_json
 from ..arguments import integer
 
 HELP = "run an experiment once per combination of swept settings, into one table and figure"
@@ -39,12 +39,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="runs at a time (default: what the machine's cores fit: cores / agents of a run, at least "
                         "1; each run is a DMO and its agents, each agent solving on a core)")
     p.add_argument("--out", metavar="DIR",
-                   help="the sweep's directory: one run directory per variant, sweep.csv, sweep.png "
+                   help="the sweep's directory: one run directory per variant, sweep.csv (sweep-seeds.csv), sweep.png "
                         "(default: runs/sweep-<experiment name>-<time>)")
     p.add_argument("--overwrite", action="store_true", help="use --out DIR even if it is not empty")
     p.add_argument("--check", action="store_true", help="validate every variant, list them and exit")
     p.add_argument("--json", action="store_true", help="print one JSON object at the end")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
 
 
 def run(args) -> int:
@@ -63,6 +63,11 @@ def run(args) -> int:
     keys = list(runs[0].settings)
     parallel = args.parallel or max(1, (os.cpu_count() or 1) // agents)
     if args.check:
+        if args.out is not None:
+            try:
+                check_directory(Path(args.out), args.overwrite)  # where the sweep itself would stop
+            except RunDirError as exc:
+                raise UsageError(str(exc)) from None
         print(f"dmosim sweep: {len(runs)} valid run(s) of {args.experiment}, sweeping {', '.join(keys)}:")
         for v in runs:
             print(f"  {v.label}")
@@ -73,18 +78,26 @@ def run(args) -> int:
                                args.overwrite)
     except RunDirError as exc:
         raise UsageError(str(exc)) from None
-    say = (lambda text: None) if args.quiet else progress
+    bar = None if args.quiet else Progress("runs")
+    say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
     say(f"sweep of {args.experiment}: {len(runs)} run(s), {parallel} at a time, into {root}")
-    rows, failed = _run_all(runs, root, parallel, say)
+    try:
+        rows, failed = _run_all(runs, root, parallel, say, tick)
+    finally:
+        if bar:
+            bar.close()
 
     import pandas as pd  # noqa: PLC0415  (pandas, matplotlib: once the runs are done)
 
     from dmosim.studies.figures import save  # noqa: PLC0415
 
-    from ..results.sweeps import sweep_figure  # noqa: PLC0415
+    from ..results.sweeps import SEED, seed_summary, sweep_figure  # noqa: PLC0415
 
     table = pd.DataFrame(rows)
     table.to_csv(root / "sweep.csv", index=False)
+    seeds = root / "sweep-seeds.csv" if SEED in keys else None
+    if seeds:
+        seed_summary(table, keys).to_csv(seeds, index=False)
     figure = None
     if (table["status"] == "ok").any():
         figure = save(sweep_figure(table, keys, f"{experiment.name}: each agent's bill over the run"),
@@ -92,12 +105,14 @@ def run(args) -> int:
     status = table.drop_duplicates("label").set_index("label")["status"]
     summary = {"sweep": str(root.resolve()), "table": str((root / "sweep.csv").resolve()),
                "figure": str(figure.resolve()) if figure else None, "keys": keys, "runs": len(runs),
+               "seeds_table": str(seeds.resolve()) if seeds else None,
                **{name: [label for label in failed if status[label] == name] for name in ("failed", "untrusted")}}
     if args.json:
         print_json(summary)
     else:
         print(_render(table, keys))
-        print(f"table: {summary['table']}" + (f"; figure: {summary['figure']}" if figure else ""))
+        print(f"table: {summary['table']}" + (f"; over the seeds: {summary['seeds_table']}" if seeds else "")
+              + (f"; figure: {summary['figure']}" if figure else ""))
         for label in failed:
             print(f"{status[label].upper()}: {label} (its logs: {root / label / 'logs'})")
     if failed:  # one line, also with --quiet and --json, as dmosim run gives it
@@ -115,8 +130,10 @@ def _portable(experiment: Experiment) -> Experiment:
         update={"fleet": str(Path(fleet).resolve())})})
 
 
-def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[dict], list[str]]:
-    """Every variant as ``dmosim run``, at most ``parallel`` at once; the table's rows and the failed labels."""
+def _run_all(runs: list[Variant], root: Path, parallel: int, say, tick) -> tuple[list[dict], list[str]]:
+    """Every variant as ``dmosim run``, at most ``parallel`` at once; the table's rows and the failed labels.
+    ``tick(runs done, runs in all, what is under way)`` follows them (``dmosim.console.Progress.update``); ``say``
+    reports a run that did not end ok."""
     from ..results.sweeps import sweep_rows  # noqa: PLC0415
 
     (root / "experiments").mkdir(exist_ok=True)
@@ -131,7 +148,7 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[
                 process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                            env=role_env())
                 running[v.label] = (v, process, time.monotonic())
-                say(f"started {v.label}")
+                tick(done, len(runs), f"started {v.label}")
             for label, (v, process, started) in list(running.items()):
                 if process.poll() is None:
                     continue
@@ -146,8 +163,9 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say) -> tuple[list[
                                          (err.strip().splitlines() or [f"exit {process.returncode}"])[-1])
                 status = rows[label][0]["status"]
                 if status == "ok":
-                    say(f"{done}/{len(runs)} done: {label} in {seconds:.0f} s")
+                    tick(done, len(runs), f"{label} done in {seconds:.0f} s")
                 else:
+                    tick(done, len(runs), f"{label} {status}")
                     failed.append(label)
                     say(f"{done}/{len(runs)} {status.upper()}: {label} after {seconds:.0f} s: "
                         f"{rows[label][0]['error']}")

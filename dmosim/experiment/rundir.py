@@ -57,13 +57,20 @@ class RunDir:
         return cls(root)
 
 
-def claim_directory(root: Path, overwrite: bool = False) -> Path:
-    """``root``, created if missing, for a run or a sweep to write into: one that holds anything already is
-    refused unless ``overwrite``, so no earlier result is lost by mistake."""
+def check_directory(root: Path, overwrite: bool = False) -> Path:
+    """``root``, if a run or a sweep may write into it (``claim_directory`` would take it), else ``RunDirError``:
+    what ``--check`` asks before anything is made."""
     if root.exists() and not root.is_dir():
         raise RunDirError(f"{root} exists and is not a directory")
     if root.is_dir() and any(root.iterdir()) and not overwrite:
         raise RunDirError(f"{root} is not empty; choose another --out or pass --overwrite")
+    return root
+
+
+def claim_directory(root: Path, overwrite: bool = False) -> Path:
+    """``root``, created if missing, for a run or a sweep to write into: one that holds anything already is
+    refused unless ``overwrite``, so no earlier result is lost by mistake."""
+    check_directory(root, overwrite)
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -62,10 +62,12 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
 
 
 def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
-                repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None) -> dict:
+                repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None,
+                tick: Callable[[int, int, str], None] | None = None) -> dict:
     """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
     ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
-    with before its result is written."""
+    with before its result is written. ``tick(hours done, hours in all, where the clock is)`` follows the DMO's
+    clock (``dmosim.console.Progress.update``); without it, ``say`` gets a line per clock message."""
     e = experiment
     fleet = fleet_of(e)
     parsed = [parse_fault(f) for f in e.faults]
@@ -87,7 +89,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
-            watch = _Watch(roles, faults, say)
+            watch = _Watch(roles, faults, say, tick)
             observer.subscribe(observer.keys.clock(), watch.on_clock)
             observer.subscribe(observer.keys.schedule("*"), watch.on_schedule)
             if record:
@@ -174,15 +176,14 @@ def _write_results(rec: Recording, rundir: RunDir, run_id: str) -> dict:
     """The run's recording as tables (``dmosim export``) and a figure (``dmosim plot``) in the run directory."""
     from dmosim.studies.figures import save  # noqa: PLC0415  (pandas, matplotlib: only once a run is over)
 
-    from ..results.figures import days_label, recording_figure  # noqa: PLC0415
+    from ..results.figures import figure_of  # noqa: PLC0415
     from ..results.tables import tables, write_tables  # noqa: PLC0415
 
     frames = tables(rec)
     rundir.tables.mkdir(exist_ok=True)
     written = {"tables": {path.stem: str(path.resolve()) for path in write_tables(frames, rundir.tables)}}
     if not frames["hours"].empty:
-        market_days = sorted(frames["hours"]["market_day"].unique())
-        save(recording_figure(frames, f"run {run_id}, {days_label(market_days)}"), rundir.figure)
+        save(figure_of(rec, frames, f"run {run_id}"), rundir.figure)
         written["figure"] = str(rundir.figure.resolve())
     return written
 
@@ -270,8 +271,11 @@ class _Watch:
     Scheduling can take minutes: each agent is shown as its schedule arrives, with the seconds since the awards
     went out (the clock's ``scheduling`` step) and its solve's status and certified gap."""
 
-    def __init__(self, roles: Roles, faults: list[Fault], say: Callable[[str], None]):
+    def __init__(self, roles: Roles, faults: list[Fault], say: Callable[[str], None],
+                 tick: Callable[[int, int, str], None] | None = None):
         self.roles, self.faults, self.say = roles, faults, say
+        self.tick = tick or (lambda done, total, text: say(text))
+        self.hours = (0, 1)  # hours of the run done, and in all, as the DMO's clock last said
         self.started = threading.Event()
         self.lock = threading.Lock()
         self.fired: set[Fault] = set()
@@ -294,7 +298,9 @@ class _Watch:
             if msg.phase == "settlement":
                 self.memory[msg.day] = {name: m for name, role in self.roles.roles.items()
                                         if (m := memory_mib(role.process.pid)) is not None}
-            self.say(f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
+            done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
+            self.hours = (done, 24 * msg.days)
+            self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
             for f in self.faults:
                 if msg.phase == "realtime" and (msg.day, msg.hour) == (f.day, f.hour) and f not in self.fired:
                     self.fired.add(f)
@@ -305,7 +311,7 @@ class _Watch:
             since = self.scheduling_since
             took = f" in {time.monotonic() - since:.1f} s" if since is not None else ""
             gap = f", gap {100 * msg.mip_gap:.2f}%" if msg.mip_gap is not None else ""
-            self.say(f"{self.day}{msg.sender} scheduled{took} ({msg.status}{gap}, {msg.scenarios} scenario(s), "
+            self.tick(*self.hours, f"{self.day}{msg.sender} scheduled{took} ({msg.status}{gap}, {msg.scenarios} scenario(s), "
                      f"expected cost ${msg.expected_cost:,.2f})")
 
     def _fire(self, f: Fault) -> None:

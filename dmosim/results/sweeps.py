@@ -19,6 +19,8 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 
+SEED = "seed"  # the swept key whose runs are replications of one setting
+CONFIDENCE = 0.95  # of the interval of a figure across seeds
 SETTLED = ("energy_charge", "deviation_penalty", "credit", "total", "award_mwh", "import_mwh", "deviation_mwh",
            "missing_subperiods")
 REALISED = {"operating_cost": "total", "curtailment_mwh": "curtailment_mwh"}  # column -> field of a realised day
@@ -42,6 +44,29 @@ def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: fl
             for agent, s in sorted(result["settlement"].items())]
 
 
+def seed_summary(table: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """Per setting (every swept key but ``seed``) and agent, over the runs that ended ok: ``runs`` (seeds counted),
+    and of each figure its ``_mean`` and the ``_low`` and ``_high`` ends of its 95% interval (Student's t over the
+    seeds; equal to the mean with one seed)."""
+    from scipy import stats  # noqa: PLC0415  (only for sweeps of seeds)
+
+    settings = [k for k in keys if k != SEED]
+    ok = table[table["status"] == "ok"]
+    figures = [c for c in (*SETTLED, *REALISED) if c in ok]
+    rows = []
+    for key, runs in ok.groupby([*settings, "agent"], sort=False, dropna=False):
+        key = key if isinstance(key, tuple) else (key,)
+        row = {**dict(zip([*settings, "agent"], key)), "runs": len(runs)}
+        for column in figures:
+            values = runs[column].dropna().astype(float)
+            mean = values.mean() if len(values) else np.nan
+            half = (float(stats.t.ppf((1 + CONFIDENCE) / 2, len(values) - 1)) * values.std(ddof=1)
+                    / np.sqrt(len(values))) if len(values) > 1 else 0.0
+            row.update({f"{column}_mean": mean, f"{column}_low": mean - half, f"{column}_high": mean + half})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def _realised_sum(days: list[dict] | None, field: str) -> float | None:
     """A realised quantity summed over the agent's days; None if it logged none (it did not finish a day)."""
     return round(sum(d[field] for d in days), 6) if days else None
@@ -54,10 +79,17 @@ def _cell(value):
 
 def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figure:
     """Each agent's total bill against the first swept setting, one panel per combination of the others; a
-    numeric setting on a line, any other as grouped bars."""
+    numeric setting on a line, any other as grouped bars. A sweep of ``seed`` shows, per setting of the other
+    keys, the mean over the seeds with its 95% interval as a bar (``seed_summary``); of the seed alone, one bar
+    per agent."""
     ok = table[table["status"] == "ok"]
     if ok.empty:
         raise ValueError("no run of the sweep finished: nothing to plot")
+    seeds = SEED in keys
+    if seeds:
+        ok = seed_summary(table, keys).assign(setting=f"mean of {ok[SEED].nunique()} seeds").rename(
+            columns={"total_mean": "total"})
+        keys = [k for k in keys if k != SEED] or ["setting"]
     x_key, others = keys[0], keys[1:]
     groups = list(ok.groupby(others, sort=False)) if others else [((), ok)]
     fig, axes = plt.subplots(1, len(groups), figsize=(max(6.0, 4.5 * len(groups)), 4.2), squeeze=False,
@@ -68,12 +100,15 @@ def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figur
         values = list(dict.fromkeys(frame[x_key]))
         for i, agent in enumerate(agents):
             own = frame[frame["agent"] == agent].set_index(x_key).reindex(values)
+            y = own["total"].to_numpy(dtype=float)
+            spread = np.abs([y - own["total_low"].to_numpy(dtype=float),
+                             own["total_high"].to_numpy(dtype=float) - y]) if seeds else None
             if numeric:
-                ax.plot(values, own["total"].to_numpy(dtype=float), "o-", label=agent)
+                ax.errorbar(values, y, yerr=spread, fmt="o-", capsize=4, label=agent)
             else:
                 width = 0.8 / len(agents)
-                ax.bar(np.arange(len(values)) + (i - (len(agents) - 1) / 2) * width,
-                       own["total"].to_numpy(dtype=float), width=width, label=agent)
+                ax.bar(np.arange(len(values)) + (i - (len(agents) - 1) / 2) * width, y, width=width, yerr=spread,
+                       capsize=4, label=agent)
         if not numeric:
             ax.set_xticks(np.arange(len(values)), [str(v) for v in values])
         ax.axhline(0, color="0.5", lw=0.6)
@@ -82,7 +117,7 @@ def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figur
         key = key if isinstance(key, tuple) else (key,)
         ax.set_title(", ".join(f"{k}={v}" for k, v in zip(others, key)) or "", loc="left", fontsize=10)
         ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda y, _: f"{y:,.0f}"))
-    axes[0][0].set_ylabel("total bill over the run, $")
+    axes[0][0].set_ylabel("total bill over the run, $" + (" (mean, 95% interval)" if seeds else ""))
     axes[0][-1].legend(fontsize=8, frameon=False)
     fig.suptitle(title or f"each agent's bill against {x_key}", fontsize=12)
     return fig

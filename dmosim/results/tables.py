@@ -27,22 +27,23 @@ from dmo.replay.resettle import accepted_messages, accepted_meter_reports, day_m
 _KEY_TYPES = {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64"}
 _MONEY = {"energy_charge": "float64", "deviation_penalty": "float64", "deviation_credit": "float64",
           "total": "float64"}
+_WHEN = {"market_day": "string", "timestamp": "datetime64[ns]"}  # the day, and the start of the row's hour
 TABLE_COLUMNS: dict[str, dict[str, str]] = {
-    "hours": {"market_day": "string", "agent": "string", "hour": "int64", "clearing_price_per_mwh": "float64",
+    "hours": {**_WHEN, "agent": "string", "hour": "int64", "clearing_price_per_mwh": "float64",
               "p_sch_mw": "float64", "import_mwh": "float64", "deviation_mwh": "float64",
               "under_import_mwh": "float64", **_MONEY, "missing_subperiods": "int64", "islanded": "bool",
               "congestion": "string"},
-    "days": {"market_day": "string", "agent": "string", **_MONEY, "missing_subperiods": "int64",
+    "days": {**_WHEN, "agent": "string", **_MONEY, "missing_subperiods": "int64",
              "import_mwh": "float64", "deviation_mwh": "float64", "under_import_mwh": "float64",
              "award_mwh": "float64"},
-    "meter": {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64", "p_m_mw": "float64",
+    "meter": {**_WHEN, "agent": "string", "hour": "int64", "subperiod": "int64", "p_m_mw": "float64",
               "deviation_mw": "float64", "p_sch_mw": "float64", "connected": "boolean"},
-    "bids": {"market_day": "string", "agent": "string", "hour": "int64", "step": "int64",
+    "bids": {**_WHEN, "agent": "string", "hour": "int64", "step": "int64",
              "price_per_mwh": "float64", "quantity_mw": "float64"},
-    "incidents": {"market_day": "string", "agent": "string", "phase": "string", "hour": "Int64", "reason": "string"},
-    "rejections": {"market_day": "string", "key": "string", "code": "string", "reason": "string",
+    "incidents": {**_WHEN, "agent": "string", "phase": "string", "hour": "Int64", "reason": "string"},
+    "rejections": {**_WHEN, "key": "string", "code": "string", "reason": "string",
                    "offender": "string", "rejected_kind": "string", "payload_size": "int64", "received_at": "int64"},
-    "agent_days": {"market_day": "string", "agent": "string", "generation": "float64", "startup": "float64",
+    "agent_days": {**_WHEN, "agent": "string", "generation": "float64", "startup": "float64",
                    "curtailment": "float64", "penalty": "float64", "total": "float64", "curtailment_mwh": "float64",
                    "deviation_mwh": "float64", "stored_mwh": "Float64", "wall_s": "float64", "cpu_s": "float64",
                    "sent_again": "int64", "asked": "int64"},
@@ -82,7 +83,22 @@ def _typed(name: str, frame: pd.DataFrame | None) -> pd.DataFrame:
     columns = TABLE_COLUMNS[name]
     if frame is None or frame.empty:
         return pd.DataFrame({c: pd.Series(dtype=t) for c, t in columns.items()})
-    return frame[list(columns)].astype(columns).reset_index(drop=True)
+    return frame.assign(timestamp=timestamps(frame))[list(columns)].astype(columns).reset_index(drop=True)
+
+
+def timestamps(frame: pd.DataFrame) -> pd.Series:
+    """When each row's period starts, as a timezone-naive datetime (market days have no time zone on the wire):
+    its market day's midnight, plus ``hour - 1`` hours (hour 1 is 00:00-01:00), plus, per sub-period, its share
+    of the hour (sub-period k of K starts (k - 1) / K h in). A row with no hour (an incident of the whole day, a
+    rejection, a day's totals) is at the day's midnight."""
+    when = pd.to_datetime(frame["market_day"].astype(str), format="%Y-%m-%d")
+    if "hour" in frame:
+        when = when + pd.to_timedelta(frame["hour"].astype("Float64").fillna(1).to_numpy(dtype=float) - 1, unit="h")
+    if "subperiod" in frame:
+        per_hour = frame.groupby(["market_day", "agent", "hour"])["subperiod"].transform("max")
+        share = (frame["subperiod"] - 1) / per_hour
+        when = when + pd.to_timedelta(share.to_numpy(dtype=float) * 3600, unit="s").round("ms")
+    return when.astype("datetime64[ns]")
 
 
 def _dumps(rec: Recording, kind: str) -> list[dict]:

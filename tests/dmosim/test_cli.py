@@ -223,3 +223,67 @@ def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios():
     bad = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1
     assert "--evaluate: expected an integer in 2.." in bad.stderr
+
+
+def test_info_prints_the_recorded_experiment_as_the_toml_of_its_run_directory(capsys):
+    recording = Path(__file__).resolve().parents[1] / "data" / "schema-v2-two-days.mcap"
+    assert main(["info", str(recording)]) == 0
+    out = capsys.readouterr().out
+    head, sep, block = out.partition("experiment (TOML")
+    assert sep and "{'" not in out  # no Python dict anywhere
+    toml = "\n".join(line.removeprefix("  ") for line in block.splitlines()[1:])
+    assert tomllib.loads(toml)["market"]["penalty"] == 150.0 and tomllib.loads(toml)["days"] == 2
+    from dmosim.experiment.spec import parse_experiment  # noqa: PLC0415
+    from messages.recording import read_recording  # noqa: PLC0415
+
+    config = json.loads(read_recording(recording).metadata["config"])
+    assert parse_experiment(tomllib.loads(toml)) == parse_experiment(config)
+
+
+def _flags_of(parser: argparse.ArgumentParser, prog: str):
+    """(where, action) of every argument of ``parser`` and of its sub-verbs (``bench solver``...)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _flags_of(sub, f"{prog} {name}")
+        elif not isinstance(action, argparse._HelpAction):
+            yield prog, action
+
+
+def _verb_parser(name: str) -> argparse.ArgumentParser:
+    from dmosim.cli.main import build_parser  # noqa: PLC0415
+
+    parser = build_parser(name)
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+
+
+def test_every_flag_of_every_verb_has_help_text():
+    from dmosim.cli.main import VERBS  # noqa: PLC0415
+
+    bare = [f"{prog} {'/'.join(action.option_strings) or action.dest}" for name in VERBS
+            for prog, action in _flags_of(_verb_parser(name), name)
+            if not action.help or action.help == argparse.SUPPRESS]
+    assert bare == []
+    quiet = [prog for name in VERBS for prog, action in _flags_of(_verb_parser(name), name)
+             if "--quiet" in action.option_strings]
+    assert len(quiet) >= 6  # run, sweep, dmo, agent, record, router, replay: each checked above
+
+
+@pytest.mark.parametrize("verb", ["info", "cat", "export", "plot", "replay", "settle"])
+def test_the_verbs_that_read_run_directories_say_so(verb):
+    path = next(a for a in _verb_parser(verb)._actions if a.dest == "path")
+    said = "a recording, a run directory or a sweep directory" if verb == "settle" else "or a run directory"
+    assert said in path.help
+
+
+def test_a_scenarios_py_in_the_current_directory_is_named_not_imported(tmp_path):
+    """python -m puts the current directory first on sys.path, where a user's scenarios.py would pass for ours."""
+    (tmp_path / "scenarios.py").write_text("raise SystemExit('the user file ran')\n")
+    env = {**os.environ, "PYTHONPATH": ""}
+    done = subprocess.run([sys.executable, "-m", "dmosim", "--version"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr == (f"error: {tmp_path / 'scenarios.py'} shadows dmosim's package 'scenarios' (Python finds "
+                           "it first on sys.path: the current directory, with python -m, or PYTHONPATH); rename it, "
+                           "or run the installed dmosim command from another directory (README.md)\n")
+

@@ -121,3 +121,19 @@ def test_sweep_check_lists_the_runs(tmp_path, capsys):
     assert main(["sweep", str(tmp_path / "exp.toml"), "--set", "seed=1,2,3", "--check"]) == 0
     out = capsys.readouterr().out
     assert "3 valid run(s)" in out and "003-seed=3" in out
+
+
+@pytest.mark.parametrize("verb", [["run"], ["sweep", "--set", "seed=1,2"]])
+def test_check_refuses_a_non_empty_out_as_the_run_would(verb, tmp_path, capsys):
+    (tmp_path / "exp.toml").write_text("[agents]\ncount = 1\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "result.json").write_text("{}")
+    argv = [verb[0], str(tmp_path / "exp.toml"), *verb[1:], "--out", str(out)]
+    assert main(argv) == 2  # refused before anything starts
+    refused = capsys.readouterr().err
+    assert refused == f"error: {out} is not empty; choose another --out or pass --overwrite\n"
+    assert main([*argv, "--check"]) == 2
+    assert capsys.readouterr().err == refused
+    assert main([*argv, "--check", "--overwrite"]) == 0
+    assert [p.name for p in out.iterdir()] == ["result.json"]

@@ -455,3 +455,73 @@ def test_the_agents_realised_days_are_a_table_of_what_the_dmo_accepted(tmp_path)
     assert frame["agent"].tolist() == ["mg1", "mg2"] and frame["total"].tolist() == [115.0, 215.0]
     assert frame["wall_s"].tolist() == [2.0, 2.0] and frame["cpu_s"].tolist() == [1.25, 1.25]
     assert frame["sent_again"].tolist() == [1, 2] and frame["stored_mwh"].isna().tolist() == [True, False]
+
+
+def test_plot_of_a_run_directory_writes_its_run_png_inside_it(recording, tmp_path, monkeypatch, capsys):
+    run_dir = tmp_path / "runs" / "r1"
+    run_dir.mkdir(parents=True)
+    (run_dir / "recording.mcap").write_bytes(recording.read_bytes())
+    monkeypatch.chdir(tmp_path)
+    assert main(["plot", "runs/r1"]) == 0
+    assert capsys.readouterr().out.strip() == str(Path("runs/r1/run.png"))
+    assert (run_dir / "run.png").read_bytes().startswith(b"\x89PNG") and not (tmp_path / "runs" / "r1.png").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]
+
+
+def test_every_table_has_a_timestamp_that_pandas_resamples(tmp_path):
+    run_id = new_run_id()
+    two = synthetic_day(run_id, 2, K, market_day=DAY) + synthetic_day(run_id, 2, K, market_day=NEXT_DAY, seed=1)
+    frames = tables(read_recording(write(tmp_path / "two.mcap", run_id, two)))
+    hours = frames["hours"]
+    assert str(hours["timestamp"].dtype) == "datetime64[ns]" and hours["timestamp"].dt.tz is None
+    first = hours[(hours["market_day"] == NEXT_DAY) & (hours["hour"] == 1)]["timestamp"]
+    assert (first == pd.Timestamp(f"{NEXT_DAY} 00:00")).all()
+    assert (hours["timestamp"] == pd.to_datetime(hours["market_day"].astype(str))
+            + pd.to_timedelta(hours["hour"] - 1, unit="h")).all()
+    daily = hours.set_index("timestamp").resample("D")["total"].sum()
+    assert list(daily.index.strftime("%Y-%m-%d")) == [DAY, NEXT_DAY]
+    assert daily.round(2).tolist() == frames["days"].groupby("market_day")["total"].sum().round(2).tolist()
+    meter = frames["meter"]
+    second = meter[(meter["market_day"] == DAY) & (meter["hour"] == 5) & (meter["subperiod"] == 2)]["timestamp"]
+    assert (second == pd.Timestamp(f"{DAY} 04:20")).all()  # the second of K = 3 sub-periods of hour 5
+    assert meter.set_index("timestamp").resample("h")["p_m_mw"].count().max() == 2 * K
+    for name, frame in frames.items():
+        assert "timestamp" in frame and str(frame["timestamp"].dtype) == "datetime64[ns]", name
+
+
+def test_docs_api_names_every_column_of_every_table():
+    text = (ROOT / "docs" / "api.md").read_text()
+    for name, columns in TABLE_COLUMNS.items():
+        row = next(line for line in text.splitlines() if line.startswith(f"| `{name}` |"))
+        assert [c for c in columns if f"`{c}`" not in row] == [], name
+
+
+def test_the_figure_names_the_rule_marks_restarts_and_missing_hours_and_stays_a_sane_size(tmp_path):
+    """Five agents; mg2's process restarted before its hour-10 report (a later incarnation) and its hour-11 report
+    lost; no credit anywhere. The figure is titled by the settlement rule, marks both, names no credit, and is at
+    most 1,400 px wide."""
+    from PIL import Image  # noqa: PLC0415
+
+    from dmosim.results.figures import figure_of, restarts  # noqa: PLC0415
+    from dmosim.studies.figures import save  # noqa: PLC0415
+
+    run_id = new_run_id()
+    day = synthetic_day(run_id, 5, K, market_day=DAY)
+    for i, (key, payload) in enumerate(day):
+        msg = decode(payload)
+        if "/agent/mg2/" in key:
+            later = key.endswith("/meter") and msg.hour >= 10
+            day[i] = (key, encode(msg.model_copy(update={"incarnation": 2_000 if later else 1_000})))
+    day = [(k, p) for k, p in day if not (k.endswith("agent/mg2/meter") and decode(p).hour == 11)]
+    rec = read_recording(write(tmp_path / "five.mcap", run_id, day))
+    assert restarts(rec).to_dict("records") == [{"sender": "mg2", "market_day": DAY, "hour": 10}]
+    frames = tables(rec)
+    assert (frames["hours"]["deviation_credit"] == 0).all()
+    figure = figure_of(rec, frames, "five")
+    assert "settled by paper:penalty=" in figure.get_suptitle()
+    labels = [t.get_text() for legend in figure.legends for t in legend.get_texts()]
+    assert "process restarted (the agent)" in labels
+    assert "hour with no accepted meter report (missing-data rule)" in labels
+    assert not any("credit" in label for label in labels)
+    width, height = Image.open(save(figure, tmp_path / "five.png")).size
+    assert width <= 1_400 and height <= 1_600, (width, height)

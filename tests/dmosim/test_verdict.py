@@ -114,6 +114,34 @@ def test_a_sweep_tables_an_untrusted_run_with_its_money_and_its_problems():
         ("ok", 10.0, None), ("untrusted", 10.0, "a; b"), ("failed", None, "failed: mg1 failed")]
 
 
+def test_a_sweep_of_seeds_gives_per_setting_the_mean_and_95_percent_interval_of_each_figure(tmp_path):
+    import pandas as pd  # noqa: PLC0415
+
+    from dmosim.results.sweeps import seed_summary, sweep_figure  # noqa: PLC0415
+    from dmosim.studies.figures import save  # noqa: PLC0415
+
+    rows = []
+    for penalty in (100, 300):
+        for seed, total in ((1, 9.0), (2, 10.0), (3, 11.0)):
+            settled = {"mg1": {"total": penalty + total, "deviation_mwh": 1.0}, "mg2": {"total": 5.0}}
+            rows += sweep_rows({"market.penalty": penalty, "seed": seed}, f"{penalty}-{seed}", "r", 1.0,
+                               {"settlement": settled, "verdict": verdict([])})
+    rows += sweep_rows({"market.penalty": 100, "seed": 4}, "100-4", "r", 1.0, None, "failed: mg1 failed")
+    table = pd.DataFrame(rows)
+    summary = seed_summary(table, ["market.penalty", "seed"]).set_index(["market.penalty", "agent"])
+    mg1 = summary.loc[(100, "mg1")]
+    half = 4.302652729911275 / 3 ** 0.5  # t(0.975, 2 degrees of freedom) x sd 1 / sqrt(3 seeds)
+    assert mg1["runs"] == 3 and mg1["total_mean"] == 110.0  # the failed seed 4 counts for nothing
+    assert abs(mg1["total_low"] - (110.0 - half)) < 1e-9 and abs(mg1["total_high"] - (110.0 + half)) < 1e-9
+    assert summary.loc[(300, "mg2"), ["total_low", "total_mean", "total_high"]].tolist() == [5.0, 5.0, 5.0]
+    assert "seed" not in summary.reset_index() and summary.loc[(300, "mg1"), "deviation_mwh_mean"] == 1.0
+    for keys in (["market.penalty", "seed"], ["seed"]):
+        figure = sweep_figure(table if "market.penalty" in keys else table[table["market.penalty"] == 100], keys)
+        bars = [c for ax in figure.axes for c in ax.containers if getattr(c, "has_yerr", False)]
+        assert len(bars) == 2, keys  # an interval per agent
+        assert save(figure, tmp_path / "sweep.png").stat().st_size > 10_000
+
+
 # --- the DMO's journal as a recording ----------------------------------------------------------------------------
 
 def test_the_journal_read_as_a_recording_gives_the_tables_the_recording_gives(tmp_path):
