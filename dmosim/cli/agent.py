@@ -10,9 +10,10 @@ from scenarios.case import load_case
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE, MAX_SHIFT_HOURS, derive_case
 from scenarios.generation import MAX_SCENARIOS
+from microgrid_agent.agent.strategies import DEFAULT_STRATEGY
 
 from ..console import UsageError
-from .flags import add_bus_flags, add_fault_flags, add_method_flags, bus_config, check_bus_flags, check_fault_flags, message_faults, setup_logging
+from .flags import STRATEGY_HELP, add_bus_flags, add_fault_flags, add_method_flags, bus_config, check_bus_flags, check_fault_flags, message_faults, setup_logging
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed, today
 
 HELP = "one microgrid agent role"
@@ -44,6 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"seed of the agent's scenarios and realised day, 0..{MAX_SEED}")
     p.add_argument("--island-hours", type=hours, default=1, help="islanding hours the schedule plans for (default: 1)")
     p.add_argument("--market-day", type=market_day, default=None, help="the market day (default: today)")
+    p.add_argument("--strategy", default=DEFAULT_STRATEGY, metavar="SPEC", help=STRATEGY_HELP)
     p.add_argument("--idle-timeout", type=seconds, default=3600.0, help="give up after this long without news")
     p.add_argument("--quiet", action="store_true")
     add_schedule_flags(p)
@@ -53,6 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from microgrid_agent.agent.process import AgentConfig, MicrogridAgent  # noqa: PLC0415  (the solver stack)
+    from microgrid_agent.agent.strategies import StrategyError, choose_strategy  # noqa: PLC0415
 
     check_bus_flags(args, "client")
     check_fault_flags(args)
@@ -65,10 +68,14 @@ def run(args) -> int:
     setup_logging(args.id, args.quiet)
     name = args.case if args.scale == 1 else f"{args.case}x{args.scale:g}"
     case = derive_case(load_case(args.case), args.scale, args.shift_hours, name)
+    try:  # the user named it: made, and a strategy of their own tried, before the agent joins (docs/strategies.md)
+        strategy = choose_strategy(args.strategy, case, args.gap)
+    except StrategyError as err:
+        raise UsageError(f"--strategy: {err}") from None
     config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,
                          time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout, method=args.method,
                          workers=args.workers, load_scale=args.load_scale, renewable_scale=args.renewable_scale)
     with Bus(args.run_id, args.id, bus_config(args, "client", args.id)) as bus:
         bus.faults = message_faults(args, bus)
-        MicrogridAgent(bus, case, config, args.market_day or today()).run()
+        MicrogridAgent(bus, case, config, args.market_day or today(), strategy).run()
     return 0

@@ -23,13 +23,14 @@ from ..experiment.rundir import RunDir, RunDirError
 from ..experiment.spec import (FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, parse_experiment,
                                settled_by, with_settings)
 from ..launch.faults import Fault, parse_fault
-from ..launch.local import RoleFailed, resolved, run_locally
+from ..launch.local import RoleFailed, resolved, run_locally, strategy_of
 from dmo.market.choice import Trust, UntrustedRule, choose
 from dmo.market.rules import MAX_MW, MAX_RATE
+from microgrid_agent.agent.strategies import strategy_name
 from ..results.verdict import one_line
-from .checks import agent_list, check_inputs
+from .checks import Checked, agent_list, check_inputs, strategy_source
 from ..console import UsageError, print_json, progress
-from .flags import SETTLEMENT_HELP, add_trust_flag, load_recording, recording_path, untrusted
+from .flags import SETTLEMENT_HELP, STRATEGY_HELP, add_trust_flag, load_recording, recording_path, untrusted
 from ..arguments import agents, gap, hours, integer, market_day, number, scales, seconds, seed
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
@@ -51,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
     setting.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {default.agents.count})")
     setting.add_argument("--fleet", help="fleet TOML file naming the agents and their cases (instead of --agents)")
+    setting.add_argument("--strategy", metavar="SPEC", help=STRATEGY_HELP.replace("the agent's", "every agent's")
+                         .replace("default: price-response", f"default: {default.agents.strategy}; a fleet entry's "
+                                  "own strategy overrides it"))
     setting.add_argument("--days", type=integer(1, MAX_DAYS),
                          help="consecutive market days; agents register once and carry their state across midnight "
                               f"(at most {MAX_DAYS}; default: {default.days})")
@@ -158,6 +162,24 @@ def _load_rule(args, spec: str | None) -> None:
         raise UsageError(f"{where}: {err}") from None
 
 
+def _load_strategies(args, experiment: Experiment, fleet) -> None:
+    """Make, and try on a trial call, each strategy the run's agents bid with, before anything starts: one the user
+    named (``--strategy``, ``--fleet``, or the experiment file given) at once; one only the recording of ``--from``
+    names, if it is built in, the same code as ``--strategy`` names, or with ``--trust-rules`` (docs/strategies.md,
+    "Trust"). The agents load them again, each its own."""
+    named = {strategy_name(args.strategy).code} - {None} if args.strategy else set()
+    trust = Trust(everything=args.trust_rules, named=frozenset(named))
+    checked = Checked()
+    for member in fleet:
+        spec = strategy_of(experiment, member)
+        mine = not args.source or bool(args.fleet if member.strategy else args.strategy)
+        if not mine and not trust.allows_code(strategy_name(spec).code):
+            raise untrusted(f"{args.source}: its experiment names the strategy {spec} for {member.id}", spec,
+                            "--strategy", "strategy", "docs/strategies.md")
+        where = "--strategy" if args.strategy and not member.strategy else strategy_source(experiment, member)
+        checked.strategy(spec, member, where)
+
+
 def experiment_in_recording(path: str) -> Experiment:
     """The resolved experiment a recording of ``dmosim run`` holds (its attachment experiment.toml, checked against
     its CRC by the reader), parsed as data: a settlement rule it names is a name, not loaded (``_load_rule``)."""
@@ -178,6 +200,7 @@ def run(args) -> int:
     experiment = resolved(experiment_of(args))
     try:
         fleet = check_inputs(experiment)
+        _load_strategies(args, experiment, fleet)
     except ExperimentError as exc:
         raise UsageError(str(exc)) from None
     record_to = recording_path(args.record, args.overwrite) if args.record else None

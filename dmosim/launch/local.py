@@ -56,6 +56,11 @@ def fleet_of(experiment: Experiment) -> list[FleetMember]:
     return load_fleet(a.fleet) if a.fleet else make_fleet(a.count, seed=experiment.seed)
 
 
+def strategy_of(experiment: Experiment, member: FleetMember) -> str:
+    """The strategy an agent bids with (docs/strategies.md): its fleet entry's, else the experiment's."""
+    return member.strategy or experiment.agents.strategy
+
+
 def resolved(experiment: Experiment) -> Experiment:
     """The experiment with its market day fixed (today if it named none), so the run can be repeated."""
     if experiment.market_day is not None:
@@ -129,7 +134,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                 roles.start(member.id, dmosim_command(
                     "agent", *common, "--id", member.id, "--connect", endpoint, "--case", member.case,
                     "--scale", repr(member.scale), "--shift-hours", str(member.shift_hours),
-                    "--seed", str(member.seed), "--scenarios", str(s.scenarios),
+                    "--seed", str(member.seed), "--strategy", strategy_of(e, member), "--scenarios", str(s.scenarios),
                     "--island-hours", str(m.island_hours), "--gap", repr(s.gap), "--time-limit", repr(s.time_limit),
                     "--method", s.method, "--workers", str(s.workers), "--lease", "1", *scales,
                     "--auth-dir", str(auth), *message_faults), log=logs / f"{member.id}.log")

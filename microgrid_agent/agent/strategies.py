@@ -26,7 +26,6 @@ from scenarios.case import Case
 from scenarios.horizon import HOURS
 
 from ..usercode import CodeKind, check_target, code_of, load, params_text, split_spec
-from .bidding import bid_curve
 
 STRATEGY = CodeKind("strategy", "class", "path/to/strategy.py", "dmosim_strategy_")
 DEFAULT_STRATEGY = "price-response"
@@ -85,6 +84,8 @@ class RespondToPrice:
     default, and what every agent bid before strategies could be chosen."""
 
     def bids(self, call: CallForBids, microgrid: Microgrid) -> Curve:
+        from .bidding import bid_curve  # noqa: PLC0415  (the solver stack: naming a strategy must not load it)
+
         return bid_curve(microgrid.case, np.asarray(call.iso_price_per_mwh), seed=microgrid.seed, gap=microgrid.gap)
 
 
@@ -253,19 +254,27 @@ def checked_curve(curve) -> Curve:
     return tuple(hours)
 
 
-def make_strategy(name: StrategyName) -> ChosenStrategy:
-    """A fresh object of the strategy ``name`` names, its parameters as keyword arguments; StrategyError, one line,
-    if it cannot be made or has no ``bids`` method. A strategy of one's own is imported (so its code runs) here."""
+def strategy_class(name: StrategyName) -> type:
+    """The class ``name`` names: a built-in's, or one of one's own, its module imported (so its code runs) here;
+    StrategyError, one line, if it cannot be loaded or does not take the parameters."""
+    if name.built_in:
+        return STRATEGIES[name.target]
     try:
-        cls = STRATEGIES[name.target] if name.built_in else load(name.target, STRATEGY)
-        if not name.built_in:
-            _check_params(name.target, cls, name.params)
-        try:
-            strategy = cls(**name.params)
-        except Exception as err:  # a user's class may refuse its parameters in any way
-            raise ValueError(f"strategy {name.label}: cannot be made: {type(err).__name__}: {_line(err)}") from None
+        cls = load(name.target, STRATEGY)
+        _check_params(name.target, cls, name.params)
     except ValueError as err:
         raise StrategyError(str(err)) from None
+    return cls
+
+
+def make_strategy(name: StrategyName, cls: type | None = None) -> ChosenStrategy:
+    """A fresh object of the strategy ``name`` names (of ``cls``, its class, if already loaded), its parameters as
+    keyword arguments; StrategyError, one line, if it cannot be made or has no ``bids`` method."""
+    cls = cls or strategy_class(name)
+    try:
+        strategy = cls(**name.params)
+    except Exception as err:  # a user's class may refuse its parameters in any way
+        raise StrategyError(f"strategy {name.label}: cannot be made: {type(err).__name__}: {_line(err)}") from None
     if not callable(getattr(strategy, "bids", None)):
         raise StrategyError(f"strategy {name.label}: {type(strategy).__name__} has no method bids(call, microgrid)")
     return ChosenStrategy(name, strategy)
@@ -284,7 +293,8 @@ def choose_strategy(spec: str, case: Case, gap: float = 0.01) -> ChosenStrategy:
     (``trial_call``; a throwaway object, so the one that bids starts with no memory of it); StrategyError, one line,
     if it cannot be used. Only for a strategy the user named, or one a file names that ``Trust`` allows."""
     name = strategy_name(spec)
+    cls = strategy_class(name)
     if not name.built_in:
-        trial = make_strategy(name)
+        trial = make_strategy(name, cls)
         trial.bid(trial_call(case), Microgrid("trial", case, 1, "2000-01-01", 0, gap))
-    return make_strategy(name)
+    return make_strategy(name, cls)
