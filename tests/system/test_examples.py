@@ -8,6 +8,9 @@ import sys
 
 from test_market_day import ENV, ROOT, dmosim
 
+from dmosim.cli.info import describe, render
+from messages.recording import read_recording
+
 EXAMPLES = ROOT / "examples"
 
 
@@ -46,6 +49,8 @@ def test_strategy_bids_its_own_way_is_registered_by_name_and_a_rerun_must_trust_
     assert lines[0] == f"mg1 registered, bidding with {EXAMPLES / 'strategy.py'}:Shaded:shade=0.5"
     first, second = (line.split(": mg1 bid ")[1] for line in lines[1:3])
     assert lines[1].startswith("2026-07-06: ") and lines[2].startswith("2026-07-07: ") and first != second
+    info = render(describe(read_recording(tmp_path / "run" / "recording.mcap")))
+    assert f"strategies:  mg1 {EXAMPLES / 'strategy.py'}:Shaded:shade=0.5\n" in info
 
     def rerun(*flags):
         return subprocess.run(dmosim("run", "--from", str(tmp_path / "run"), "--check", *flags), capture_output=True,
