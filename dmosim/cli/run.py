@@ -176,7 +176,9 @@ def _load_strategies(args, experiment: Experiment, fleet) -> None:
         if not mine and not trust.allows_code(strategy_name(spec).code):
             raise untrusted(f"{args.source}: its experiment names the strategy {spec} for {member.id}", spec,
                             "--strategy", "strategy", "docs/strategies.md")
-        where = "--strategy" if args.strategy and not member.strategy else strategy_source(experiment, member)
+        where = (strategy_source(experiment, member) if member.strategy else "--strategy" if args.strategy else
+                 f"{args.experiment or args.source}: agents.strategy" if args.experiment or args.source else
+                 "agents.strategy")
         checked.strategy(spec, member, where)
 
 
@@ -210,7 +212,8 @@ def run(args) -> int:
     if args.check:
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
-              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, "
+              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, bidding with "
+              f"{', '.join(sorted({strategy_of(experiment, m) for m in fleet}))}, "
               f"{len(experiment.faults)} fault(s)")
         return 0
     run_id = new_run_id()

@@ -85,4 +85,4 @@ def test_a_strategy_that_cannot_be_used_is_one_line_and_exit_2(argv, says, capsy
 def test_run_check_takes_the_built_ins_and_a_strategy_of_ones_own(capsys, monkeypatch):
     monkeypatch.chdir(Path(__file__).resolve().parents[2])
     assert main(["run", "--agents", "1", "--strategy", f"{HERE}:Flat:mw=2", "--check"]) == 0
-    assert "inputs are valid" in capsys.readouterr().out
+    assert f"bidding with {HERE}:Flat:mw=2, 0 fault(s)" in capsys.readouterr().out
