@@ -212,8 +212,8 @@ class ChosenStrategy:
             raise StrategyError(f"strategy {self.label} failed: {type(err).__name__}: {_line(err)}") from None
         try:
             return checked_curve(curve)
-        except ValueError as err:
-            raise StrategyError(f"strategy {self.label} returned no bid: {err}") from None
+        except Exception as err:  # what a user's code returns may fail even to be looked at (a __len__ that raises)
+            raise StrategyError(f"strategy {self.label} returned no bid: {_line(err)}") from None
 
     def observe(self, result: DayLearned) -> None:
         """Tell the strategy how the day went, if it listens (``observe``); StrategyError, one line, if it raises."""
@@ -248,10 +248,14 @@ def checked_curve(curve) -> Curve:
         for k, step in enumerate(steps, start=1):
             if type(step) is not BidStep:
                 raise ValueError(f"hour {t}, step {k}: {type(step).__name__}, not a messages.BidStep")
-            if not (math.isfinite(step.price_per_mwh) and math.isfinite(step.quantity_mw)):
+            if not all(_finite(v) for v in (step.price_per_mwh, step.quantity_mw)):  # a model_construct'ed step
                 raise ValueError(f"hour {t}, step {k}: price and quantity must be finite numbers")
         hours.append(tuple(steps))
     return tuple(hours)
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def strategy_class(name: StrategyName) -> type:

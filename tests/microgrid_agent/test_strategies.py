@@ -141,6 +141,20 @@ class NotFinite:
         return [[BidStep.model_construct(price_per_mwh=float("nan"), quantity_mw=1.0)]] * HOURS
 
 
+class Text:
+    def bids(self, call, microgrid):
+        return [[BidStep.model_construct(price_per_mwh="50", quantity_mw=1.0)]] * HOURS
+
+
+class BadLength:
+    class Hours:
+        def __len__(self):
+            raise RuntimeError("no length")
+
+    def bids(self, call, microgrid):
+        return self.Hours()
+
+
 class TooManySteps:
     def bids(self, call, microgrid):
         return [[BidStep(price_per_mwh=float(k), quantity_mw=0.1) for k in range(MAX_BID_STEPS + 1)]] * HOURS
@@ -180,6 +194,8 @@ HERE = "tests.microgrid_agent.test_strategies"
     (f"{HERE}:TooShort", "returned no bid: 23 hours of steps, not 24"),
     (f"{HERE}:Pairs", "returned no bid: hour 1, step 1: tuple, not a messages.BidStep"),
     (f"{HERE}:NotFinite", "returned no bid: hour 1, step 1: price and quantity must be finite numbers"),
+    (f"{HERE}:Text", "returned no bid: hour 1, step 1: price and quantity must be finite numbers"),
+    (f"{HERE}:BadLength", "returned no bid: no length"),
     (f"{HERE}:TooManySteps", f"returned no bid: hour 1: {MAX_BID_STEPS + 1} steps, at most {MAX_BID_STEPS}"),
 ])
 def test_a_strategy_that_cannot_be_used_is_one_line_naming_it(paper, spec, expected):
