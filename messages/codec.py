@@ -61,7 +61,8 @@ ADDED = ((2, "clock", {"day": 1, "days": 1}),
          (3, "award", {"settlement_rule": None, "deviation_cost": None}),
          (3, "settlement_statement", {"settlement_rule": None}),
          (4, "*", {"run": "", "incarnation": 0}),
-         (5, "award", {"congestion": None}))
+         (5, "award", {"congestion": None}),
+         (6, "registration", {"strategy": None}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -69,7 +70,9 @@ def _upgrade(payload: bytes) -> bytes | None:
     Version 1 -> 2: a clock, which had no day, is day 1 of a one-day run. Version 2 -> 3: an award or a statement
     names no settlement rule, which is the paper's at its penalty and credit rates. Version 3 -> 4: a message is
     bound to no run token and no incarnation (empty, 0), which a live DMO refuses and a recording reader accepts.
-    Version 4 -> 5: an award states no congestion (null), which the tables show as unknown. An older message that already has a field of a later version is left as it is, for validation to refuse."""
+    Version 4 -> 5: an award states no congestion (null), which the tables show as unknown. Version 5 -> 6: a
+    registration names no bidding strategy (null). An older message that already has a field of a later version is
+    left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):

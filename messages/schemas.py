@@ -22,8 +22,9 @@ from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
 # 2: the clock says which day of how many (a run of several market days); 3: awards and statements name their
 # settlement rule, and awards carry its price of a deviation; 4: every message is bound to its run (``run``) and
 # its sender's process (``incarnation``), and the DMO answers every agent message with a receipt; 5: awards carry the
-# clearing's congestion per hour, and an agent may report its realised day (``agent_day``)
-SCHEMA_VERSION = 5
+# clearing's congestion per hour, and an agent may report its realised day (``agent_day``); 6: a registration
+# names the agent's bidding strategy
+SCHEMA_VERSION = 6
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -168,6 +169,10 @@ class Registration(_FromAgent):
         "MW the microgrid can import at most (P_M max); a missing meter reading is settled at it, and a "
         "reading above it is refused"))]
     max_export_mw: Annotated[NonNeg, Field(description="MW the microgrid can export at most")]
+    strategy: Annotated[Annotated[str, Strict(), Field(min_length=1, max_length=500)] | None, Field(description=(
+        "the agent's bidding strategy as named, parameters included (docs/strategies.md), e.g. \"price-response\" "
+        "or \"examples/strategy.py:Shaded:shade=0.9\"; informative, for the record; null: not said (an agent of "
+        "another make, or older than version 6)"))] = None
 
 
 # --- bidding ------------------------------------------------------------------------------------------------

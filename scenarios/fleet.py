@@ -8,6 +8,7 @@ A fleet file (TOML) lists its agents::
     scale = 1.0           # in (0, 10]: every power and energy quantity is multiplied by it (default 1)
     shift_hours = 0       # -23..23: load, renewable and award profiles rolled by this many hours (default 0)
     seed = 1              # 0..2**32-1: the agent's realised-day seed (default: its position in the file, 1-based)
+    strategy = "naive"    # its bidding strategy, docs/strategies.md (default: the experiment's agents.strategy)
 
 A file lists at most ``MAX_MEMBERS`` agents.
 """
@@ -33,7 +34,8 @@ MAX_MEMBERS = 1024
 # grid at 160 MW, more than any microgrid; above it a scaled day is all curtailment or all spill.
 MAX_SCALE = 10.0
 MAX_SHIFT_HOURS = 23  # a shift of 24 h or more is a shift of less: the day is rolled round
-_FIELDS = ("id", "case", "scale", "shift_hours", "seed")
+_FIELDS = ("id", "case", "scale", "shift_hours", "seed", "strategy")
+MAX_STRATEGY = 500  # a strategy as named: what a registration's strategy may carry
 
 # Quantities in MW or MWh, by part of the case; costs, times, windows and prices are kept.
 _SCALED = {
@@ -53,13 +55,16 @@ class FleetError(ValueError):
 
 @dataclass(frozen=True)
 class FleetMember:
-    """One agent of a fleet: its id, its base case (built-in name or path), size, time shift and realised-day seed."""
+    """One agent of a fleet: its id, its base case (built-in name or path), size, time shift, realised-day seed and
+    bidding strategy as named (None: the experiment's; the name is checked where strategies are known,
+    ``microgrid_agent.agent.strategies.strategy_name``)."""
 
     id: str
     case: str
     scale: float = 1.0
     shift_hours: int = 0
     seed: int = 0
+    strategy: str | None = None
 
 
 def _transform(data: dict, fields: dict[str, tuple[str, ...]], f) -> None:
@@ -164,7 +169,10 @@ def _member(path: Path, index: int, entry, seen: set[str]) -> FleetMember:
             _fail(path, f"{where}.case", f"unknown case {case!r}: not a built-in case "
                                          f"({', '.join(builtin_cases())}) nor a file at {resolved}")
         case = str(resolved)
-    member = FleetMember(agent, case, float(scale), shift, seed)
+    strategy = entry.get("strategy")
+    if strategy is not None and (not isinstance(strategy, str) or not 1 <= len(strategy.strip()) <= MAX_STRATEGY):
+        _fail(path, f"{where}.strategy", f"must be a strategy's name of 1..{MAX_STRATEGY} characters, got {strategy!r}")
+    member = FleetMember(agent, case, float(scale), shift, seed, strategy)
     try:
         member_case(member)
     except CaseError as exc:

@@ -9,18 +9,16 @@ docs/settlement.md, "Choosing a rule" and "Rules named by recordings").
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
-import math
-import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 
+from microgrid_agent.usercode import CodeKind, check_target, code_of, load, params_text, split_spec
 from scenarios.horizon import HOURS
 
 from .rules import BUILT_IN, DeviationRule, Rule
 from .settlement import RULES, DayTotals, RuleError, Statement, settle_day, settlement_day
+
+RULE = CodeKind("settlement rule", "function", "path/to/rules.py", "dmosim_rule_")
 
 
 @dataclass(frozen=True)
@@ -44,7 +42,7 @@ class ChosenRule:
     @property
     def label(self) -> str:
         """The rule as one would name it again: ``deadband:band_mw=0.5,rate=150``."""
-        params = ",".join(f"{k}={_number(v)}" for k, v in self.parameters.items())
+        params = params_text(self.parameters)
         return f"{self.name}:{params}" if params else self.name
 
     @property
@@ -69,12 +67,6 @@ class ChosenRule:
         return settle_day(day, self.rule, self.name, **self.params)
 
 
-def _number(v: float) -> str:
-    """A parameter at its shortest exact form: 150, 0.5, 1e-07."""
-    text = repr(float(v))
-    return text[:-2] if text.endswith(".0") else text
-
-
 def paper_rule(penalty: float, credit: float = 0.0) -> ChosenRule:
     """The paper's rule at these rates."""
     return ChosenRule("paper", BUILT_IN["paper"], {"penalty": penalty, "credit": credit})
@@ -96,28 +88,21 @@ class RuleName:
     def code(self) -> str | None:
         """The code a rule of one's own would run, as loading it would find it (a file resolved against the current
         directory, a module by name); None for a built-in. Two names with the same code run the same function."""
-        if self.built_in:
-            return None
-        where, _, name = self.target.rpartition(":")
-        return f"{Path(where).resolve()}:{name}" if _is_file(where) else self.target
+        return None if self.built_in else code_of(self.target)
 
 
 def rule_name(spec: str) -> RuleName:
     """``spec`` checked as a name, importing and running nothing: its syntax, and a built-in's parameter names and
     values. ValueError, one line, when it is not a rule's name. This is all that reading a file that names a rule
     (an experiment, a recording) does with it; only ``choose`` loads a rule."""
-    target, params = _split(spec)
+    target, params = split_spec(spec, RULE)
     if target in BUILT_IN:
         try:
             BUILT_IN[target].parameters(params)
         except ValueError as err:
             raise ValueError(f"settlement rule {err}") from None
     elif ":" in target:
-        where, _, name = target.rpartition(":")
-        if not name.isidentifier():
-            raise ValueError(f"settlement rule {target}: {name!r} is not a function name")
-        if not where or not (_is_file(where) or all(part.isidentifier() for part in where.split("."))):
-            raise ValueError(f"settlement rule {target}: {where!r} is neither path/to/rules.py nor a module name")
+        check_target(target, RULE)
     else:
         raise ValueError(f"unknown settlement rule {target!r}: the built-in rules are {', '.join(BUILT_IN)}; a rule "
                          "of your own is path/to/rules.py:function or module:function")
@@ -129,7 +114,7 @@ def choose(spec: str) -> ChosenRule:
     of one's own is imported and run here: only for a rule the user named (on the command line, or in the
     experiment file they run), or one a file names that ``Trust`` allows."""
     name = rule_name(spec)
-    chosen = ChosenRule(name.target, BUILT_IN[name.target] if name.built_in else _load(name.target), name.params)
+    chosen = ChosenRule(name.target, BUILT_IN[name.target] if name.built_in else load(name.target, RULE), name.params)
     check(chosen)
     return chosen
 
@@ -145,9 +130,10 @@ class UntrustedRule(ValueError):
 
 @dataclass(frozen=True)
 class Trust:
-    """Which rules of one's own that a file names may be loaded (docs/settlement.md, "Rules named by recordings"):
-    those whose code the user named on the command line (``named``, each a ``RuleName.code``), or every one
-    (``everything``: the user trusts the file). A built-in is always allowed: it runs no code of the file's."""
+    """Which code of one's own that a file names may be loaded (docs/settlement.md, "Rules named by recordings";
+    docs/strategies.md, "Trust"): code the user named on the command line (``named``, each a
+    ``microgrid_agent.usercode.code_of``), or all of it (``everything``: the user trusts the file). A built-in is
+    always allowed: it runs no code of the file's. The rules' and the bidding strategies' one trust."""
 
     everything: bool = False
     named: frozenset[str] = frozenset()
@@ -157,68 +143,19 @@ class Trust:
         """Trust in the rules ``specs`` name (the user's own, already loaded), or in everything."""
         return cls(everything, frozenset(code for code in (rule_name(s).code for s in specs) if code))
 
+    def allows_code(self, code: str | None) -> bool:
+        """Whether code a file names (``code_of``; None for a built-in) may be loaded."""
+        return code is None or self.everything or code in self.named
+
     def allows(self, spec: str) -> bool:
         """Whether the rule a file names as ``spec`` may be loaded; ValueError if it is no rule's name."""
-        name = rule_name(spec)
-        return name.built_in or self.everything or name.code in self.named
+        return self.allows_code(rule_name(spec).code)
 
     def choose(self, spec: str) -> ChosenRule:
         """``choose(spec)`` for a rule a file names: UntrustedRule, before anything is imported, if not allowed."""
         if not self.allows(spec):
             raise UntrustedRule(spec)
         return choose(spec)
-
-
-def _split(spec: str) -> tuple[str, dict[str, float]]:
-    """``target[:key=value,...]`` -> (target, {key: value})."""
-    spec = spec.strip()
-    target, _, last = spec.rpartition(":")
-    if not target or "=" not in last:
-        target, last = spec, ""
-    params = {}
-    for item in filter(None, (p.strip() for p in last.replace(";", ",").split(","))):
-        key, eq, value = item.partition("=")
-        try:
-            number = float(value)
-        except ValueError:
-            number = math.nan
-        if not eq or not key.strip() or not math.isfinite(number):
-            raise ValueError(f"settlement rule {target}: {item!r} is not key=number")
-        params[key.strip()] = number
-    if not target:
-        raise ValueError("no settlement rule named")
-    return target, params
-
-
-def _is_file(where: str) -> bool:
-    """Whether a rule's ``where`` names a file (path/to/rules.py) rather than a module."""
-    return where.endswith(".py") or "/" in where
-
-
-def _load(target: str) -> Rule:
-    """The function ``path/to/rules.py:function`` or ``module:function`` names: its module imported, so its code
-    runs. Only ``choose`` calls this."""
-    where, _, name = target.rpartition(":")
-    try:
-        if _is_file(where):
-            path = Path(where)
-            if not path.is_file():
-                raise ValueError(f"settlement rule {target}: no file {where}")
-            module_name = f"dmosim_rule_{abs(hash(str(path.resolve())))}"
-            spec = importlib.util.spec_from_file_location(module_name, path)
-            module = importlib.util.module_from_spec(spec)
-            sys.modules[module_name] = module  # dataclasses and pickling look the module up by name
-            spec.loader.exec_module(module)
-        else:
-            module = importlib.import_module(where)
-    except ValueError:
-        raise
-    except Exception as err:  # a user's module may fail to import in any way: say how, in one line
-        raise ValueError(f"settlement rule {target}: cannot load {where}: {type(err).__name__}: {err}") from None
-    rule = getattr(module, name, None)
-    if not callable(rule):
-        raise ValueError(f"settlement rule {target}: {where} has no function {name!r}")
-    return rule
 
 
 def trial_day():

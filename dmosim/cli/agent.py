@@ -12,7 +12,7 @@ from scenarios.fleet import MAX_SCALE, MAX_SHIFT_HOURS, FleetError
 from ..arguments import integer, number, seconds
 from ..console import UsageError
 from ..experiment.spec import ExperimentError
-from ..launch.roles import agent_config, member_case, member_of, resolved
+from ..launch.roles import agent_config, member_case, member_of, resolved, strategy_of
 from .flags import (add_bus_flags, add_fault_flags, bus_config, check_bus_flags, check_fault_flags,
                     message_faults, setup_logging)
 from .settings import AGENT_SETTINGS, add_experiment_flag, role_experiment
@@ -39,6 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> int:
     from microgrid_agent.agent.process import MicrogridAgent  # noqa: PLC0415  (the solver stack)
+    from microgrid_agent.agent.strategies import StrategyError, choose_strategy  # noqa: PLC0415
 
     check_bus_flags(args, "client")
     check_fault_flags(args)
@@ -59,7 +60,12 @@ def run(args) -> int:
     if args.idle_timeout is not None:
         config = dataclasses.replace(config, idle_s=args.idle_timeout)
     setup_logging(args.id, args.quiet)
+    case = member_case(member)
+    try:  # made, and a strategy of the user's own tried, before the agent joins (docs/strategies.md)
+        strategy = choose_strategy(strategy_of(experiment, member), case, config.gap)
+    except StrategyError as err:
+        raise UsageError(f"--strategy: {err}") from None
     with Bus(args.run_id, args.id, bus_config(args, "client", args.id)) as bus:
         bus.faults = message_faults(args, bus, experiment)
-        MicrogridAgent(bus, member_case(member), config, experiment.market_day).run()
+        MicrogridAgent(bus, case, config, experiment.market_day, strategy).run()
     return 0

@@ -5,12 +5,13 @@ anything starts: its fleet, its cases and its faults, each refused in one line (
 from __future__ import annotations
 
 from messages.transport.faults import FaultSpecError
+from microgrid_agent.agent.strategies import StrategyError, choose_strategy, strategy_name
 from scenarios.case import CaseError, load_case
-from scenarios.fleet import FleetError, FleetMember
+from scenarios.fleet import FleetError, FleetMember, member_case
 
 from ..experiment.spec import Experiment, ExperimentError
 from ..launch.faults import Fault, parse_fault
-from ..launch.roles import fleet_of
+from ..launch.roles import fleet_of, strategy_of
 from dmo.market.choice import choose
 
 
@@ -21,6 +22,7 @@ class Checked:
         self.fleets: dict[tuple, list[FleetMember]] = {}
         self.cases: set[str] = set()
         self.rules: set[str] = set()
+        self.strategies: set[str] = set()
 
     def fleet(self, experiment: Experiment) -> list[FleetMember]:
         a = experiment.agents
@@ -51,12 +53,33 @@ class Checked:
             self.rules.add(spec)
 
 
+    def strategy(self, spec: str, member: FleetMember, where: str) -> None:
+        """A strategy an agent bids with, named by the user (``where`` says where): made, and one of their own tried
+        on a trial call for ``member``'s case (``choose_strategy``)."""
+        if spec not in self.strategies:
+            try:
+                choose_strategy(spec, member_case(member))
+            except StrategyError as exc:
+                raise ExperimentError(f"{where}: {exc}") from None
+            self.strategies.add(spec)
+
+
+def strategy_source(experiment: Experiment, member: FleetMember) -> str:
+    """Where the strategy ``member`` bids with is named: its fleet entry, or the experiment's agents.strategy."""
+    return f"{experiment.agents.fleet}: agents[{member.id}].strategy" if member.strategy else "agents.strategy"
+
+
 def check_inputs(experiment: Experiment, checked: Checked | None = None) -> list[FleetMember]:
     """The experiment's fleet, once its cases load and its faults name its agents and days; else ExperimentError."""
     checked = checked or Checked()
     fleet = checked.fleet(experiment)
     for name in sorted({experiment.market.case, *(m.case for m in fleet)}):
         checked.case(name)
+    for member in fleet:
+        try:
+            strategy_name(strategy_of(experiment, member))  # a name only: loading it is the caller's, if trusted
+        except StrategyError as exc:
+            raise ExperimentError(f"{strategy_source(experiment, member)}: {exc}") from None
     try:
         faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault)]
     except (FaultSpecError, ValueError) as exc:  # ValueError: a digit int() cannot read, e.g. "²"

@@ -232,23 +232,30 @@ SETTLEMENT_HELP = ("the settlement rule, NAME[:key=value,...] (paper, symmetric,
                    "--credit)")
 
 
+STRATEGY_HELP = ("the agent's bidding strategy, NAME[:key=value,...] (price-response, table1, naive) or "
+                 "path/to/strategy.py:Class[:key=value,...] (docs/strategies.md; default: price-response)")
+
+
 TRUST_FLAG = "--trust-rules"
 
 
 def add_trust_flag(p: argparse.ArgumentParser) -> None:
-    """The one flag that lets a file's own settlement rules run: ``settle``, ``replay --as-dmo``, ``run --from``."""
+    """The one flag that lets a file's own code run, its settlement rules (``settle``, ``replay --as-dmo``, ``run
+    --from``) and its agents' bidding strategies (``run --from``)."""
     p.add_argument(TRUST_FLAG, dest="trust_rules", action="store_true",
-                   help="load and run a settlement rule of its own (path/to/rules.py:function or module:function) "
-                        "that the recording names; without it only a built-in rule, or one you name yourself, runs "
-                        "(docs/settlement.md, \"Rules named by recordings\")")
+                   help="load and run a settlement rule (path/to/rules.py:function or module:function) or bidding "
+                        "strategy (path/to/strategy.py:Class) of its own that the recording names; without it only a "
+                        "built-in, or one you name yourself, runs (docs/settlement.md, \"Rules named by recordings\"; "
+                        "docs/strategies.md, \"Trust\")")
 
 
-def untrusted(subject: str, spec: str, naming: str) -> UsageError:
-    """The one line of a file that names a rule of its own that the user did not: ``subject`` says where the file
-    names ``spec``; ``naming`` is the flag by which the user names a rule (``--rule``, ``--settlement``), or empty."""
+def untrusted(subject: str, spec: str, naming: str, what: str = "rule", doc: str = "docs/settlement.md") -> UsageError:
+    """The one line of a file that names code of its own that the user did not: ``subject`` says where the file
+    names ``spec``, ``what`` it is (``rule``, ``strategy``), ``doc`` where trust is explained; ``naming`` is the flag
+    by which the user names such code (``--rule``, ``--settlement``, ``--strategy``), or empty."""
     how = f"name it yourself ({naming} {spec}) or pass {TRUST_FLAG}" if naming else f"pass {TRUST_FLAG}"
-    return UsageError(f"{subject}, a rule of the recording's own, which dmosim does not run unless you {how} "
-                      "(docs/settlement.md)")
+    return UsageError(f"{subject}, a {what} of the recording's own, which dmosim does not run unless you {how} "
+                      f"({doc})")
 
 
 def settlement_flag(spec: str | None):

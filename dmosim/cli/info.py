@@ -52,6 +52,7 @@ def describe(rec: Recording) -> dict:
         "messages": len(rec.messages), "invalid_messages": invalid,
         "backfilled_messages": _int(rec.other_metadata.get(BACKFILL_METADATA, {}).get("messages", 0)),
         "missing": gaps(rec), "missing_meter": missing_meter(rec), "settled_by": settled_by(rec),
+        "strategies": strategies(rec),
         "chunks": rec.chunks, "compression": sorted(rec.compression),
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)} for a in rec.attachments],
         "channels": [{"key": c.relative_key, "messages": c.messages, "schema": c.schema_name,
@@ -89,6 +90,11 @@ def missing_meter(rec: Recording) -> list[dict]:
     return out
 
 
+def strategies(rec: Recording) -> dict[str, str | None]:
+    """Each registered agent's bidding strategy as its (latest) registration names it; None: it named none."""
+    return {msg.sender: msg.strategy for _, msg in rec.decoded("registration")}
+
+
 def settled_by(rec: Recording) -> dict[str, str]:
     """Market day -> the settlement rule its awards name (docs/settlement.md)."""
     out: dict[str, str] = {}
@@ -119,10 +125,12 @@ def _iso(ns: int) -> str:
 
 def render(info: dict) -> str:
     state = "complete" if info["complete"] else f"INCOMPLETE: {info['cut']}"
+    strategies = ", ".join(f"{agent} {named or '?'}" for agent, named in sorted(info["strategies"].items()))
     rows = [f"file:        {info['path']} ({info['bytes']:,} bytes, {state})",
             f"run:         {info['run_id'] or '-'} (keys under {info['key_prefix'] or '-'}/)",
             f"market day{'s:' if len(info['market_days']) > 1 else ': '} {', '.join(info['market_days']) or '-'}",
             f"agents:      {', '.join(info['agents']) or '-'}",
+            f"strategies:  {strategies or '-'}",
             f"seed:        {info['seed'] if info['seed'] is not None else '-'}"]
     experiment = experiment_toml(info["config"])
     if experiment is None and info["config"] is not None:  # a configuration this version does not read

@@ -21,10 +21,11 @@ from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experime
                                settled_by, with_settings)
 from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, run_locally
-from ..launch.roles import resolved
+from ..launch.roles import resolved, strategy_of
 from dmo.market.choice import Trust, UntrustedRule, choose
+from microgrid_agent.agent.strategies import strategy_name
 from ..results.verdict import one_line
-from .checks import agent_list, check_inputs
+from .checks import Checked, agent_list, check_inputs, strategy_source
 from .settings import add_setting_flags, experiment_with_flags
 from ..console import Progress, UsageError, print_json
 from .flags import add_trust_flag, load_recording, recording_path, untrusted
@@ -106,6 +107,26 @@ def _load_rule(args, spec: str | None) -> None:
         raise UsageError(f"{where}: {err}") from None
 
 
+def _load_strategies(args, experiment: Experiment, fleet) -> None:
+    """Make, and try on a trial call, each strategy the run's agents bid with, before anything starts: one the user
+    named (``--strategy``, ``--fleet``, or the experiment file given) at once; one only the recording of ``--from``
+    names, if it is built in, the same code as ``--strategy`` names, or with ``--trust-rules`` (docs/strategies.md,
+    "Trust"). The agents load them again, each its own."""
+    named = {strategy_name(args.strategy).code} - {None} if args.strategy else set()
+    trust = Trust(everything=args.trust_rules, named=frozenset(named))
+    checked = Checked()
+    for member in fleet:
+        spec = strategy_of(experiment, member)
+        mine = not args.source or bool(args.fleet if member.strategy else args.strategy)
+        if not mine and not trust.allows_code(strategy_name(spec).code):
+            raise untrusted(f"{args.source}: its experiment names the strategy {spec} for {member.id}", spec,
+                            "--strategy", "strategy", "docs/strategies.md")
+        where = (strategy_source(experiment, member) if member.strategy else "--strategy" if args.strategy else
+                 f"{args.experiment or args.source}: agents.strategy" if args.experiment or args.source else
+                 "agents.strategy")
+        checked.strategy(spec, member, where)
+
+
 def experiment_in_recording(path: str) -> Experiment:
     """The resolved experiment a recording of ``dmosim run`` holds (its attachment experiment.toml, checked against
     its CRC by the reader), parsed as data: a settlement rule it names is a name, not loaded (``_load_rule``)."""
@@ -126,6 +147,7 @@ def run(args) -> int:
     experiment = resolved(experiment_of(args))
     try:
         fleet = check_inputs(experiment)
+        _load_strategies(args, experiment, fleet)
     except ExperimentError as exc:
         raise UsageError(str(exc)) from None
     record_to = recording_path(args.record, args.overwrite) if args.record else None
@@ -140,7 +162,8 @@ def run(args) -> int:
                 raise UsageError(str(exc)) from None
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
-              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, "
+              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, bidding with "
+              f"{', '.join(sorted({strategy_of(experiment, m) for m in fleet}))}, "
               f"{len(experiment.faults)} fault(s)")
         return 0
     run_id = new_run_id()

@@ -17,12 +17,12 @@ from dmo.market.rules import MAX_MW, MAX_RATE
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
 from ..experiment.spec import FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
 from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT
-from .flags import SETTLEMENT_HELP
+from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 
 DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
              ("hour", "each hour's meter reports"))
 # The settings of each role: what it reads of the experiment and may be told on its command line.
-RUN_SETTINGS = ("agents.count", "agents.fleet", "days", "market_day", "seed")
+RUN_SETTINGS = ("agents.count", "agents.fleet", "agents.strategy", "days", "market_day", "seed")
 MARKET_SETTINGS = tuple(k for k in FLAGS if k.startswith("market."))
 DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
 AGENT_SETTINGS = RUN_SETTINGS + ("market.island_hours",) + tuple(
@@ -37,6 +37,8 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
                                          help=f"agents mg1..mgN (default: {default.agents.count})")),
         "agents.fleet": ("--fleet", dict(help="fleet TOML file naming the agents and their cases (instead of "
                                               "--agents)")),
+        "agents.strategy": ("--strategy", dict(metavar="SPEC", help=STRATEGY_HELP.replace(
+            "default: price-response", f"default: {default.agents.strategy}; a fleet entry's own overrides it"))),
         "days": ("--days", dict(type=integer(1, MAX_DAYS),
                                 help="consecutive market days; agents register once and carry their state across "
                                      f"midnight (at most {MAX_DAYS}; default: {default.days})")),

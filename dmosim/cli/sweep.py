@@ -21,9 +21,9 @@ from pathlib import Path
 from ..experiment.rundir import RUNS, RunDirError, check_directory, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
-from ..launch.local import resolved
+from ..launch.roles import resolved, strategy_of
 from ..launch.processes import dmosim_command, role_env
-from .checks import Checked, check_inputs
+from .checks import Checked, check_inputs, strategy_source
 from ..console import Progress, UsageError, print_json
 from ..arguments import integer
 
@@ -56,8 +56,11 @@ def run(args) -> int:
     checked, agents = Checked(), 1  # each variant as `dmosim run --check` checks it, each file read once
     for v in runs:
         try:
-            agents = max(agents, len(check_inputs(v.experiment, checked)))
+            fleet = check_inputs(v.experiment, checked)
+            agents = max(agents, len(fleet))
             checked.rule(v.experiment.market.settlement)
+            for member in fleet:  # the experiment and the --set values are the user's: their strategies load
+                checked.strategy(strategy_of(v.experiment, member), member, strategy_source(v.experiment, member))
         except ExperimentError as exc:
             raise UsageError(f"{v.label}: {exc}") from None
     keys = list(runs[0].settings)

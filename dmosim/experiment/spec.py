@@ -21,10 +21,11 @@ from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from microgrid_agent.solvers.routes import METHODS
 from scenarios.case import read_toml
 from scenarios.days import MAX_SEED, market_days
-from scenarios.fleet import MAX_SCALE
+from scenarios.fleet import MAX_SCALE, MAX_STRATEGY
 from scenarios.generation import MAX_SCENARIOS
 from scenarios.horizon import HOURS
 
+from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
 from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
 from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 
@@ -57,10 +58,21 @@ PathText = Annotated[str, Field(min_length=1, max_length=MAX_PATH)]
 
 
 class Agents(_Section):
-    """Who takes part: ``count`` agents mg1..mgN drawn around the market's case, or the members of a fleet file."""
+    """Who takes part: ``count`` agents mg1..mgN drawn around the market's case, or the members of a fleet file;
+    ``strategy`` how each bids (docs/strategies.md), unless its fleet entry names its own."""
 
     count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
     fleet: PathText | None = None  # a fleet file, relative to the experiment file
+    strategy: Annotated[str, Field(min_length=1, max_length=MAX_STRATEGY)] = DEFAULT_STRATEGY
+
+    @field_validator("strategy")
+    @classmethod
+    def _a_strategy(cls, value: str) -> str:
+        try:
+            strategy_name(value)  # a name only: parsing an experiment never imports a strategy (its agents do)
+        except StrategyError as err:
+            raise ValueError(str(err)) from None
+        return value
 
     @model_validator(mode="after")
     def _one_way(self):
@@ -174,6 +186,7 @@ class Experiment(_Section):
 # (dmosim/cli/settings.py).
 FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
+    "agents.strategy": "strategy",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
     "market.settlement": "settlement",
     "market.import_limit": "import_limit", "market.export_limit": "export_limit",

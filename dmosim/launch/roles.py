@@ -43,6 +43,11 @@ def fleet_of(experiment: Experiment) -> list[FleetMember]:
     return load_fleet(a.fleet) if a.fleet else make_fleet(a.count, seed=experiment.seed)
 
 
+def strategy_of(experiment: Experiment, member: FleetMember) -> str:
+    """The strategy an agent bids with (docs/strategies.md): its fleet entry's, else the experiment's."""
+    return member.strategy or experiment.agents.strategy
+
+
 def member_of(experiment: Experiment, agent_id: str) -> FleetMember:
     """Agent ``agent_id`` of the run; an id the run has no agent of is an ExperimentError."""
     fleet = fleet_of(experiment)

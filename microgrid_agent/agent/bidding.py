@@ -1,4 +1,5 @@
-"""Price-responsive hourly step bids from the agent's own schedule at several price levels (docs/agent.md).
+"""Price-responsive hourly step bids from the agent's own schedule at several price levels (docs/agent.md): the
+maths of the default bidding strategy, ``price-response`` (strategies.py).
 
 The agent asks itself "how much would I import in each hour if grid energy cost m x the ISO price?" for a few
 multipliers m, and turns the answers into the hourly price-quantity steps of its bid (``messages.BidStep``). Each

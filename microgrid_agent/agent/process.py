@@ -41,9 +41,10 @@ from scenarios.horizon import HOURS
 
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
-from .bidding import bid_curve
 from .delivery import Delivery
 from .realtime import Operator
+from .strategies import (DEFAULT_STRATEGY, NO_BID, ChosenStrategy, DayLearned, Microgrid, StrategyError,
+                         make_strategy, strategy_name)
 
 log = logging.getLogger("dmosim.agent")
 
@@ -79,10 +80,13 @@ class AgentRefused(RuntimeError):
 
 class MicrogridAgent:
     """One microgrid through the market days of a run. ``case`` is its case as the run starts; each later day starts
-    from the state the realised operation of the day before ended in (``scenarios.days.carry_over``)."""
+    from the state the realised operation of the day before ended in (``scenarios.days.carry_over``). ``strategy``
+    makes its bids (docs/strategies.md; default: the price response)."""
 
-    def __init__(self, bus: Bus, case: Case, config: AgentConfig, market_day: str):
+    def __init__(self, bus: Bus, case: Case, config: AgentConfig, market_day: str,
+                 strategy: ChosenStrategy | None = None):
         self.bus, self.base, self.config, self.market_day = bus, case, config, market_day
+        self.strategy = strategy or make_strategy(strategy_name(DEFAULT_STRATEGY))
         self.day, self.days = 1, 1
         self.case = self._day_case(case, 1)
         self.events: queue.Queue = queue.Queue()
@@ -100,6 +104,7 @@ class MicrogridAgent:
         self.statement: SettlementStatement | None = None
         self.summary: DaySummary | None = None
         self._bid_sent = False
+        self._bid_hours = NO_BID  # what the bid sent offered, for the strategy's observe
         self._grid_seen: dict[int, tuple[bool, ...]] = {}  # hour -> connection, of grid states not operated
         self.compute: list[HandlingTime] = []  # the day's messages handled, each with its computation
         self._realised_due = False  # the day has been operated to its end: its agent_day goes after its compute
@@ -129,7 +134,8 @@ class MicrogridAgent:
         self._join_where_the_run_is()
         grid = self.case.grid
         self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.base.name,
-                                   max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max))
+                                   max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max,
+                                   strategy=self.strategy.label))
         # Nothing else goes before the registration's receipt: a restarted process's bid, schedule or report would
         # be refused as unregistered (and not sent again) were it to overtake a lost registration.
         if not self.delivery.drained(self.config.idle_s):
@@ -139,6 +145,7 @@ class MicrogridAgent:
             self._run_day()
             if self.statement is None:
                 self._await_statement()
+            self._observe()
             if self.day >= self.days:
                 break
             self._next_day()
@@ -348,11 +355,27 @@ class MicrogridAgent:
             self.summary = msg
 
     def _bid(self, call: CallForBids) -> None:
-        curve = bid_curve(self.case, np.asarray(call.iso_price_per_mwh), seed=day_seed(self.config.seed, self.day),
-                          gap=self.config.gap)
+        """The strategy's bid, checked. A strategy that fails (raises, or returns what is not a bid) costs the agent
+        that day's market, not the run: one line says why, and the bid offers nothing in any hour (docs/strategies.md,
+        "When a strategy fails")."""
+        microgrid = Microgrid(self.id, self.case, self.day, self.market_day, day_seed(self.config.seed, self.day),
+                              self.config.gap)
+        try:
+            curve = self.strategy.bid(call, microgrid)
+        except StrategyError as err:
+            log.warning("%s: %s; bidding nothing on day %d", self.id, err, self.day)
+            curve = NO_BID
         self._answer(Bid(sender=self.id, market_day=self.market_day, hours=curve))
-        self._bid_sent = True
+        self._bid_sent, self._bid_hours = True, curve
         log.info("%s bid sent", self.id)
+
+    def _observe(self) -> None:
+        """Tell the strategy what the day brought; one that fails to listen is said in one line, and bids on."""
+        try:
+            self.strategy.observe(DayLearned(self.day, self.market_day, self._bid_hours, self.award,
+                                             self.statement, self.summary))
+        except StrategyError as err:
+            log.warning("%s: %s", self.id, err)
 
     def _schedule(self, award: Award) -> None:
         """The stochastic schedule of the paper against the award (objective (1), constraints (2)-(21))."""

@@ -6,7 +6,10 @@ import json
 import subprocess
 import sys
 
-from test_market_day import ENV, ROOT
+from test_market_day import ENV, ROOT, dmosim
+
+from dmosim.cli.info import describe, render
+from messages.recording import read_recording
 
 EXAMPLES = ROOT / "examples"
 
@@ -36,3 +39,25 @@ def test_settlement_rule_settles_a_day_under_the_paper_rule_and_its_capped_varia
     lines = run_example("settlement_rule.py").stdout.splitlines()
     assert lines[0].startswith("paper ") and "capped_penalty:cap=20" in lines[1]
     assert "mg1 $20.00, mg2 $20.00, mg3 $20.00" in lines[1]
+
+
+def test_strategy_bids_its_own_way_is_registered_by_name_and_a_rerun_must_trust_it(tmp_path):
+    """examples/strategy.py: one tiny agent for two days; its registration names the strategy, the second day's bid
+    (prices pulled halfway to the first day's clearing prices) is not the first's; and ``run --from`` that run
+    refuses to load the strategy the recording names, unless the user names it or trusts the recording."""
+    lines = run_example("strategy.py", str(tmp_path / "run")).stdout.splitlines()
+    assert lines[0] == f"mg1 registered, bidding with {EXAMPLES / 'strategy.py'}:Shaded:shade=0.5"
+    first, second = (line.split(": mg1 bid ")[1] for line in lines[1:3])
+    assert lines[1].startswith("2026-07-06: ") and lines[2].startswith("2026-07-07: ") and first != second
+    info = render(describe(read_recording(tmp_path / "run" / "recording.mcap")))
+    assert f"strategies:  mg1 {EXAMPLES / 'strategy.py'}:Shaded:shade=0.5\n" in info
+
+    def rerun(*flags):
+        return subprocess.run(dmosim("run", "--from", str(tmp_path / "run"), "--check", *flags), capture_output=True,
+                              text=True, timeout=300, cwd=ROOT, env=ENV)
+    refused = rerun()
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert (f"its experiment names the strategy {EXAMPLES / 'strategy.py'}:Shaded:shade=0.5 for mg1, a strategy of "
+            "the recording's own, which dmosim does not run unless you name it yourself (--strategy") in refused.stderr
+    trusted = rerun("--trust-rules")  # naming it yourself (--strategy) is tests/dmosim/test_strategy_choice.py's
+    assert trusted.returncode == 0 and "inputs are valid" in trusted.stdout, trusted.stderr
