@@ -27,9 +27,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
+from messages import (DMO, Award, Bid, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
                       Receipt, Registration, Schedule, SettlementStatement, check_route, decode)
 from messages.keys import parse_key
+from messages.transport import Bus
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
