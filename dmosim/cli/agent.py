@@ -68,7 +68,7 @@ def run(args) -> int:
     config = AgentConfig(scenarios=args.scenarios, island_hours=args.island_hours, gap=args.gap,
                          time_limit=args.time_limit, seed=args.seed, idle_s=args.idle_timeout, method=args.method,
                          workers=args.workers, load_scale=args.load_scale, renewable_scale=args.renewable_scale)
-    with Bus(args.run_id, args.id, bus_config(args, "client", args.id)) as bus:
-        bus.faults = message_faults(args, bus)
+    with Bus(args.run_id, args.id, bus_config(args, "client", args.id),
+             faults=message_faults(args, args.run_id, args.id)) as bus:
         MicrogridAgent(bus, case, config, args.market_day or today()).run()
     return 0

@@ -16,7 +16,8 @@ from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import MODES, BusConfig
 from messages.transport.access import READERS, USERS_FILE, AuthError, auth_settings
 from messages.transport.credentials import check_private, create_auth_dir, private_directory
-from messages.transport.faults import FaultSpecError, injector, parse_message_fault
+from messages.keys import Keys
+from messages.transport.faults import FaultInjector, FaultSpecError, injector, parse_message_fault
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.days import MAX_SEED
 from scenarios.fleet import FleetError, load_fleet, make_fleet
@@ -218,11 +219,11 @@ def check_fault_flags(args) -> None:
             raise UsageError(f"--fault: {exc}") from None
 
 
-def message_faults(args, bus):
-    """The FaultInjector of the ``--fault`` message faults (messages/transport/faults.py) for this process's bus,
-    or None."""
+def message_faults(args, run_id: str, name: str) -> FaultInjector | None:
+    """The FaultInjector of the ``--fault`` message faults (messages/transport/faults.py) for the bus of process
+    ``name`` in run ``run_id`` (``add_fault_flags``), or None."""
     try:
-        faults = injector(getattr(args, "fault", []), bus.keys.prefix, getattr(args, "fault_seed", 0), bus.name)
+        faults = injector(args.fault, Keys(run_id).prefix, args.fault_seed, name)
     except FaultSpecError as exc:
         raise UsageError(f"--fault: {exc}") from None
     if faults is not None:

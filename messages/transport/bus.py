@@ -26,6 +26,7 @@ from scenarios.names import NAME_PATTERN, is_name
 from ..codec import MessageError, decode, encode
 from ..keys import Keys, check_route, parse_key
 from ..schemas import Envelope, Message
+from .faults import FaultInjector
 
 log = logging.getLogger(__name__)
 
@@ -129,10 +130,11 @@ class Bus:
     with it. ``name`` is this process's sender id ("dmo", "recorder" or an agent id) and its liveliness name.
 
     Every message it publishes carries ``run_token`` (the run's token: the DMO draws it, the others learn it from the
-    DMO's clock and set it here) and ``incarnation`` (this process: its bus's creation time, ns)."""
+    DMO's clock and set it here) and ``incarnation`` (this process: its bus's creation time, ns). ``faults``
+    (messages/transport/faults.py) drops, delays, duplicates or corrupts what it publishes; None: nothing."""
 
     def __init__(self, run_id: str, name: str, config: BusConfig | None = None, *,
-                 on_reject: RejectHook | None = None, announce: bool = True):
+                 on_reject: RejectHook | None = None, announce: bool = True, faults: FaultInjector | None = None):
         self.keys = Keys(run_id)
         if not is_name(name):
             raise ValueError(f"process name {name!r} must match {NAME_PATTERN}")
@@ -153,8 +155,7 @@ class Bus:
         self._received = 0
         self._handler_errors = 0
         self._rejected: collections.Counter[str] = collections.Counter()
-        # messages/transport/faults.py: a FaultInjector that drops, delays, duplicates or corrupts what this bus publishes
-        self.faults = None
+        self.faults = faults
         # called with every payload this bus puts on the wire (after faults) and every one it receives (before it
         # is decoded): the DMO keeps its day's traffic this way, to answer late joiners (dmo/operator/history.py)
         self.tap: Tap | None = None
@@ -205,6 +206,10 @@ class Bus:
 
     def __enter__(self) -> Bus:
         return self.open()
+
+    def faults_injected(self) -> dict[str, int]:
+        """How many of each message fault this bus injected (empty without faults)."""
+        return {} if self.faults is None else self.faults.summary()
 
     def __exit__(self, *exc) -> None:
         self.close()

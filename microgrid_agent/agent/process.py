@@ -278,7 +278,7 @@ class MicrogridAgent:
 
     def message_counts(self) -> dict:
         """What the agent received and refused (transport), handled as no-ops, and injected as faults."""
-        faults = self.bus.faults.summary() if getattr(self.bus, "faults", None) is not None else {}
+        faults = self.bus.faults_injected()
         return {"transport": self.bus.stats(), "ignored": dict(self.ignored), "sent_again": self.delivery.resent,
                 "asked": self.asked,
                 "faults_injected": faults}
