@@ -21,7 +21,7 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Callable
 
-from messages import PHASES, Bid, GridState, Schedule, make_receipt, make_rejection, sha256
+from messages import PHASES, Bid, GridState, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.transport import Bus
 from scenarios.horizon import HOURS
@@ -241,7 +241,7 @@ class MarketDay:
         self._bids_due = time.monotonic() + c.bids_s
         self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
         self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid",
-                   intake.first_of_each(s, Bid, s.bids, "bid"))
+                   intake.first_of_each(s, s.bids))
 
     def _clearing(self) -> None:
         self._clock("clearing", self.config.bids_s)
@@ -256,7 +256,7 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("scheduling", c.schedule_s)
         self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in s.live() if a not in s.schedules],
-                   "schedule", intake.first_of_each(s, Schedule, s.schedules, "schedule"))
+                   "schedule", intake.first_of_each(s, s.schedules))
 
     def _realtime(self) -> None:
         s, c = self.state, self.config

@@ -19,7 +19,7 @@ import queue
 import threading
 import time
 
-from messages import Bid, MeterReport, Registration, Schedule, decode, encode, make_receipt, make_rejection, sha256
+from messages import MeterReport, Registration, decode, encode, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.recording import Player, RecordedMessage, Recording
 from messages.transport import Bus
@@ -33,10 +33,6 @@ from ..operator.outbox import day_summary
 from .resettle import RecordedDay, as_message, recorded_rule
 
 log = logging.getLogger("dmosim.replay")
-
-# What the live agent owes in each phase: the kind, and how an incident names it.
-_EXPECTED = {"registration": (Registration, "registration"), "bidding": (Bid, "bid"),
-             "scheduling": (Schedule, "schedule")}
 
 
 class AsDmo:
@@ -89,8 +85,7 @@ class AsDmo:
     def _expected(self) -> str | None:
         if self.phase == "realtime":
             return f"meter report for hour {self.hour}"
-        expected = _EXPECTED.get(self.phase)
-        return expected[1] if expected else None
+        return acceptance.DUE.get(self.phase)
 
     def _done(self) -> bool:
         if self.phase == "realtime":
@@ -138,7 +133,7 @@ class AsDmo:
         elif isinstance(msg, MeterReport):
             self.meter[msg.hour - 1] = msg.p_m_mw
         else:
-            self.answered.add(_EXPECTED[self.phase][1])
+            self.answered.add(msg.kind)
 
     def refusal(self, msg) -> Refusal | None:
         """The live DMO's rules (market/acceptance.py), for the one agent of this day."""
@@ -154,9 +149,8 @@ class AsDmo:
         if self.phase == "realtime" and isinstance(msg, MeterReport):
             return acceptance.check_meter_report(msg, self.hour, self.day.terms.subperiods, self.meter,
                                                  self.registration, self.grid)
-        kind, what = _EXPECTED.get(self.phase, (None, None))
-        if kind is not None and isinstance(msg, kind):
-            return acceptance.repeated(what, msg.sender) if what in self.answered else None
+        if msg.kind == acceptance.DUE.get(self.phase):
+            return acceptance.repeated(msg.kind, msg.sender) if msg.kind in self.answered else None
         return acceptance.out_of_phase(msg, self.phase)
 
     def _when(self) -> str:
