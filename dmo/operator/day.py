@@ -29,7 +29,7 @@ from scenarios.names import check_agent_id
 
 from ..market.acceptance import PHASE_ORDER
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
-from ..market.settlement import DayTotals, Statement, settlement_day
+from ..market.settlement import DayTotals, Statement, accepted_day
 from . import intake, outbox, rejoin
 from .config import DayConfig
 from .history import DayHistory
@@ -130,10 +130,8 @@ def clearing_of(config: DayConfig, state: DayState) -> ClearingResult:
 def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult) -> tuple[dict[str, Statement],
                                                                                            DayTotals]:
     """The day's statements, a pure function of its awards and the meter reports it accepted."""
-    day = settlement_day(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods,
-                         p_m_max={a: r.max_import_mw for a, r in state.registered.items()},
-                         p_m_min={a: r.max_export_mw for a, r in state.registered.items()})
-    return config.rule.settle(day)
+    return config.rule.settle(accepted_day(clearing.awards, clearing.price, state.meter,
+                                           subperiods=config.subperiods, registered=state.registered))
 
 
 class MarketDay:

@@ -27,7 +27,7 @@ from messages.transport import Bus
 from ..market import acceptance
 from ..market.acceptance import Refusal
 from ..market.choice import ChosenRule
-from ..market.settlement import settlement_day
+from ..market.settlement import accepted_day
 from ..operator.history import DayHistory
 from ..operator.outbox import day_summary
 from .resettle import RecordedDay, as_message, recorded_rule
@@ -165,10 +165,9 @@ class AsDmo:
 
     def _settle(self) -> dict:
         day, terms, agent = self.day, self.day.terms, self.agent
-        reg = self.registration
-        statements, _ = (self.rule or recorded_rule(day)).settle(settlement_day(
+        statements, _ = (self.rule or recorded_rule(day)).settle(accepted_day(
             {agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
-            subperiods=terms.subperiods, p_m_max={agent: reg.max_import_mw}, p_m_min={agent: reg.max_export_mw}))
+            subperiods=terms.subperiods, registered={agent: self.registration}))
         message = as_message(day, statements[agent])
         self.bus.publish(message)
         self.bus.publish(day_summary(day.market_day, (agent,), terms.clearing_price_per_mwh, statements,
