@@ -110,7 +110,7 @@ def hour_line(day: SettlementDay, agent: str, hour: int, charges: Charges) -> Ho
     """One agent-hour (index 0..23): the rule's money, each item rounded once to the cent, beside the metered
     energies. ``import_mwh`` and ``deviation_mwh`` count a missing sub-period at the agent's max import."""
     readings = day.readings(agent, hour)
-    p_sch, cap, dt = exact(day.awards[agent][hour]), exact(day.max_import[agent]), Fraction(1, day.subperiods)
+    p_sch, cap, dt = day.exact_awards[agent][hour], exact(day.max_import[agent]), day.dt
     metered = [exact(p) for p in readings if p is not None]
     n_missing = len(readings) - len(metered)
     imported = (sum(metered, Fraction(0)) + n_missing * cap) * dt
