@@ -8,6 +8,7 @@ import numpy as np
 
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
+from scenarios.horizon import per_subperiod
 
 from .index import Index
 from .params import Params
@@ -56,7 +57,7 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
     adjustable loads full, its committed units at P_min, its renewables spilled), priced at VOLL like shed load
     (objective.py). With an infinite penalty this is P_M = P^sch wherever the microgrid can absorb it.
     """
-    p_sch = np.tile(np.repeat(params.p_sch, ix.K), (ix.S, 1))
+    p_sch = np.tile(per_subperiod(params.p_sch, ix.K), (ix.S, 1))
     PM, dP, U = v["PM"], v["dP"], scen.connected
     pm_max = case.grid.p_m_max
     limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
@@ -66,8 +67,8 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
         # The announced rule's price of the deviation (19), max_j slope_j d + intercept_j, by its epigraph dC.
         cost, d = params.deviation_cost, PM - p_sch
         dC = deviation_cost_variable(v)
-        return [*limits, *(dC >= cp.multiply(np.tile(np.repeat(cost.slope[:, j], ix.K), (ix.S, 1)), d)
-                           + np.tile(np.repeat(cost.intercept[:, j], ix.K), (ix.S, 1))
+        return [*limits, *(dC >= cp.multiply(np.tile(per_subperiod(cost.slope[:, j], ix.K), (ix.S, 1)), d)
+                           + np.tile(per_subperiod(cost.intercept[:, j], ix.K), (ix.S, 1))
                            for j in range(cost.slope.shape[1]))]
     if np.isinf(params.penalty):
         # P_M <= P^sch where connected (U = 1) and no limit beyond (18) where islanded (U = 0).
@@ -105,4 +106,4 @@ def dp_plus_of(params: Params, subperiods: int, p_m: np.ndarray, dp: np.ndarray 
     dP+ took no part, max(P_M - P^sch, 0) from P_M."""
     if params.deviation_cost is None:
         return dp
-    return np.maximum(p_m - np.repeat(params.p_sch, subperiods)[None, :], 0.0)
+    return np.maximum(p_m - per_subperiod(params.p_sch, subperiods)[None, :], 0.0)

@@ -12,7 +12,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, subperiod_hours
 
 
 class Index:
@@ -20,7 +20,7 @@ class Index:
 
     def __init__(self, S: int, K: int):
         self.S, self.K, self.N = S, K, HOURS * K
-        self.dt = 1.0 / K
+        self.dt = subperiod_hours(K)
         # E (24, N): hour t -> its K sub-periods; E_first (24, N): hour t -> its first sub-period only.
         self.E = sp.kron(sp.eye(HOURS), np.ones((1, K)), format="csr")
         self.E_first = sp.csr_matrix((np.ones(HOURS), (np.arange(HOURS), np.arange(HOURS) * K)), shape=(HOURS, self.N))

@@ -7,6 +7,7 @@ import numpy as np
 
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
+from scenarios.horizon import per_subperiod
 
 from ..schedule import energy_weight
 from .grid import deviation_cost_variable, shortfall_variable
@@ -37,7 +38,7 @@ def objective(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict)
     if params.take_award:
         terms["penalty"] = terms["penalty"] + cp.sum(cp.multiply(pr * case.grid.voll, shortfall_variable(v)))
     if params.import_price is not None:
-        terms["energy"] = cp.sum(cp.multiply(pr * np.repeat(params.import_price, ix.K), v["PM"]))
+        terms["energy"] = cp.sum(cp.multiply(pr * per_subperiod(params.import_price, ix.K), v["PM"]))
     return terms
 
 
