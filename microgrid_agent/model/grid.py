@@ -56,26 +56,27 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
     shortfall dP- >= 0 is the award the microgrid could not absorb in that sub-period (its load, storage and
     adjustable loads full, its committed units at P_min, its renewables spilled), priced at VOLL like shed load
     (objective.py). With an infinite penalty this is P_M = P^sch wherever the microgrid can absorb it.
+
+    The variables only some forms use (dP-, dC, the big-M indicator) are made with the others, by
+    ``variables.mismatch_variables``; this function only constrains them.
     """
-    p_sch = np.tile(per_subperiod(params.p_sch, ix.K), (ix.S, 1))
+    p_sch = ix.per_scenario(params.p_sch)
     PM, dP, U = v["PM"], v["dP"], scen.connected
     pm_max = case.grid.p_m_max
     limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
     if params.take_award:
-        limits.append(PM >= cp.multiply(p_sch, U) - shortfall_variable(v))
+        limits.append(PM >= cp.multiply(p_sch, U) - v["dPm"])
     if params.deviation_cost is not None:
         # The announced rule's price of the deviation (19), max_j slope_j d + intercept_j, by its epigraph dC.
         cost, d = params.deviation_cost, PM - p_sch
-        dC = deviation_cost_variable(v)
-        return [*limits, *(dC >= cp.multiply(np.tile(per_subperiod(cost.slope[:, j], ix.K), (ix.S, 1)), d)
-                           + np.tile(per_subperiod(cost.intercept[:, j], ix.K), (ix.S, 1))
-                           for j in range(cost.slope.shape[1]))]
+        return [*limits, *(v["dC"] >= cp.multiply(ix.per_scenario(cost.slope[:, j]), d)
+                           + ix.per_scenario(cost.intercept[:, j]) for j in range(cost.slope.shape[1]))]
     if np.isinf(params.penalty):
         # P_M <= P^sch where connected (U = 1) and no limit beyond (18) where islanded (U = 0).
         return [*limits, PM <= pm_max - cp.multiply(pm_max - p_sch, U), dP == 0]
     if params.mismatch == "positive-part":
         return [*limits, dP >= PM - p_sch]
-    delta = v["delta"] = cp.Variable(PM.shape, boolean=True)
+    delta = v["delta"]
     M = case.grid.p_m_max + np.abs(p_sch)
     mismatch = PM - p_sch  # (19)
     return [
@@ -85,20 +86,6 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
         mismatch - dP >= -cp.multiply(M, 1 - delta),  # (21)
         mismatch <= cp.multiply(M, delta),  # delta = 0 only where the mismatch is not positive
     ]
-
-
-def deviation_cost_variable(v: dict) -> cp.Variable:
-    """dC (S, N), $/h: the deviation cost of each scenario and sub-period under an announced rule; made once."""
-    if "dC" not in v:
-        v["dC"] = cp.Variable(v["PM"].shape, name="dC")
-    return v["dC"]
-
-
-def shortfall_variable(v: dict) -> cp.Variable:
-    """dP- (S, N), MW >= 0: the award not taken while connected, where it must be (``Params.take_award``); made once."""
-    if "dPm" not in v:
-        v["dPm"] = cp.Variable(v["PM"].shape, nonneg=True, name="dP_minus")
-    return v["dPm"]
 
 
 def dp_plus_of(params: Params, subperiods: int, p_m: np.ndarray, dp: np.ndarray | None) -> np.ndarray:

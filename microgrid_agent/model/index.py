@@ -12,7 +12,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from scenarios.horizon import HOURS, subperiod_hours
+from scenarios.horizon import HOURS, per_subperiod, subperiod_hours
 
 
 class Index:
@@ -40,6 +40,10 @@ class Index:
     def at_hour_start(self, hourly: cp.Expression, m: int) -> cp.Expression:
         """(m, 24) -> (m S, N), nonzero only in the first sub-period of each hour."""
         return self.rows(m) @ hourly @ self.E_first
+
+    def per_scenario(self, hourly: np.ndarray) -> np.ndarray:
+        """(24,) hourly constants -> (S, N): held over each hour's sub-periods, the same in every scenario."""
+        return np.tile(per_subperiod(hourly, self.K), (self.S, 1))
 
     def per_row(self, values: np.ndarray) -> np.ndarray:
         """(m,) member constants -> (m S, N) array."""

@@ -32,7 +32,7 @@ from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, dp_plus_of, first
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
 from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
-from .relaxation import group_relaxation
+from .relaxation import group_relaxation, relaxed
 
 
 @dataclass
@@ -58,7 +58,7 @@ class Subproblems:
     def __init__(self, case: Case, scen: ScenarioSet, params: Params, indices):
         K, N, R = scen.subperiods, scen.N, len(case.renewables)
         one = _OneScenario(K, cp.Parameter((1, N)), cp.Parameter((max(R, 1), N)), cp.Parameter((1, N)))
-        v = variables(case, 1, N, first_stage="continuous")
+        v = variables(case, 1, N, first_stage="continuous", params=params)
         terms = recourse(case, one, params, Index(1, K), v)  # start-ups are first-stage: the master carries them
         constraints = second_stage_constraints(case, one, params, Index(1, K), v)
         problem = cp.Problem(cp.Minimize(sum(terms.values())), constraints)
@@ -217,7 +217,7 @@ class Master:
         # scenarios) by default: finer groups (by islanding pattern) made each MILP master several times slower
         # for no better final bound (docs/solver.md).
         label = np.zeros(scen.S, dtype=int) if label is None else label
-        v = variables(case, int(label.max()) + 1, HOURS)
+        v = variables(case, int(label.max()) + 1, HOURS, params=relaxed(params))
         theta = cp.Variable(scen.S, nonneg=True)  # Q_s >= 0: every cost term is non-negative
         relaxation = group_relaxation(case, scen, params, v, label)
         cons = (first_stage_constraints(case, v, 1.0 / scen.subperiods) + relaxation.constraints
