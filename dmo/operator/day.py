@@ -310,7 +310,7 @@ class MarketDay:
         if name in s.gone and name in s.registered:
             s.gone.discard(name)
             since = s.vanished.get(name, (s.phase, None))
-            self._incident(name, f"reappeared after vanishing {_when(*since)}{_outage(since, s.phase, s.hour)}; "
+            self._incident(name, f"reappeared after vanishing {_when(*since)}{_outage(since, s.hour)}; "
                                  f"sent {self._resend(name)}")
 
     def _left(self, name: str) -> None:
@@ -454,7 +454,8 @@ def _when(phase: str, hour: int | None) -> str:
     return f"in {phase}" + (f" hour {hour}" if hour else "")
 
 
-def _outage(since: tuple[str, int | None] | None, phase: str, hour: int | None) -> str:
+def _outage(since: tuple[str, int | None] | None, hour: int | None) -> str:
+    """How many hours an agent that vanished ``since`` (phase, hour) was gone, if it came back in a later hour."""
     if since and since[1] and hour and hour > since[1]:
         return f", {hour - since[1]} hour(s) later"
     return ""

@@ -25,11 +25,6 @@ from ..model import DeviationCost, Params
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings, energy_weight, start_indicators
 from ..solvers.extensive import solve
 
-# Second-stage variables that carry the day's state; dP+ is only a cost, recomputed from P_M (and with an
-# infinite penalty the model fixes it to 0, which a pinned positive part where islanded would contradict).
-_PINNED = ("P", "Pr", "Pst", "C", "D", "PM", "LS")
-
-
 @dataclass(frozen=True)
 class HourResult:
     """What one operated hour did, per sub-period (K values): P_M (+ import), its deviation P_M - P^sch, load shed,
@@ -101,6 +96,9 @@ class Operator:
         self.first = self._first_stage(first_stage)
         self._fixed = {"I": self.first.commitment, "u": self.first.discharging, "v": self.first.charging,
                        "z": self.first.load_on}
+        # What is done is pinned: the second-stage variables that carry the day's state. dP+ is only a cost,
+        # recomputed from P_M (and with an infinite penalty the model fixes it to 0, which a pinned positive part
+        # where islanded would contradict).
         self._done = {"P": np.zeros((G, N)), "Pr": np.zeros((R, N)), "Pst": np.zeros((1, N)),
                       "C": np.zeros((1, N)), "D": np.zeros((Dn, N)), "PM": np.zeros((1, N)), "LS": np.zeros((1, N))}
         self._connected = np.ones(N)

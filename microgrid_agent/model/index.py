@@ -21,9 +21,8 @@ class Index:
     def __init__(self, S: int, K: int):
         self.S, self.K, self.N = S, K, HOURS * K
         self.dt = subperiod_hours(K)
-        # E (24, N): hour t -> its K sub-periods; E_first (24, N): hour t -> its first sub-period only.
+        # E (24, N): hour t -> its K sub-periods.
         self.E = sp.kron(sp.eye(HOURS), np.ones((1, K)), format="csr")
-        self.E_first = sp.csr_matrix((np.ones(HOURS), (np.arange(HOURS), np.arange(HOURS) * K)), shape=(HOURS, self.N))
 
     def rows(self, m: int) -> sp.csr_matrix:
         """(m S, m): copies each of m members' hourly row to its S scenario rows."""
@@ -36,10 +35,6 @@ class Index:
     def expand(self, hourly: cp.Expression, m: int) -> cp.Expression:
         """(m, 24) hourly variable -> (m S, N) sub-period rows."""
         return self.rows(m) @ hourly @ self.E
-
-    def at_hour_start(self, hourly: cp.Expression, m: int) -> cp.Expression:
-        """(m, 24) -> (m S, N), nonzero only in the first sub-period of each hour."""
-        return self.rows(m) @ hourly @ self.E_first
 
     def per_scenario(self, hourly: np.ndarray) -> np.ndarray:
         """(24,) hourly constants -> (S, N): held over each hour's sub-periods, the same in every scenario."""
