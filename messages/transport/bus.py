@@ -309,12 +309,7 @@ class Bus:
         not decode, or do not belong on their key, go to ``on_reject`` instead."""
         deliver = handler if payload else (lambda key, msg, at, _: handler(key, msg, at))
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            received_at = time.time_ns()
-            if sample.kind != zenoh.SampleKind.PUT:
-                return
-            key, data = str(sample.key_expr), sample.payload.to_bytes()
-            self._tapped(key, data, received_at)
+        def on_put(key: str, data: bytes, received_at: int) -> None:
             try:
                 msg = decode(data, expected_kind=parse_key(key).kind)
                 check_route(key, msg, self.keys.run_id)
@@ -330,17 +325,12 @@ class Bus:
                     self._handler_errors += 1
                 log.exception("%s: handler for %s failed on %s #%d", self.name, pattern, msg.kind, msg.seq)
 
-        return self._declare(pattern, on_sample)
+        return self._declare(pattern, on_put)
 
     def subscribe_raw(self, pattern: str, handler: RawHandler) -> Subscription:
         """Deliver every payload as it arrived, valid or not, as handler(key, payload, received_at_ns)."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            received_at = time.time_ns()
-            if sample.kind != zenoh.SampleKind.PUT:
-                return
-            key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            self._tapped(key, payload, received_at)
+        def on_put(key: str, payload: bytes, received_at: int) -> None:
             try:
                 handler(key, payload, received_at)
             except Exception:
@@ -348,11 +338,21 @@ class Bus:
                     self._handler_errors += 1
                 log.exception("%s: raw handler for %s failed", self.name, pattern)
 
-        return self._declare(pattern, on_sample)
+        return self._declare(pattern, on_put)
 
-    def _declare(self, pattern: str, callback) -> Subscription:
+    def _declare(self, pattern: str, on_put: RawHandler) -> Subscription:
+        """Subscribe ``on_put(key, payload, received_at_ns)`` to every put on ``pattern``, each tapped first."""
         self._own(pattern)
-        subscription = Subscription(self, self.session.declare_subscriber(pattern, callback))
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            received_at = time.time_ns()
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            self._tapped(key, payload, received_at)
+            on_put(key, payload, received_at)
+
+        subscription = Subscription(self, self.session.declare_subscriber(pattern, on_sample))
         with self._state_lock:
             self._subscriptions.append(subscription)
         return subscription
