@@ -22,7 +22,7 @@ import numpy as np
 
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, per_subperiod, subperiod_hours
 
 from .schedule import CostBreakdown, StochasticSchedule, energy_weight, start_indicators
 
@@ -111,11 +111,6 @@ class _Findings:
             self.messages.append(f"({eq}) {what}: {n - room} more element(s) not listed")
 
 
-def _subperiods(hourly: np.ndarray, k: int) -> np.ndarray:
-    """Expand an hourly array (last axis 24) to sub-periods (last axis 24 K)."""
-    return np.repeat(hourly, k, axis=-1)
-
-
 def _recent(starts: np.ndarray, length: np.ndarray) -> np.ndarray:
     """Sum of ``starts`` over hours max(1, t-L+1)..t, per row with its own L: the Rajan-Takriti left-hand side."""
     cum = np.concatenate([np.zeros((starts.shape[0], 1)), np.cumsum(starts, axis=1)], axis=1)
@@ -199,13 +194,13 @@ def _check_units(f: _Findings, case: Case, a: dict, k: int, dt: float) -> tuple[
 
     p = a["dispatch.p_unit"]  # (G, S, N)
     p_min, p_max = case.unit_array("p_min")[:, None, None], case.unit_array("p_max")[:, None, None]
-    on = _subperiods(commit, k)[:, None, :]
+    on = per_subperiod(commit, k)[:, None, :]
     f.flag("3", "output below P_min I", p_min * on - p, ("unit", "scenario", "sub"))
     f.flag("3", "output above P_max I", p - p_max * on, ("unit", "scenario", "sub"))
 
     first_sub = (np.arange(HOURS * k) % k == 0).astype(float)
-    start_allow = p_min * (_subperiods(up, k) * first_sub)[:, None, :]
-    stop_allow = p_min * (_subperiods(down, k) * first_sub)[:, None, :]
+    start_allow = p_min * (per_subperiod(up, k) * first_sub)[:, None, :]
+    stop_allow = p_min * (per_subperiod(down, k) * first_sub)[:, None, :]
     # a unit on at midnight may shut down from its initial output in the first step
     stop_allow[:, :, 0] = case.unit_array("initial_output")[:, None] * down[:, :1]
     before = np.broadcast_to(case.unit_array("initial_output")[:, None, None], (p.shape[0], p.shape[1], 1))
@@ -237,7 +232,7 @@ def _check_storage(f: _Findings, case: Case, a: dict, k: int, dt: float) -> None
         return
     tag = f"storage {es.name}"
     f.flag("10", f"{tag} charging and discharging in the same hour", ch + dch - 1.0, ("hour",))
-    u, v = _subperiods(dch, k)[None, :], _subperiods(ch, k)[None, :]
+    u, v = per_subperiod(dch, k)[None, :], per_subperiod(ch, k)[None, :]
     f.flag("8", f"{tag} power above P_dch_max u - P_ch_min v", p - (es.p_dch_max * u - es.p_ch_min * v),
            ("scenario", "sub"))
     f.flag("9", f"{tag} power below P_dch_min u - P_ch_max v", (es.p_dch_min * u - es.p_ch_max * v) - p,
@@ -262,10 +257,10 @@ def _check_loads(f: _Findings, case: Case, a: dict, k: int, dt: float) -> None:
     window = case.load_windows
     f.flag("16", "load on outside its window [alpha, beta]", z * (1.0 - window), dh)
     d = a["dispatch.d_load"]  # (D, S, N)
-    on = _subperiods(z, k)[:, None, :]
+    on = per_subperiod(z, k)[:, None, :]
     f.flag("15", "load below D_min z", case.load_array("d_min")[:, None, None] * on - d, ("load", "scenario", "sub"))
     f.flag("15", "load above D_max z", d - case.load_array("d_max")[:, None, None] * on, ("load", "scenario", "sub"))
-    energy = (d * _subperiods(window, k)[:, None, :]).sum(axis=2) * dt
+    energy = (d * per_subperiod(window, k)[:, None, :]).sum(axis=2) * dt
     required = case.load_array("energy")[:, None]
     f.flag("16", "energy in window != E_d", np.abs(energy - required), ("load", "scenario"), scale=required)
     f.flag("17", "minimum operating time",
@@ -292,7 +287,7 @@ def _check_balance_and_grid(f: _Findings, case: Case, a: dict, k: int, p_sch: np
     f.flag("18", "grid transfer above P_M_max U", p_m - limit, sn)
     f.flag("18", "grid transfer below -P_M_max U", -limit - p_m, sn)
 
-    sch = _subperiods(p_sch, k)[None, :]
+    sch = per_subperiod(p_sch, k)[None, :]
     positive = np.maximum(0.0, p_m - sch)
     if math.isinf(penalty):
         # No mismatch may be bought at an infinite price: P_M <= P_sch wherever connected. Islanded with a
@@ -320,7 +315,7 @@ def _cost(case: Case, a: dict, up: np.ndarray, down: np.ndarray, mismatch: np.nd
         mismatch_cost += weight * case.grid.voll * float(pr @ shortfall.sum(axis=1))
     energy = 0.0
     if import_price is not None:
-        price = np.repeat(np.asarray(import_price, float), a["dispatch.p_m"].shape[1] // HOURS)
+        price = per_subperiod(np.asarray(import_price, float), a["dispatch.p_m"].shape[1] // HOURS)
         energy = weight * float(pr @ (a["dispatch.p_m"] * price).sum(axis=1))
     return CostBreakdown(generation=generation, startup=startup, curtailment=curtailment, penalty=mismatch_cost,
                          energy=energy)
@@ -352,7 +347,7 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSched
     a = _arrays(scenarios, schedule, p_sch)
     if not _check_inputs(f, case, scenarios, schedule, a):
         return CheckReport(tuple(f.messages), f.count, nan_cost, math.nan)
-    dt = 1.0 / k
+    dt = subperiod_hours(k)
     try:
         weight = energy_weight(k, schedule.cost_convention)
     except ValueError as exc:
@@ -365,13 +360,13 @@ def check_schedule(case: Case, scenarios: ScenarioSet, schedule: StochasticSched
     mismatch = _check_balance_and_grid(f, case, a, k, a["p_sch"], penalty)
 
     if deviation_cost is not None:
-        d = (a["dispatch.p_m"] - _subperiods(np.asarray(p_sch, float), k)[None, :]).reshape(-1, HOURS, k, 1)
+        d = (a["dispatch.p_m"] - per_subperiod(np.asarray(p_sch, float), k)[None, :]).reshape(-1, HOURS, k, 1)
         rate = np.max(d * deviation_cost.slope[None, :, None, :] + deviation_cost.intercept[None, :, None, :], axis=-1)
         mismatch, penalty = rate.reshape(len(d), HOURS * k), 1.0  # $/h per sub-period, counted at a rate of 1
     take = schedule.take_award if take_award is None else take_award
     shortfall = None
     if take:
-        shortfall = np.maximum(0.0, _subperiods(a["p_sch"], k)[None, :] * a["scenarios.connected"] - a["dispatch.p_m"])
+        shortfall = np.maximum(0.0, per_subperiod(a["p_sch"], k)[None, :] * a["scenarios.connected"] - a["dispatch.p_m"])
     cost = _cost(case, a, up, down, mismatch, penalty, weight, import_price, shortfall)
     objective = cost.total
     if not _close(objective, float(schedule.objective)):

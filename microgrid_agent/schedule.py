@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, subperiod_hours
 
 COST_CONVENTIONS = ("real", "paper")
 
@@ -31,7 +31,7 @@ def energy_weight(subperiods: int, convention: str) -> float:
     offered so results can be set beside the paper's $39,566 (see docs/model.md).
     """
     if convention == "real":
-        return 1.0 / subperiods
+        return subperiod_hours(subperiods)
     if convention == "paper":
         return 1.0
     raise ValueError(f"cost convention must be one of {COST_CONVENTIONS}, not {convention!r}")

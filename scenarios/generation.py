@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from scenarios.case import Case
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, per_subperiod, subperiod_hours
 from scenarios.reduction import forward_selection
 
 # Independent random streams per quantity, so that changing one input (the islanding duration, the number of
@@ -47,7 +47,7 @@ class ScenarioSet:
 
     @property
     def dt(self) -> float:
-        return 1.0 / self.subperiods
+        return subperiod_hours(self.subperiods)
 
     def subset(self, index) -> ScenarioSet:
         """The scenarios at ``index`` (integers or a boolean mask over S), their probabilities renormalised to 1."""
@@ -110,7 +110,7 @@ def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed:
 
     def perturbed(forecast, bound: float, stream: int) -> np.ndarray:
         unit_error = np.random.default_rng([seed, stream]).uniform(-1.0, 1.0, size=(n, N))
-        return np.repeat(np.asarray(forecast, dtype=float), subperiods) * (1.0 + bound * unit_error)
+        return per_subperiod(np.asarray(forecast, dtype=float), subperiods) * (1.0 + bound * unit_error)
 
     load = perturbed(case.fixed_load.forecast, case.uncertainty.load, _LOAD_STREAM)
     renewable = np.zeros((len(case.renewables), n, N))
@@ -129,7 +129,7 @@ def sample(case: Case, n: int, subperiods: int = 6, island_hours: int = 1, seed:
         probability = stratum_weights(start, np.full(m, 1.0 / m))
     hour = np.arange(HOURS)
     islanded = (start[:, None] <= hour) & (hour < start[:, None] + island_hours)
-    connected = np.repeat(1.0 - islanded, subperiods, axis=1)
+    connected = per_subperiod(1.0 - islanded, subperiods)
 
     return ScenarioSet(
         subperiods=subperiods,
@@ -248,9 +248,9 @@ def forecast_scenario(case: Case, subperiods: int) -> ScenarioSet:
     of ``sample`` (the forecast; renewables slightly below it where the error is clipped)."""
     if subperiods < 1:
         raise ValueError(f"subperiods must be at least 1 per hour, got {subperiods}")
-    load = np.repeat(np.asarray(case.fixed_load.forecast, float), subperiods)[None, :]
+    load = per_subperiod(np.asarray(case.fixed_load.forecast, float), subperiods)[None, :]
     renewable = np.zeros((len(case.renewables), 1, HOURS * subperiods))
     for r, unit in enumerate(case.renewables):
         mean = clipped_mean(np.asarray(unit.forecast), case.uncertainty.for_renewable(unit.name), unit.capacity)
-        renewable[r, 0] = np.repeat(mean, subperiods)
+        renewable[r, 0] = per_subperiod(mean, subperiods)
     return ScenarioSet(subperiods, np.ones(1), load, renewable, np.ones((1, HOURS * subperiods)))

@@ -1,4 +1,5 @@
-"""The market day's time grid: 24 hours, each split into sub-periods, and the check of an hourly profile.
+"""The market day's time grid: 24 hours, each split into sub-periods (their length, an hourly profile held over
+them), and the check of an hourly profile.
 
 Every package counts the day in these hours, so they are defined once, here, at the bottom of the import flow.
 """
@@ -12,6 +13,17 @@ from collections.abc import Sequence
 import numpy as np
 
 HOURS = 24
+
+
+def subperiod_hours(subperiods: int) -> float:
+    """dt, the length of a sub-period in hours, at K = ``subperiods`` sub-periods an hour: 1/K."""
+    return 1.0 / subperiods
+
+
+def per_subperiod(hourly, subperiods: int, axis: int = -1) -> np.ndarray:
+    """An hourly profile (24 long along ``axis``, the last by default) held over each hour's K = ``subperiods``
+    sub-periods: 24 K long, sub-period n = h K + k in hour h."""
+    return np.repeat(hourly, subperiods, axis=axis)
 
 
 def finite(x: float, what: str) -> float:

@@ -19,9 +19,12 @@ from .settlement import READING_TOLERANCE_MW
 Refusal = tuple[str, str]
 
 PHASE_ORDER = {phase: i for i, phase in enumerate(PHASES)}  # the clock's phases, in the order of the day
-# The phase in which each kind an agent sends is due.
+# The phase in which each kind an agent sends is due, and so the kind each phase waits for: the one table the live
+# DMO (operator/intake.py) and the replayed one (replay/as_dmo.py) both read. An agent_day is taken when it comes
+# (operator/intake.py), never waited for.
 ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime",
                 "agent_day": "realtime"}
+DUE = {phase: kind for kind, phase in ANSWER_PHASE.items() if kind != "agent_day"}
 
 
 def check_run(msg, run_token: str) -> Refusal | None:

@@ -18,6 +18,7 @@ import numbers
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
+from functools import cached_property
 
 from scenarios.horizon import HOURS
 
@@ -48,6 +49,21 @@ class SettlementDay:
     subperiods: int
     max_import: Mapping[str, float]
     max_export: Mapping[str, float]
+
+    @cached_property
+    def exact_awards(self) -> dict[str, tuple[Fraction, ...]]:
+        """Each agent's 24 P_sch exactly (``money.exact``), converted once for the rule and the statement alike."""
+        return {agent: tuple(exact(p) for p in award) for agent, award in self.awards.items()}
+
+    @cached_property
+    def exact_prices(self) -> tuple[Fraction, ...]:
+        """The 24 clearing prices exactly, converted once."""
+        return tuple(exact(p) for p in self.prices)
+
+    @property
+    def dt(self) -> Fraction:
+        """The length of a sub-period, 1/K hours, exactly."""
+        return Fraction(1, self.subperiods)
 
     def readings(self, agent: str, hour: int) -> list[float | None]:
         """The agent's K readings of hour index ``hour``, None for each missing sub-period."""
@@ -117,8 +133,9 @@ class DeviationRule:
     ranges: Mapping[str, tuple[float, float]]
 
     def __call__(self, day: SettlementDay, **params) -> dict[str, list[Charges]]:
-        return {agent: [self._hour(day, agent, h, f) for h, f in enumerate(self.hourly(params, award, day.prices))]
-                for agent, award in day.awards.items()}
+        return {agent: [self._hour(day, agent, h, f)
+                        for h, f in enumerate(self._hours(params, day.exact_awards[agent], day.exact_prices))]
+                for agent in day.awards}
 
     def parameters(self, given: Mapping[str, object]) -> dict[str, float]:
         """The defaults overridden by ``given``; an unknown name or a value that is not a number in its range raises
@@ -145,8 +162,13 @@ class DeviationRule:
     def hourly(self, params: Mapping[str, float], award: Sequence[float],
                prices: Sequence[float]) -> list[DeviationPrice]:
         """The 24 hourly deviation prices of an agent with this award (MW) at these clearing prices."""
+        return self._hours(params, [exact(p) for p in award], [exact(p) for p in prices])
+
+    def _hours(self, params: Mapping[str, float], award: Sequence[Fraction],
+               prices: Sequence[Fraction]) -> list[DeviationPrice]:
+        """``hourly`` of an award and prices already exact."""
         rates = {k: exact(v) for k, v in self.parameters(params).items()}
-        return [self.pricing(rates, exact(award[h]), exact(prices[h])) for h in range(HOURS)]
+        return [self.pricing(rates, award[h], prices[h]) for h in range(HOURS)]
 
     def deviation_cost(self, params: Mapping[str, float], award: Sequence[float],
                        prices: Sequence[float]) -> list[list[tuple[float, float]]] | None:
@@ -156,8 +178,7 @@ class DeviationRule:
 
     def _hour(self, day: SettlementDay, agent: str, h: int, f: DeviationPrice) -> Charges:
         """One agent-hour under the hour's deviation price ``f``."""
-        p_sch, price = exact(day.awards[agent][h]), exact(day.prices[h])
-        dt = Fraction(1, day.subperiods)
+        p_sch, price, dt = day.exact_awards[agent][h], day.exact_prices[h], day.dt
         readings = day.readings(agent, h)
         money = [f.at(exact(p) - p_sch) * dt for p in readings if p is not None]
         # A missing sub-period costs the worst the agent could have done within its registered limits, and earns

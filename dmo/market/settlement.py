@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from decimal import Decimal
 from fractions import Fraction
 
+from messages.schemas import Registration
 from scenarios.horizon import HOURS, hourly
 
 from .money import dollars, exact, exact_amount, money_sum, to_cents
@@ -109,7 +110,7 @@ def hour_line(day: SettlementDay, agent: str, hour: int, charges: Charges) -> Ho
     """One agent-hour (index 0..23): the rule's money, each item rounded once to the cent, beside the metered
     energies. ``import_mwh`` and ``deviation_mwh`` count a missing sub-period at the agent's max import."""
     readings = day.readings(agent, hour)
-    p_sch, cap, dt = exact(day.awards[agent][hour]), exact(day.max_import[agent]), Fraction(1, day.subperiods)
+    p_sch, cap, dt = day.exact_awards[agent][hour], exact(day.max_import[agent]), day.dt
     metered = [exact(p) for p in readings if p is not None]
     n_missing = len(readings) - len(metered)
     imported = (sum(metered, Fraction(0)) + n_missing * cap) * dt
@@ -220,6 +221,18 @@ def settlement_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float
                         max_export=max_import if p_m_min is None else _limits("p_m_min", p_m_min, agents))
     _check_meter(meter, day)
     return day
+
+
+def accepted_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *, subperiods: int,
+                 registered: Mapping[str, Registration]) -> SettlementDay:
+    """The day the DMO settles, from what it accepted: each awarded agent's P_sch (MW) and the clearing prices, the
+    meter reports it took (agent -> {hour index 0..23: K readings}; an absent hour is missing) and each agent's
+    registration, whose limits bound its readings and price its missing sub-periods. The live DMO
+    (operator/day.py), re-settlement (replay/resettle.py) and the replayed DMO (replay/as_dmo.py) all settle this
+    day, so a recorded day re-settles identically."""
+    return settlement_day(awards, prices, meter, subperiods=subperiods,
+                          p_m_max={a: r.max_import_mw for a, r in registered.items()},
+                          p_m_min={a: r.max_export_mw for a, r in registered.items()})
 
 
 def settle_day(day: SettlementDay, rule: Rule, name: str, **params) -> tuple[dict[str, Statement], DayTotals]:

@@ -21,7 +21,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
 
-from messages import PHASES, Bid, GridState, Schedule, make_receipt, make_rejection, sha256
+from messages import PHASES, Bid, GridState, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.schemas import AgentDay, Envelope
 from messages.transport import Bus
@@ -30,7 +30,7 @@ from scenarios.names import check_agent_id
 
 from ..market.acceptance import PHASE_ORDER
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
-from ..market.settlement import DayTotals, Statement, settlement_day
+from ..market.settlement import DayTotals, Statement, accepted_day
 from . import intake, outbox, rejoin
 from .config import DayConfig
 from .history import DayHistory
@@ -141,10 +141,8 @@ def clearing_of(config: DayConfig, state: DayState) -> ClearingResult:
 def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult) -> tuple[dict[str, Statement],
                                                                                            DayTotals]:
     """The day's statements, a pure function of its awards and the meter reports it accepted."""
-    day = settlement_day(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods,
-                         p_m_max={a: r.max_import_mw for a, r in state.registered.items()},
-                         p_m_min={a: r.max_export_mw for a, r in state.registered.items()})
-    return config.rule.settle(day)
+    return config.rule.settle(accepted_day(clearing.awards, clearing.price, state.meter,
+                                           subperiods=config.subperiods, registered=state.registered))
 
 
 class MarketDay:
@@ -252,7 +250,7 @@ class MarketDay:
         self._bids_due = time.monotonic() + c.bids_s
         self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
         self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid",
-                   intake.first_of_each(s, Bid, s.bids, "bid"))
+                   intake.first_of_each(s, s.bids))
 
     def _clearing(self) -> None:
         self._clock("clearing", self.config.bids_s)
@@ -267,7 +265,7 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("scheduling", c.schedule_s)
         self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in s.live() if a not in s.schedules],
-                   "schedule", intake.first_of_each(s, Schedule, s.schedules, "schedule"))
+                   "schedule", intake.first_of_each(s, s.schedules))
 
     def _realtime(self) -> None:
         s, c = self.state, self.config
@@ -323,7 +321,7 @@ class MarketDay:
         if name in s.gone and name in s.registered:
             s.gone.discard(name)
             since = s.vanished.get(name, (s.phase, None))
-            self._incident(name, f"reappeared after vanishing {_when(*since)}{_outage(since, s.phase, s.hour)}; "
+            self._incident(name, f"reappeared after vanishing {_when(*since)}{_outage(since, s.hour)}; "
                                  f"sent {self._resend(name)}")
 
     def _left(self, name: str) -> None:
@@ -472,7 +470,8 @@ def _when(phase: str, hour: int | None) -> str:
     return f"in {phase}" + (f" hour {hour}" if hour else "")
 
 
-def _outage(since: tuple[str, int | None] | None, phase: str, hour: int | None) -> str:
+def _outage(since: tuple[str, int | None] | None, hour: int | None) -> str:
+    """How many hours an agent that vanished ``since`` (phase, hour) was gone, if it came back in a later hour."""
     if since and since[1] and hour and hour > since[1]:
         return f", {hour - since[1]} hour(s) later"
     return ""

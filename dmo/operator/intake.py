@@ -96,15 +96,16 @@ def registration(state: DayState) -> Accept:
     return accept
 
 
-def first_of_each(state: DayState, kind: type, store: dict, what: str) -> Accept:
-    """The first ``kind`` message of each agent goes into ``store`` (its bid, its schedule); a second is a repeat,
-    another kind out of phase."""
+def first_of_each(state: DayState, store: dict) -> Accept:
+    """The first message of each agent of the kind the phase waits for (``acceptance.DUE``: its bid, its schedule)
+    goes into ``store``; a second is a repeat, another kind out of phase."""
+    kind = acceptance.DUE[state.phase]
 
     def accept(msg):
-        if not isinstance(msg, kind):
+        if msg.kind != kind:
             return acceptance.out_of_phase(msg, state.phase)
         if msg.sender in store:
-            return acceptance.repeated(what, msg.sender)
+            return acceptance.repeated(kind, msg.sender)
         store[msg.sender] = msg
         return None
 

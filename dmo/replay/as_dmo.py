@@ -19,7 +19,7 @@ import queue
 import threading
 import time
 
-from messages import Bid, MeterReport, Registration, Schedule, decode, encode, make_receipt, make_rejection, sha256
+from messages import MeterReport, Registration, decode, encode, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.recording import Player, RecordedMessage, Recording
 from messages.transport import Bus
@@ -27,16 +27,12 @@ from messages.transport import Bus
 from ..market import acceptance
 from ..market.acceptance import Refusal
 from ..market.choice import ChosenRule
-from ..market.settlement import settlement_day
+from ..market.settlement import accepted_day
 from ..operator.history import DayHistory
 from ..operator.outbox import day_summary
 from .resettle import RecordedDay, as_message, recorded_rule
 
 log = logging.getLogger("dmosim.replay")
-
-# What the live agent owes in each phase: the kind, and how an incident names it.
-_EXPECTED = {"registration": (Registration, "registration"), "bidding": (Bid, "bid"),
-             "scheduling": (Schedule, "schedule")}
 
 
 class AsDmo:
@@ -89,8 +85,7 @@ class AsDmo:
     def _expected(self) -> str | None:
         if self.phase == "realtime":
             return f"meter report for hour {self.hour}"
-        expected = _EXPECTED.get(self.phase)
-        return expected[1] if expected else None
+        return acceptance.DUE.get(self.phase)
 
     def _done(self) -> bool:
         if self.phase == "realtime":
@@ -138,7 +133,7 @@ class AsDmo:
         elif isinstance(msg, MeterReport):
             self.meter[msg.hour - 1] = msg.p_m_mw
         else:
-            self.answered.add(_EXPECTED[self.phase][1])
+            self.answered.add(msg.kind)
 
     def refusal(self, msg) -> Refusal | None:
         """The live DMO's rules (market/acceptance.py), for the one agent of this day."""
@@ -154,9 +149,8 @@ class AsDmo:
         if self.phase == "realtime" and isinstance(msg, MeterReport):
             return acceptance.check_meter_report(msg, self.hour, self.day.terms.subperiods, self.meter,
                                                  self.registration, self.grid)
-        kind, what = _EXPECTED.get(self.phase, (None, None))
-        if kind is not None and isinstance(msg, kind):
-            return acceptance.repeated(what, msg.sender) if what in self.answered else None
+        if msg.kind == acceptance.DUE.get(self.phase):
+            return acceptance.repeated(msg.kind, msg.sender) if msg.kind in self.answered else None
         return acceptance.out_of_phase(msg, self.phase)
 
     def _when(self) -> str:
@@ -171,10 +165,9 @@ class AsDmo:
 
     def _settle(self) -> dict:
         day, terms, agent = self.day, self.day.terms, self.agent
-        reg = self.registration
-        statements, _ = (self.rule or recorded_rule(day)).settle(settlement_day(
+        statements, _ = (self.rule or recorded_rule(day)).settle(accepted_day(
             {agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
-            subperiods=terms.subperiods, p_m_max={agent: reg.max_import_mw}, p_m_min={agent: reg.max_export_mw}))
+            subperiods=terms.subperiods, registered={agent: self.registration}))
         message = as_message(day, statements[agent])
         self.bus.publish(message)
         self.bus.publish(day_summary(day.market_day, (agent,), terms.clearing_price_per_mwh, statements,

@@ -21,7 +21,7 @@ from messages.recording import RecordedMessage, Recording
 from scenarios.days import market_days as scenario_days
 
 from ..market.choice import ChosenRule, Trust, UntrustedRule, paper_rule
-from ..market.settlement import RULES_VERSION, Statement, settlement_day
+from ..market.settlement import RULES_VERSION, Statement, accepted_day
 from ..operator.outbox import statement_message
 
 STATEMENT_FIELDS = ("penalty_per_mwh", "credit_per_mwh", "rules_version", "settlement_rule", "energy_charge",
@@ -256,10 +256,8 @@ def resettle(day: RecordedDay, rule: ChosenRule | None = None) -> dict[str, Stat
     ``recorded_rule`` for one of the recording's own) unless ``rule`` says otherwise. The agents' recorded behaviour
     is held fixed: their readings are what they were."""
     terms = day.terms
-    settled = settlement_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh,
-                             day.meter, subperiods=terms.subperiods,
-                             p_m_max={a: day.registered[a].max_import_mw for a in day.awards},
-                             p_m_min={a: day.registered[a].max_export_mw for a in day.awards})
+    settled = accepted_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh,
+                           day.meter, subperiods=terms.subperiods, registered=day.registered)
     statements, _ = (rule or recorded_rule(day)).settle(settled)
     return statements
 

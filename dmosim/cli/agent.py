@@ -65,7 +65,7 @@ def run(args) -> int:
         strategy = choose_strategy(strategy_of(experiment, member), case, config.gap)
     except StrategyError as err:
         raise UsageError(f"--strategy: {err}") from None
-    with Bus(args.run_id, args.id, bus_config(args, "client", args.id)) as bus:
-        bus.faults = message_faults(args, bus, experiment)
+    with Bus(args.run_id, args.id, bus_config(args, "client", args.id),
+             faults=message_faults(args, args.run_id, args.id, experiment)) as bus:
         MicrogridAgent(bus, case, config, experiment.market_day, strategy).run()
     return 0

@@ -72,11 +72,10 @@ def run(args) -> int:
     settings = bus_config(args, "router", "dmo", run_id)
     announce_run_id(args)
     progress = lambda phase, hour: log.info("phase %s%s", phase, f" hour {hour}/24" if hour else "")  # noqa: E731
-    with Bus(run_id, "dmo", settings) as bus:
-        bus.faults = message_faults(args, bus, experiment)
+    with Bus(run_id, "dmo", settings, faults=message_faults(args, run_id, "dmo", experiment)) as bus:
         before_start = (lambda: await_recorder(bus, args.await_recorder)) if args.await_recorder else None
         result = MarketDay(bus, config, progress).run(before_start)
-        transport = bus.stats() | ({"faults_injected": bus.faults.summary()} if bus.faults else {})
+        transport = bus.stats() | ({"faults_injected": bus.faults_injected()} if bus.faults else {})
     text = json.dumps(result.report(run_id, transport), indent=2)
     if args.result:
         Path(args.result).write_text(text + "\n")

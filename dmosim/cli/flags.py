@@ -16,7 +16,8 @@ from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import MODES, BusConfig
 from messages.transport.access import READERS, USERS_FILE, AuthError, auth_settings
 from messages.transport.credentials import check_private, create_auth_dir, private_directory
-from messages.transport.faults import FaultSpecError, injector, parse_message_fault
+from messages.keys import Keys
+from messages.transport.faults import FaultInjector, FaultSpecError, injector, parse_message_fault
 from scenarios.days import MAX_SEED
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
@@ -213,13 +214,14 @@ def check_fault_flags(args) -> None:
             raise UsageError(f"--fault: {exc}") from None
 
 
-def message_faults(args, bus, experiment: Experiment):
+def message_faults(args, run_id: str, name: str, experiment: Experiment) -> FaultInjector | None:
     """The FaultInjector (messages/transport/faults.py) of the experiment's message faults and the ``--fault`` ones
-    for this process's bus, drawn from ``--fault-seed`` (else the experiment's seed); None without faults."""
+    for the bus of process ``name`` in run ``run_id``, drawn from ``--fault-seed`` (else the experiment's seed);
+    None without faults."""
     specs = [str(f) for f in experiment_message_faults(experiment)] + args.fault
     seed = experiment.seed if args.fault_seed is None else args.fault_seed
     try:
-        faults = injector(specs, bus.keys.prefix, seed, bus.name)
+        faults = injector(specs, Keys(run_id).prefix, seed, name)
     except FaultSpecError as exc:
         raise UsageError(f"--fault: {exc}") from None
     if faults is not None:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, per_subperiod, subperiod_hours
 
 if TYPE_CHECKING:
     from microgrid_agent.instance import Instance
@@ -169,7 +169,7 @@ def paper_factor(cost_convention: str, subperiods: int) -> float:
     the "paper" convention at K sub-periods our energy costs are K x real dollars, so multiply by K / 6.
     """
     if cost_convention == "real":
-        return 1.0 / PAPER_SUBPERIODS
+        return subperiod_hours(PAPER_SUBPERIODS)
     if cost_convention == "paper":
         return subperiods / PAPER_SUBPERIODS
     raise ValueError(f"unknown cost convention {cost_convention!r}")
@@ -209,7 +209,7 @@ def with_islanding(inst: Instance, scenario: int, hours: Sequence[int]) -> Insta
     hourly = np.ones(HOURS)
     hourly[np.asarray(hours, int) - 1] = 0.0
     connected = scen.connected.copy()
-    connected[scenario] = np.repeat(hourly, scen.subperiods)
+    connected[scenario] = per_subperiod(hourly, scen.subperiods)
     return replace(inst, scen=replace(scen, connected=connected))
 
 

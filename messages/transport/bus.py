@@ -26,6 +26,7 @@ from scenarios.names import NAME_PATTERN, is_name
 from ..codec import MessageError, decode, encode
 from ..keys import Keys, check_route, parse_key
 from ..schemas import Envelope, Message
+from .faults import FaultInjector
 
 log = logging.getLogger(__name__)
 
@@ -129,10 +130,11 @@ class Bus:
     with it. ``name`` is this process's sender id ("dmo", "recorder" or an agent id) and its liveliness name.
 
     Every message it publishes carries ``run_token`` (the run's token: the DMO draws it, the others learn it from the
-    DMO's clock and set it here) and ``incarnation`` (this process: its bus's creation time, ns)."""
+    DMO's clock and set it here) and ``incarnation`` (this process: its bus's creation time, ns). ``faults``
+    (messages/transport/faults.py) drops, delays, duplicates or corrupts what it publishes; None: nothing."""
 
     def __init__(self, run_id: str, name: str, config: BusConfig | None = None, *,
-                 on_reject: RejectHook | None = None, announce: bool = True):
+                 on_reject: RejectHook | None = None, announce: bool = True, faults: FaultInjector | None = None):
         self.keys = Keys(run_id)
         if not is_name(name):
             raise ValueError(f"process name {name!r} must match {NAME_PATTERN}")
@@ -153,8 +155,7 @@ class Bus:
         self._received = 0
         self._handler_errors = 0
         self._rejected: collections.Counter[str] = collections.Counter()
-        # messages/transport/faults.py: a FaultInjector that drops, delays, duplicates or corrupts what this bus publishes
-        self.faults = None
+        self.faults = faults
         # called with every payload this bus puts on the wire (after faults) and every one it receives (before it
         # is decoded): the DMO keeps its day's traffic this way, to answer late joiners (dmo/operator/history.py)
         self.tap: Tap | None = None
@@ -205,6 +206,10 @@ class Bus:
 
     def __enter__(self) -> Bus:
         return self.open()
+
+    def faults_injected(self) -> dict[str, int]:
+        """How many of each message fault this bus injected (empty without faults)."""
+        return {} if self.faults is None else self.faults.summary()
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -304,12 +309,7 @@ class Bus:
         not decode, or do not belong on their key, go to ``on_reject`` instead."""
         deliver = handler if payload else (lambda key, msg, at, _: handler(key, msg, at))
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            received_at = time.time_ns()
-            if sample.kind != zenoh.SampleKind.PUT:
-                return
-            key, data = str(sample.key_expr), sample.payload.to_bytes()
-            self._tapped(key, data, received_at)
+        def on_put(key: str, data: bytes, received_at: int) -> None:
             try:
                 msg = decode(data, expected_kind=parse_key(key).kind)
                 check_route(key, msg, self.keys.run_id)
@@ -325,17 +325,12 @@ class Bus:
                     self._handler_errors += 1
                 log.exception("%s: handler for %s failed on %s #%d", self.name, pattern, msg.kind, msg.seq)
 
-        return self._declare(pattern, on_sample)
+        return self._declare(pattern, on_put)
 
     def subscribe_raw(self, pattern: str, handler: RawHandler) -> Subscription:
         """Deliver every payload as it arrived, valid or not, as handler(key, payload, received_at_ns)."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            received_at = time.time_ns()
-            if sample.kind != zenoh.SampleKind.PUT:
-                return
-            key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            self._tapped(key, payload, received_at)
+        def on_put(key: str, payload: bytes, received_at: int) -> None:
             try:
                 handler(key, payload, received_at)
             except Exception:
@@ -343,11 +338,21 @@ class Bus:
                     self._handler_errors += 1
                 log.exception("%s: raw handler for %s failed", self.name, pattern)
 
-        return self._declare(pattern, on_sample)
+        return self._declare(pattern, on_put)
 
-    def _declare(self, pattern: str, callback) -> Subscription:
+    def _declare(self, pattern: str, on_put: RawHandler) -> Subscription:
+        """Subscribe ``on_put(key, payload, received_at_ns)`` to every put on ``pattern``, each tapped first."""
         self._own(pattern)
-        subscription = Subscription(self, self.session.declare_subscriber(pattern, callback))
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            received_at = time.time_ns()
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            self._tapped(key, payload, received_at)
+            on_put(key, payload, received_at)
+
+        subscription = Subscription(self, self.session.declare_subscriber(pattern, on_sample))
         with self._state_lock:
             self._subscriptions.append(subscription)
         return subscription

@@ -30,10 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from messages import (DMO, Award, Bid, Bus, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
+from messages import (DMO, Award, Bid, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
                       Receipt, Registration, Schedule, SettlementStatement, check_route, decode)
 from messages.keys import parse_key
 from messages.schemas import MAX_HANDLED, AgentDay, HandlingTime, MessageCounts, MidnightUnit
+from messages.transport import Bus
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
@@ -294,7 +295,7 @@ class MicrogridAgent:
     def message_counts(self) -> MessageCounts:
         """What the agent's process published, received and refused (transport), handled as no-ops, sent again,
         asked for and injected as faults, since it started."""
-        faults = self.bus.faults.summary() if getattr(self.bus, "faults", None) is not None else {}
+        faults = self.bus.faults_injected()
         stats = self.bus.stats()
         return MessageCounts(published=stats["published"], received=stats["received"], rejected=stats["rejected"],
                              handler_errors=stats["handler_errors"], ignored=dict(self.ignored),

@@ -19,16 +19,11 @@ import numpy as np
 from scenarios.case import Case
 from scenarios.days import Midnight, hours_in_state
 from scenarios.generation import ScenarioSet, forecast_scenario
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, per_subperiod
 
 from ..model import DeviationCost, Params
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings, energy_weight, start_indicators
 from ..solvers.extensive import solve
-
-# Second-stage variables that carry the day's state; dP+ is only a cost, recomputed from P_M (and with an
-# infinite penalty the model fixes it to 0, which a pinned positive part where islanded would contradict).
-_PINNED = ("P", "Pr", "Pst", "C", "D", "PM", "LS")
-
 
 @dataclass(frozen=True)
 class HourResult:
@@ -74,7 +69,7 @@ class RealisedDay:
 
     @property
     def deviation(self) -> np.ndarray:
-        return self.p_m - np.repeat(self.p_sch, self.scenario.subperiods)
+        return self.p_m - per_subperiod(self.p_sch, self.scenario.subperiods)
 
 
 class Operator:
@@ -101,6 +96,9 @@ class Operator:
         self.first = self._first_stage(first_stage)
         self._fixed = {"I": self.first.commitment, "u": self.first.discharging, "v": self.first.charging,
                        "z": self.first.load_on}
+        # What is done is pinned: the second-stage variables that carry the day's state. dP+ is only a cost,
+        # recomputed from P_M (and with an infinite penalty the model fixes it to 0, which a pinned positive part
+        # where islanded would contradict).
         self._done = {"P": np.zeros((G, N)), "Pr": np.zeros((R, N)), "Pst": np.zeros((1, N)),
                       "C": np.zeros((1, N)), "D": np.zeros((Dn, N)), "PM": np.zeros((1, N)), "LS": np.zeros((1, N))}
         self._connected = np.ones(N)
@@ -193,7 +191,7 @@ class Operator:
         """Realised cost of sub-periods n0..n1 and of the commitment transitions in ``hours``."""
         dt = energy_weight(self.K, "real")
         case, now = self.case, slice(n0, n1)
-        deviation = self._done["PM"][0] - np.repeat(self.p_sch, self.K)
+        deviation = self._done["PM"][0] - per_subperiod(self.p_sch, self.K)
         if self.deviation_cost is not None:  # the announced rule's charge ($/h) for each sub-period's deviation
             penalty = dt * math.fsum(self.deviation_cost.rate(deviation)[now])
         else:
@@ -250,7 +248,7 @@ class Operator:
             p_unit=done["P"][:, None, :].copy(), p_renewable=done["Pr"][:, None, :].copy(),
             p_storage=done["Pst"].copy(), soc=done["C"].copy(), d_load=done["D"][:, None, :].copy(),
             p_m=done["PM"].copy(), load_shed=done["LS"].copy(),
-            dp_plus=np.maximum(done["PM"] - np.repeat(self.p_sch, self.K)[None, :], 0.0),
+            dp_plus=np.maximum(done["PM"] - per_subperiod(self.p_sch, self.K)[None, :], 0.0),
         )
         timings = [h.plan.timings for h in self._hours]
         schedule = StochasticSchedule(

@@ -68,7 +68,7 @@ def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.nda
     sub-periods before n0 to values of their full shape: the past of a day being operated (agent/realtime.py).
     """
     ix = Index(scen.S, scen.subperiods)
-    v = variables(case, scen.S, ix.N)
+    v = variables(case, scen.S, ix.N, params=params)
     cons = first_stage_constraints(case, v, ix.dt) + second_stage_constraints(case, scen, params, ix, v)
     for name, value in (fixed or {}).items():
         if name in v:

@@ -8,6 +8,7 @@ import numpy as np
 
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
+from scenarios.horizon import per_subperiod
 
 from .index import Index
 from .params import Params
@@ -55,26 +56,27 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
     shortfall dP- >= 0 is the award the microgrid could not absorb in that sub-period (its load, storage and
     adjustable loads full, its committed units at P_min, its renewables spilled), priced at VOLL like shed load
     (objective.py). With an infinite penalty this is P_M = P^sch wherever the microgrid can absorb it.
+
+    The variables only some forms use (dP-, dC, the big-M indicator) are made with the others, by
+    ``variables.mismatch_variables``; this function only constrains them.
     """
-    p_sch = np.tile(np.repeat(params.p_sch, ix.K), (ix.S, 1))
+    p_sch = ix.per_scenario(params.p_sch)
     PM, dP, U = v["PM"], v["dP"], scen.connected
     pm_max = case.grid.p_m_max
     limits = [PM <= pm_max * U, PM >= -pm_max * U]  # (18)
     if params.take_award:
-        limits.append(PM >= cp.multiply(p_sch, U) - shortfall_variable(v))
+        limits.append(PM >= cp.multiply(p_sch, U) - v["dPm"])
     if params.deviation_cost is not None:
         # The announced rule's price of the deviation (19), max_j slope_j d + intercept_j, by its epigraph dC.
         cost, d = params.deviation_cost, PM - p_sch
-        dC = deviation_cost_variable(v)
-        return [*limits, *(dC >= cp.multiply(np.tile(np.repeat(cost.slope[:, j], ix.K), (ix.S, 1)), d)
-                           + np.tile(np.repeat(cost.intercept[:, j], ix.K), (ix.S, 1))
-                           for j in range(cost.slope.shape[1]))]
+        return [*limits, *(v["dC"] >= cp.multiply(ix.per_scenario(cost.slope[:, j]), d)
+                           + ix.per_scenario(cost.intercept[:, j]) for j in range(cost.slope.shape[1]))]
     if np.isinf(params.penalty):
         # P_M <= P^sch where connected (U = 1) and no limit beyond (18) where islanded (U = 0).
         return [*limits, PM <= pm_max - cp.multiply(pm_max - p_sch, U), dP == 0]
     if params.mismatch == "positive-part":
         return [*limits, dP >= PM - p_sch]
-    delta = v["delta"] = cp.Variable(PM.shape, boolean=True)
+    delta = v["delta"]
     M = case.grid.p_m_max + np.abs(p_sch)
     mismatch = PM - p_sch  # (19)
     return [
@@ -86,23 +88,9 @@ def grid_transfer(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: d
     ]
 
 
-def deviation_cost_variable(v: dict) -> cp.Variable:
-    """dC (S, N), $/h: the deviation cost of each scenario and sub-period under an announced rule; made once."""
-    if "dC" not in v:
-        v["dC"] = cp.Variable(v["PM"].shape, name="dC")
-    return v["dC"]
-
-
-def shortfall_variable(v: dict) -> cp.Variable:
-    """dP- (S, N), MW >= 0: the award not taken while connected, where it must be (``Params.take_award``); made once."""
-    if "dPm" not in v:
-        v["dPm"] = cp.Variable(v["PM"].shape, nonneg=True, name="dP_minus")
-    return v["dPm"]
-
-
 def dp_plus_of(params: Params, subperiods: int, p_m: np.ndarray, dp: np.ndarray | None) -> np.ndarray:
     """ΔP+ (S, N) of a solved dispatch: the dP+ variable's value, or, where a rule's dC priced the mismatch and
     dP+ took no part, max(P_M - P^sch, 0) from P_M."""
     if params.deviation_cost is None:
         return dp
-    return np.maximum(p_m - np.repeat(params.p_sch, subperiods)[None, :], 0.0)
+    return np.maximum(p_m - per_subperiod(params.p_sch, subperiods)[None, :], 0.0)

@@ -12,7 +12,7 @@ import cvxpy as cp
 import numpy as np
 import scipy.sparse as sp
 
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, per_subperiod, subperiod_hours
 
 
 class Index:
@@ -20,10 +20,9 @@ class Index:
 
     def __init__(self, S: int, K: int):
         self.S, self.K, self.N = S, K, HOURS * K
-        self.dt = 1.0 / K
-        # E (24, N): hour t -> its K sub-periods; E_first (24, N): hour t -> its first sub-period only.
+        self.dt = subperiod_hours(K)
+        # E (24, N): hour t -> its K sub-periods.
         self.E = sp.kron(sp.eye(HOURS), np.ones((1, K)), format="csr")
-        self.E_first = sp.csr_matrix((np.ones(HOURS), (np.arange(HOURS), np.arange(HOURS) * K)), shape=(HOURS, self.N))
 
     def rows(self, m: int) -> sp.csr_matrix:
         """(m S, m): copies each of m members' hourly row to its S scenario rows."""
@@ -37,9 +36,9 @@ class Index:
         """(m, 24) hourly variable -> (m S, N) sub-period rows."""
         return self.rows(m) @ hourly @ self.E
 
-    def at_hour_start(self, hourly: cp.Expression, m: int) -> cp.Expression:
-        """(m, 24) -> (m S, N), nonzero only in the first sub-period of each hour."""
-        return self.rows(m) @ hourly @ self.E_first
+    def per_scenario(self, hourly: np.ndarray) -> np.ndarray:
+        """(24,) hourly constants -> (S, N): held over each hour's sub-periods, the same in every scenario."""
+        return np.tile(per_subperiod(hourly, self.K), (self.S, 1))
 
     def per_row(self, values: np.ndarray) -> np.ndarray:
         """(m,) member constants -> (m S, N) array."""

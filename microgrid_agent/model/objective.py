@@ -7,9 +7,9 @@ import numpy as np
 
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
+from scenarios.horizon import per_subperiod
 
 from ..schedule import energy_weight
-from .grid import deviation_cost_variable, shortfall_variable
 from .index import Index
 from .params import Params
 
@@ -31,13 +31,13 @@ def objective(case: Case, scen: ScenarioSet, params: Params, ix: Index, v: dict)
         "penalty": cp.Constant(0.0),
     }
     if params.deviation_cost is not None:
-        terms["penalty"] = cp.sum(cp.multiply(np.tile(pr, (1, ix.N)), deviation_cost_variable(v)))
+        terms["penalty"] = cp.sum(cp.multiply(np.tile(pr, (1, ix.N)), v["dC"]))
     elif np.isfinite(params.penalty):
         terms["penalty"] = cp.sum(cp.multiply(pr * params.penalty, v["dP"]))
     if params.take_award:
-        terms["penalty"] = terms["penalty"] + cp.sum(cp.multiply(pr * case.grid.voll, shortfall_variable(v)))
+        terms["penalty"] = terms["penalty"] + cp.sum(cp.multiply(pr * case.grid.voll, v["dPm"]))
     if params.import_price is not None:
-        terms["energy"] = cp.sum(cp.multiply(pr * np.repeat(params.import_price, ix.K), v["PM"]))
+        terms["energy"] = cp.sum(cp.multiply(pr * per_subperiod(params.import_price, ix.K), v["PM"]))
     return terms
 
 

@@ -9,7 +9,7 @@ from typing import Literal
 
 import numpy as np
 
-from scenarios.horizon import HOURS
+from scenarios.horizon import HOURS, per_subperiod
 
 Mismatch = Literal["positive-part", "big-m"]
 
@@ -38,7 +38,7 @@ class DeviationCost:
     def rate(self, d: np.ndarray) -> np.ndarray:
         """rate(d) per sub-period: ``d`` (..., 24 K), hour by hour."""
         k = d.shape[-1] // HOURS
-        slope, intercept = np.repeat(self.slope, k, axis=0), np.repeat(self.intercept, k, axis=0)  # (24 K, J)
+        slope, intercept = per_subperiod(self.slope, k, axis=0), per_subperiod(self.intercept, k, axis=0)  # (24 K, J)
         return (d[..., None] * slope + intercept).max(axis=-1)
 
     def paper_rate(self) -> float | None:

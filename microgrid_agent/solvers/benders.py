@@ -32,7 +32,7 @@ from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, dp_plus_of, first
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
 from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
-from .relaxation import group_relaxation
+from .relaxation import group_relaxation, relaxed
 
 
 @dataclass
@@ -58,7 +58,7 @@ class Subproblems:
     def __init__(self, case: Case, scen: ScenarioSet, params: Params, indices):
         K, N, R = scen.subperiods, scen.N, len(case.renewables)
         one = _OneScenario(K, cp.Parameter((1, N)), cp.Parameter((max(R, 1), N)), cp.Parameter((1, N)))
-        v = variables(case, 1, N, first_stage="continuous")
+        v = variables(case, 1, N, first_stage="continuous", params=params)
         terms = recourse(case, one, params, Index(1, K), v)  # start-ups are first-stage: the master carries them
         constraints = second_stage_constraints(case, one, params, Index(1, K), v)
         problem = cp.Problem(cp.Minimize(sum(terms.values())), constraints)
@@ -217,7 +217,7 @@ class Master:
         # scenarios) by default: finer groups (by islanding pattern) made each MILP master several times slower
         # for no better final bound (docs/solver.md).
         label = np.zeros(scen.S, dtype=int) if label is None else label
-        v = variables(case, int(label.max()) + 1, HOURS)
+        v = variables(case, int(label.max()) + 1, HOURS, params=relaxed(params))
         theta = cp.Variable(scen.S, nonneg=True)  # Q_s >= 0: every cost term is non-negative
         relaxation = group_relaxation(case, scen, params, v, label)
         cons = (first_stage_constraints(case, v, 1.0 / scen.subperiods) + relaxation.constraints
@@ -312,6 +312,20 @@ class Master:
         start.col_value = col
         start.value_valid = True
         return start
+
+
+@dataclass(frozen=True)
+class Found:
+    """Where the search ended: the best first stage by variable name (``first_stage_values``) and its start-up and
+    shut-down cost, its dispatch in every scenario (``arrays``: variable -> (S, ...); ``costs``: term -> (S,)), the
+    certified lower bound and the status (``optimal`` or ``time_limit``)."""
+
+    first: dict[str, np.ndarray]
+    startup: float
+    arrays: dict[str, np.ndarray]
+    costs: dict[str, np.ndarray]
+    lower: float
+    status: str
 
 
 @dataclass
@@ -409,8 +423,8 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
         arrays, costs = pool.dispatch(best)
     finally:
         pool.close()
-    return _schedule(case, scen, params, master, best, arrays, costs, upper, lower, status, trace,
-                     time.perf_counter() - start)
+    found = Found(first_stage_values(master.var, best), master.first_stage_cost(best), arrays, costs, lower, status)
+    return _schedule(case, scen, params, found, trace, time.perf_counter() - start)
 
 
 def first_stage_vector(case: Case, values: dict[str, np.ndarray]) -> np.ndarray:
@@ -445,27 +459,35 @@ def _late(deadline: float | None) -> bool:
     return deadline is not None and time.perf_counter() >= deadline
 
 
-def _schedule(case, scen, params, master, x, arrays, costs, upper, lower, status, trace, total) -> StochasticSchedule:
+def _dispatch(case: Case, scen: ScenarioSet, params: Params, arrays: dict[str, np.ndarray]) -> Dispatch:
+    """The subproblems' second-stage values (variable -> (S, ...)) as the schedule's dispatch."""
     G, R, Dn, S, N = len(case.units), len(case.renewables), len(case.loads), scen.S, scen.N
-    pieces = first_stage_values(master.var, x)
-    pr = scen.probability
 
     def stacked(name, rows):  # (S, rows, N) per scenario -> (rows, S, N)
         return np.moveaxis(arrays[name].reshape(S, rows, N), 0, 1) if name in arrays else np.zeros((rows, S, N))
 
-    dispatch = Dispatch(p_unit=stacked("P", G), p_renewable=stacked("Pr", R), p_storage=stacked("Pst", 1)[0],
-                        soc=stacked("C", 1)[0], d_load=stacked("D", Dn), p_m=stacked("PM", 1)[0],
-                        load_shed=stacked("LS", 1)[0],
-                        dp_plus=dp_plus_of(params, scen.subperiods, stacked("PM", 1)[0], stacked("dP", 1)[0]))
+    return Dispatch(p_unit=stacked("P", G), p_renewable=stacked("Pr", R), p_storage=stacked("Pst", 1)[0],
+                    soc=stacked("C", 1)[0], d_load=stacked("D", Dn), p_m=stacked("PM", 1)[0],
+                    load_shed=stacked("LS", 1)[0],
+                    dp_plus=dp_plus_of(params, scen.subperiods, stacked("PM", 1)[0], stacked("dP", 1)[0]))
+
+
+def _schedule(case: Case, scen: ScenarioSet, params: Params, found: Found, trace: Trace,
+              total: float) -> StochasticSchedule:
+    """The schedule of what the search found, in ``total`` seconds."""
+    pieces, Dn, pr = found.first, len(case.loads), scen.probability
     first = FirstStage(commitment=pieces["I"], startup=pieces["y"], shutdown=pieces["w"],
                        discharging=pieces.get("u", np.zeros(HOURS)), charging=pieces.get("v", np.zeros(HOURS)),
                        load_on=pieces.get("z", np.zeros((Dn, HOURS))))
-    expected = {name: float(pr @ values) for name, values in costs.items()}
-    cost = CostBreakdown(startup=master.first_stage_cost(x), **expected)
+    expected = {name: float(pr @ values) for name, values in found.costs.items()}
+    cost = CostBreakdown(startup=found.startup, **expected)
     summary = trace.summary()
-    return StochasticSchedule(status=status, objective=cost.total, bound=min(lower, cost.total), cost=cost, first=first,
-                    dispatch=dispatch, probability=pr.copy(), subperiods=scen.subperiods, penalty=params.penalty,
-                    cost_convention=params.cost_convention, take_award=params.take_award,
-                    timings=Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"], total_s=total),
-                    unit_names=tuple(u.name for u in case.units), load_names=tuple(d.name for d in case.loads),
-                    extra={"method": "benders", "decomposition": summary, "trace": trace.rows})
+    return StochasticSchedule(status=found.status, objective=cost.total, bound=min(found.lower, cost.total),
+                              cost=cost, first=first, dispatch=_dispatch(case, scen, params, found.arrays),
+                              probability=pr.copy(), subperiods=scen.subperiods, penalty=params.penalty,
+                              cost_convention=params.cost_convention, take_award=params.take_award,
+                              timings=Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"],
+                                              total_s=total),
+                              unit_names=tuple(u.name for u in case.units),
+                              load_names=tuple(d.name for d in case.loads),
+                              extra={"method": "benders", "decomposition": summary, "trace": trace.rows})

@@ -71,8 +71,14 @@ class GroupRelaxation:
         return self.membership @ theta >= cp.multiply(self.probability, self.cost)
 
 
+def relaxed(params: Params) -> Params:
+    """The parameters the relaxation is built with: the mismatch as the positive part (equal optimum to the big-M
+    form, docs/model.md), so that it stays an LP."""
+    return replace(params, mismatch="positive-part")
+
+
 def group_relaxation(case: Case, scen: ScenarioSet, params: Params, v: dict, label: np.ndarray) -> GroupRelaxation:
-    """The relaxation over variables ``v`` of ``model.variables(case, groups, HOURS)``.
+    """The relaxation over variables ``v`` of ``model.variables(case, groups, HOURS, params=relaxed(params))``.
 
     The mismatch is modelled as the positive part (equal optimum to the big-M form, docs/model.md), so the
     relaxation stays an LP. Energy costs are rescaled so that an hour of the relaxation costs what K sub-periods
@@ -80,7 +86,7 @@ def group_relaxation(case: Case, scen: ScenarioSet, params: Params, v: dict, lab
     """
     means = group_means(scen, label)
     ix = Index(means.S, 1)
-    params = replace(params, mismatch="positive-part")
+    params = relaxed(params)
     K = scen.subperiods
     scale = energy_weight(K, params.cost_convention) * K / energy_weight(1, params.cost_convention)
     cost = cp.hstack([scale * sum(recourse(case, replace(means, probability=one), params, ix, v).values())

@@ -67,8 +67,8 @@ class Dmo:
         s.phase, s.hour = phase, hour
         self.journal.clock(phase, hour, day, s.market_day)
         self.rule = {"registration": lambda: intake.registration(s),
-                     "bidding": lambda: intake.first_of_each(s, Bid, s.bids, "bid"),
-                     "scheduling": lambda: intake.first_of_each(s, Schedule, s.schedules, "schedule"),
+                     "bidding": lambda: intake.first_of_each(s, s.bids),
+                     "scheduling": lambda: intake.first_of_each(s, s.schedules),
                      "realtime": lambda: intake.meter_report(s, hour, 1, GridState(
                          sender="dmo", market_day=s.market_day, hour=hour, subperiods=1, connected=(True,))),
                      "settlement": lambda: intake.out_of_phase(s)}[phase]()

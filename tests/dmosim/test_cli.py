@@ -17,7 +17,8 @@ import pytest
 from dmosim.cli import main
 from dmosim.console import UsageError
 from dmosim.cli.flags import add_bus_flags, bus_config
-from messages import KINDS, PHASES, SCHEMA_VERSION, BusConfig, MeterReport, encode
+from messages import KINDS, PHASES, SCHEMA_VERSION, MeterReport, encode
+from messages.transport import BusConfig
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, resolve_method
 from scenarios.case import DATA_DIR
 

@@ -10,10 +10,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, Award, Bid, BidStep, BusConfig,
-                      CallForBids, Clock, DaySummary, GridState, Incident, Keys, MessageError, MeterReport,
-                      Registration, Schedule, SettlementStatement, StatementLine, check_route, decode, encode,
-                      json_schema, make_receipt, make_rejection, new_run_id, parse_key, sender_matches_key)
+from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, Award, Bid, BidStep, CallForBids,
+                      Clock, DaySummary, GridState, Incident, Keys, MessageError, MeterReport, Registration, Schedule,
+                      SettlementStatement, StatementLine, check_route, decode, encode, json_schema, make_receipt,
+                      make_rejection, new_run_id, parse_key, sender_matches_key)
+from messages.transport import BusConfig
 from messages.schemas import AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit
 
 DAY = "2024-07-01"

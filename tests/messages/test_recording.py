@@ -29,7 +29,8 @@ from mcap.writer import Writer
 
 from dmosim.bench.recording import synthetic_day
 from dmosim.launch.processes import Roles, free_port, wait_for_line
-from messages import SCHEMA_VERSION, Bus, BusConfig, decode
+from messages import SCHEMA_VERSION, decode
+from messages.transport import Bus, BusConfig
 from messages.keys import key_pattern, new_run_id
 from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
 

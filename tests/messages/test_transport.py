@@ -13,7 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from messages import (HOURS, Award, Bid, BidStep, Bus, BusConfig, Keys, Schedule, encode, new_run_id)
+from messages import HOURS, Award, Bid, BidStep, Keys, Schedule, encode, new_run_id
+from messages.transport import Bus, BusConfig
 
 DAY = "2024-07-01"
 WAIT_S = 5.0
@@ -138,7 +139,7 @@ def test_presence_join_and_leave(net):
 
 _CHILD = """
 import sys
-from messages import Bus, BusConfig
+from messages.transport import Bus, BusConfig
 bus = Bus(sys.argv[1], "mg3", BusConfig(mode="client", connect=[sys.argv[2]], lease_s=0.5)).open()
 bus.subscribe(bus.keys.grid(), lambda *args: None)  # a callback subscriber: what makes a forgotten session hang
 print("up", flush=True)

@@ -15,7 +15,8 @@ import subprocess
 import pytest
 
 from dmosim.launch.processes import Roles, free_port, wait_for_line, wait_listening
-from messages import HOURS, Award, Bid, BidStep, Bus, BusConfig, GridState, MeterReport, encode, new_run_id
+from messages import HOURS, Award, Bid, BidStep, GridState, MeterReport, encode, new_run_id
+from messages.transport import Bus, BusConfig
 from messages.transport.access import (AGENT_TOPICS, AuthError, access_control, auth_settings, bundle_settings,
                                        client_settings, router_settings)
 from messages.transport.credentials import create_auth_dir

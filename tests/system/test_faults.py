@@ -31,7 +31,7 @@ from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
 from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Receipt,
                       Registration, Schedule, decode, encode)
-from messages.keys import new_run_id
+from messages.keys import Keys, new_run_id
 from messages.recording import read_recording
 from messages.transport import Bus, BusConfig
 from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
@@ -139,9 +139,9 @@ class ScriptedAgent:
     def __init__(self, run_id: str, name: str, endpoint: str, excess: float = 0.5, faults=(), before_meter=None,
                  resend_s: float = 0.5):
         self.name, self.excess, self.before_meter = name, excess, before_meter
-        self.bus = Bus(run_id, name, BusConfig(mode="client", connect=(endpoint,))).open()
-        if faults:
-            self.bus.faults = FaultInjector([parse_message_fault(f) for f in faults], self.bus.keys.prefix, 1, name)
+        injector = (FaultInjector([parse_message_fault(f) for f in faults], Keys(run_id).prefix, 1, name)
+                    if faults else None)
+        self.bus = Bus(run_id, name, BusConfig(mode="client", connect=(endpoint,)), faults=injector).open()
         self.delivery = Delivery(self.bus.republish, first_s=resend_s)
         self.events: queue.Queue = queue.Queue()
         self.award = None

@@ -10,7 +10,8 @@ import subprocess
 import threading
 
 from dmosim.launch.processes import Roles, free_port, wait_listening
-from messages import Bus, BusConfig, new_run_id
+from messages import new_run_id
+from messages.transport import Bus, BusConfig
 from messages.recording import content_signature, read_recording
 from messages.transport.access import bundle_settings
 from messages.transport.credentials import create_auth_dir

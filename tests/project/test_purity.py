@@ -1,0 +1,24 @@
+"""Pure modules stay pure: the market's rules, the agent's model and the message schemas load neither the Zenoh
+binding nor matplotlib, so they can be used, and tested, without a network or a display (docs/architecture.md)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PURE = ("dmo.market", "dmo.market.acceptance", "dmo.market.settlement", "microgrid_agent.model",
+        "microgrid_agent.agent.bidding", "messages", "messages.schemas")
+HEAVY = ("zenoh", "matplotlib")
+
+
+@pytest.mark.parametrize("module", PURE)
+def test_a_pure_module_loads_neither_zenoh_nor_matplotlib(module):
+    # A fresh interpreter: what this test process imported before says nothing about the module.
+    code = (f"import sys, {module}\n"
+            f"print(','.join(m for m in {HEAVY!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", f"importing {module} loads {out.stdout.strip()}"
