@@ -140,8 +140,10 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     config = bus_config(args, "router", run_id=run_id)
     endpoint = (config.listen or config.connect or ("zenoh's default",))[0]
     _say(args, f"playing the DMO of {args.path} ({day.market_day}) under dmosim/{run_id}/ for agent {agent}; start "
-               f"it with: dmosim agent --id {agent} --run-id {run_id} --market-day {day.market_day} --connect "
-               f"{endpoint}" + (f" --auth-dir {args.auth_dir}" if args.auth_dir else " --insecure"))
+               f"it with: dmosim agent --experiment EXPERIMENT --id {agent} --run-id {run_id} --market-day "
+               f"{day.market_day} --connect {endpoint}" + (f" --auth-dir {args.auth_dir}" if args.auth_dir else
+                                                           " --insecure")
+               + ", EXPERIMENT being the run's experiment.toml (in its run directory; dmosim info prints it)")
     writer = RecordingWriter(out, run_id) if out else None
     recorder_stop, recorder_thread = threading.Event(), None
     try:

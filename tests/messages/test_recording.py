@@ -493,18 +493,15 @@ def test_replay_loops_until_interrupted(tmp_path):
 @pytest.mark.slow
 def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path):
     rec = read_recording(day[0])
-    fleet = tomllib.loads(next(a for a in rec.attachments if a.name == "fleet.toml").data.decode())
-    seed = str(next(a["seed"] for a in fleet["agents"] if a["id"] == "mg2"))
-    scale = repr(next(a["scale"] for a in fleet["agents"] if a["id"] == "mg2"))
-    shift = str(next(a["shift_hours"] for a in fleet["agents"] if a["id"] == "mg2"))
+    experiment = tmp_path / "experiment.toml"  # the run's own, as its run directory keeps it
+    experiment.write_bytes(next(a for a in rec.attachments if a.name == "experiment.toml").data)
     run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
     out_path, recording = tmp_path / "as_dmo.json", tmp_path / "as_dmo.mcap"
     with Roles() as roles, open(out_path, "w") as out:
         # the agent starts first, as a user may: it keeps trying to connect until the DMO's side listens
         log = tmp_path / "mg2.log"
-        roles.start("mg2", argv("agent", "--id", "mg2", "--run-id", run_id, "--market-day", DAY, "--connect", endpoint,
-                                "--seed", seed, "--scale", scale, "--shift-hours", shift, "--scenarios", "1", "--gap",
-                                "0.05", "--time-limit", "60"), log=log, env=ENV)
+        roles.start("mg2", argv("agent", "--experiment", str(experiment), "--id", "mg2", "--run-id", run_id,
+                                "--market-day", DAY, "--connect", endpoint), log=log, env=ENV)
         wait_for_line(log, "connecting to", 60, lambda: roles.roles["mg2"].process.poll() is None)
         player = subprocess.Popen(argv("replay", str(day[0]), "--as-dmo", "--agent", "mg2", "--run-id", run_id,
                                        "--listen", endpoint, "--record", str(recording), "--timeout", "120", "--json",

@@ -156,7 +156,7 @@ def test_dmosim_run_prints_the_summary_and_json(tmp_path):
         assert key in result
     assert result["agents"] == ["mg1", "mg2"] and len(result["clearing_prices"]) == 24
     assert set(result["settlement"]["mg1"]) >= {"energy_charge", "deviation_penalty", "total"}
-    assert "phase realtime, hour 24/24" in out.stderr
+    assert "24/24 hours (100%), done" in out.stderr
     # the run directory holds what the run made: the experiment, recording, result, tables and figure
     assert Path(result["recording"]).samefile(tmp_path / "recording.mcap")  # recording is on by default
     assert json.loads((tmp_path / "result.json").read_text())["settlement"] == result["settlement"]

@@ -38,7 +38,7 @@ def test_a_sweep_runs_each_variant_and_tables_every_bill(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     summary = json.loads(out.stdout)
     assert summary["runs"] == 2 and summary["failed"] == [] and summary["keys"] == ["market.penalty"]
-    assert "2/2 done" in out.stderr
+    assert "2/2 runs (100%), done" in out.stderr
     table = pd.read_csv(summary["table"])
     assert list(table["market.penalty"]) == [0, 400] and set(table["status"]) == {"ok"}
     for _, row in table.iterrows():
