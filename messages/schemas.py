@@ -38,7 +38,6 @@ KIND = "the message type: which schema the message follows and which key it trav
 # Strict scalars: the wire never coerces between types.
 Float = Annotated[float, Strict()]
 NonNeg = Annotated[float, Strict(), Field(ge=0)]
-Int = Annotated[int, Strict()]
 Bool = Annotated[bool, Strict()]
 Text = Annotated[str, Strict(), Field(max_length=500)]
 Name = Annotated[str, Strict(), Field(pattern=NAME_PATTERN)]
@@ -65,7 +64,6 @@ REJECT_CODES: tuple[str, ...] = get_args(RejectCode)
 Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
 # Whether a feeder limit bound an hour, as the clearing decided it (docs/market.md, "Price").
 Congestion = Literal["none", "import", "export"]
-CONGESTION: tuple[str, ...] = get_args(Congestion)
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 Piece = tuple[Float, Float]
 RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]

@@ -67,7 +67,7 @@ class BidCurve:
 @dataclass(frozen=True)
 class ClearingResult:
     """Uniform price per hour ($/MWh), the award per microgrid per hour (MW, + import / - export, 24 values),
-    and per hour whether a feeder limit bound ("none", "import", "export": ``messages.schemas.CONGESTION``, the one
+    and per hour whether a feeder limit bound ("none", "import", "export": ``messages.schemas.Congestion``, the one
     definition of congestion, which each award carries and every table and figure reads). ``awards`` is keyed in sorted
     agent order and must be treated as read-only."""
 
