@@ -239,10 +239,7 @@ class Bus:
             payload = encode(stamped)
             if before_put is not None:
                 before_put(key, payload, stamped)
-            if self.faults is None:
-                self._put(key, payload)
-            else:
-                self.faults.send(key, payload, self._put)
+            self._send(key, payload)
             self._seq += 1
             self._published += 1
         return stamped
@@ -252,10 +249,7 @@ class Bus:
         publication, since a message sent again crosses the same network."""
         self._own(key)
         with self._send_lock:
-            if self.faults is None:
-                self._put(key, payload)
-            else:
-                self.faults.send(key, payload, self._put)
+            self._send(key, payload)
 
     def publish_raw(self, key: str, payload: bytes) -> None:
         """Put bytes as they are (replay, fault injection); no stamping, no checks beyond the run prefix."""
@@ -264,9 +258,18 @@ class Bus:
                          congestion_control=zenoh.CongestionControl.BLOCK)
         self._tapped(key, payload, time.time_ns())
 
+    def _send(self, key: str, payload: bytes) -> None:
+        """Put a payload through this process's message faults, which stand for the network: the tap sees what
+        the process sent, once, whether the network then loses, repeats or garbles it (a DMO's history must answer
+        an agent's question with an award the network lost)."""
+        if self.faults is None:
+            self._put(key, payload)
+        else:
+            self.faults.send(key, payload, self._put)
+        self._tapped(key, payload, time.time_ns())
+
     def _put(self, key: str, payload: bytes) -> None:
         self._publisher(key).put(payload)
-        self._tapped(key, payload, time.time_ns())
 
     def _tapped(self, key: str, payload: bytes, at: int) -> None:
         if self.tap is not None:

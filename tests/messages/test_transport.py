@@ -15,6 +15,7 @@ import pytest
 
 from messages import HOURS, Award, Bid, BidStep, Keys, Schedule, encode, new_run_id
 from messages.transport import Bus, BusConfig
+from messages.transport.faults import injector
 
 DAY = "2024-07-01"
 WAIT_S = 5.0
@@ -78,6 +79,20 @@ def test_messages_flow_both_ways_stamped_in_order(net):
         agent.publish(_bid(sender="mg2"))  # a process only speaks for itself
     with pytest.raises(ValueError):
         agent.subscribe(Keys("otherrun").bid("*"), lambda *a: None)  # nor listens outside its run
+
+
+def test_the_tap_sees_what_a_process_sent_even_when_its_faults_lose_it():
+    """The DMO's history is its tap: an award its message faults drop on the way must still be in it, or an agent
+    that asks for the award it never got is answered with the day before's."""
+    run_id, tapped = new_run_id(), []
+    drop_all = injector(["drop:**:1"], Keys(run_id).prefix, 0, "dmo")
+    with Bus(run_id, "dmo", BusConfig(mode="peer"), faults=drop_all) as dmo:
+        dmo.tap = lambda key, payload, at: tapped.append(key)
+        award = Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=[1.0] * HOURS,
+                      clearing_price_per_mwh=[40.0] * HOURS, penalty_per_mwh=150.0, subperiods=6, rules_version=1,
+                      rules="paper")
+        dmo.publish(award)
+        assert drop_all.summary() == {"drop": 1} and tapped == [dmo.keys.award("mg1")]
 
 
 def test_invalid_payloads_are_rejected_and_counted_while_valid_ones_arrive(net):
