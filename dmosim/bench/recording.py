@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dmo.market.settlement import settle
+from dmo.operator.outbox import day_summary, statement_message
 from messages import (DMO, Award, Bid, BidStep, CallForBids, Clock, GridState, MeterReport, Registration, Schedule,
                       encode)
 from messages.keys import Keys, new_run_id
@@ -32,8 +34,6 @@ from messages.recording import CHUNK_MESSAGES, RecordingWriter, read_recording
 
 from ..arguments import positive_int
 from ..launch.processes import dmosim_command, role_env
-from dmo.market.settlement import settle
-from dmo.operator.outbox import day_summary, statement_message
 
 GOAL_MSGS_S = 20_000
 

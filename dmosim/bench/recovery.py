@@ -16,10 +16,10 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from dmo.replay.reproduce import differences
 from messages.recording import read_recording
 
 from ..arguments import nonneg_float
-from dmo.replay.reproduce import differences
 from .day import add_run_flags, run_and_read, run_flags
 
 GOAL_RATIO = 1.3  # wall time with drops / without: what a lost message may cost

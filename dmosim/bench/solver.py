@@ -18,8 +18,8 @@ from microgrid_agent.solvers.benders import solve_decomposed
 from microgrid_agent.solvers.extensive import SolveError
 from scenarios.case import load_case
 
-from ..console import progress
 from ..arguments import gap, nonneg_float, positive_int
+from ..console import progress
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

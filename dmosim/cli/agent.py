@@ -13,8 +13,8 @@ from ..arguments import integer, number, seconds
 from ..console import UsageError
 from ..experiment.spec import ExperimentError
 from ..launch.roles import agent_config, member_case, member_of, resolved, strategy_of
-from .flags import (add_bus_flags, add_fault_flags, bus_config, check_bus_flags, check_fault_flags,
-                    message_faults, setup_logging)
+from .flags import (add_bus_flags, add_fault_flags, bus_config, check_bus_flags, check_fault_flags, message_faults,
+                    setup_logging)
 from .settings import AGENT_SETTINGS, add_experiment_flag, role_experiment
 
 HELP = "one microgrid agent role"

@@ -14,9 +14,8 @@ import sys
 
 from messages.recording import RecordedMessage, select
 
-from .flags import RECORDING_HELP, load_recording, recorded_day_flag
-
 from ..arguments import market_day
+from .flags import RECORDING_HELP, load_recording, recorded_day_flag
 
 HELP = "print every message of a recording or a run directory as one JSON line, in log-time order"
 

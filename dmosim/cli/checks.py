@@ -4,6 +4,7 @@ anything starts: its fleet, its cases and its faults, each refused in one line (
 
 from __future__ import annotations
 
+from dmo.market.choice import choose
 from messages.transport.faults import FaultSpecError
 from microgrid_agent.agent.strategies import StrategyError, choose_strategy, strategy_name
 from scenarios.case import CaseError, load_case
@@ -12,7 +13,6 @@ from scenarios.fleet import FleetError, FleetMember, member_case
 from ..experiment.spec import Experiment, ExperimentError
 from ..launch.faults import Fault, parse_fault
 from ..launch.roles import fleet_of, strategy_of
-from dmo.market.choice import choose
 
 
 class Checked:

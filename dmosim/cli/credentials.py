@@ -9,9 +9,9 @@ from messages.transport.access import READERS, AuthError
 from messages.transport.credentials import DEFAULT_HOSTS, MAX_CERT_DAYS, MAX_HOSTS, MAX_READERS, create_auth_dir
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
+from ..arguments import agents, integer
 from ..console import UsageError
 from .flags import DEFAULT_AGENTS, run_id_of
-from ..arguments import agents, integer
 
 HELP = "passwords, access-control rules and TLS certificates of one run, for roles on several hosts (docs/security.md)"
 

@@ -8,11 +8,10 @@ import logging
 import threading
 from pathlib import Path
 
-from messages.transport import Bus
-from scenarios.fleet import FleetError
-
 from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
+from messages.transport import Bus
+from scenarios.fleet import FleetError
 
 from ..arguments import wait
 from ..console import UsageError

@@ -12,9 +12,9 @@ import importlib.util
 import sys
 from pathlib import Path
 
+from ..arguments import market_day
 from ..console import UsageError
 from .flags import RECORDING_HELP, load_recording, recorded_day_flag
-from ..arguments import market_day
 
 HELP = "a recording's or a run directory's tables (hours, days, meter, bids, incidents, rejections) as CSV or Parquet files"
 

@@ -11,20 +11,20 @@ import logging
 import sys
 from pathlib import Path
 
-from messages.keys import check_run_id, new_run_id
+from messages.keys import Keys, check_run_id, new_run_id
 from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import MODES, BusConfig
 from messages.transport.access import READERS, USERS_FILE, AuthError, auth_settings
 from messages.transport.credentials import check_private, create_auth_dir, private_directory
-from messages.keys import Keys
 from messages.transport.faults import FaultInjector, FaultSpecError, injector, parse_message_fault
 from scenarios.days import MAX_SEED
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
 from ..arguments import seed
+from ..console import UsageError
+from ..experiment.rundir import RunDir, RunDirError, check_directory
 from ..experiment.spec import MAX_FAULTS, Experiment
 from ..launch.roles import message_faults as experiment_message_faults
-from ..console import UsageError
 
 log = logging.getLogger("dmosim")
 DEFAULT_CREDENTIALS = "dmosim-credentials"  # where a router that was given none makes its run's credentials
@@ -161,6 +161,16 @@ def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -
           "its own bundle (docs/security.md). --insecure serves an open network instead", file=sys.stderr)
 
 
+def check_out(args) -> None:
+    """``--check`` fails where the run or sweep would: ``--out DIR`` naming a directory that is not empty, without
+    ``--overwrite``."""
+    if args.out is not None:
+        try:
+            check_directory(Path(args.out), args.overwrite)
+        except RunDirError as exc:
+            raise UsageError(str(exc)) from None
+
+
 def setup_logging(role: str, quiet: bool = False) -> None:
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
                         format=f"%(asctime)s {role} %(levelname)s %(message)s", datefmt="%H:%M:%S")
@@ -183,8 +193,6 @@ RECORDING_HELP = "a recording (MCAP file) or a run directory (its recording.mcap
 
 def load_recording(path: str) -> Recording:
     """A recording (a file, or a run directory's), or the one-line UsageError (exit 2) of a file that is not one."""
-    from ..experiment.rundir import RunDir  # noqa: PLC0415  (only for verbs that read recordings)
-
     if Path(path).is_dir() and RunDir(Path(path)).recording.is_file():
         path = str(RunDir(Path(path)).recording)
     try:

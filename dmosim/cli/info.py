@@ -6,9 +6,9 @@ import argparse
 import datetime as dt
 import json
 
+from dmo.replay.resettle import accepted_meter_reports, day_messages, gaps, hour_ranges, rule_named
 from messages.recording import BACKFILL_METADATA, Recording
 
-from dmo.replay.resettle import accepted_meter_reports, day_messages, gaps, hour_ranges, rule_named
 from ..console import print_json
 from ..experiment.spec import ExperimentError, parse_experiment, to_toml
 from .flags import RECORDING_HELP, load_recording

@@ -12,9 +12,9 @@ import sys
 
 from scenarios.case import CaseError
 
+from ..console import UsageError
 from . import (agent, bench, cat, credentials, dmo, export, info, plot, record, replay, router, run, schemas, settle,
                solve, study, sweep)
-from ..console import UsageError
 
 DESCRIPTION = ("A distribution market operator and its microgrid agents as processes over Zenoh: run market days, "
                "solve a microgrid's stochastic schedule, record, replay and re-settle days (README.md).")

@@ -14,9 +14,9 @@ from messages.keys import check_run_id
 from messages.recording import BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, Recorder, RecordingWriter
 from messages.transport import Bus
 
+from ..arguments import nonneg_float, positive_int
 from ..console import UsageError
 from .flags import add_bus_flags, bus_config, recording_path, setup_logging
-from ..arguments import nonneg_float, positive_int
 
 HELP = "the recorder role: every message of one run into an MCAP file"
 log = logging.getLogger("dmosim.recorder")

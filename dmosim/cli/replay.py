@@ -15,16 +15,17 @@ import sys
 import threading
 import time
 
+from dmo.market.choice import Trust, UntrustedRule
+from dmo.replay.as_dmo import AsDmo, dmo_steps, render
+from dmo.replay.resettle import ResettleError, recorded_day, recorded_rule
 from messages import DMO, check_agent_id, check_run_id, new_run_id
 from messages.recording import Player, Recorder, Recording, RecordingWriter, select
 from messages.transport import Bus
 
-from dmo.market.choice import Trust, UntrustedRule
-from dmo.replay.as_dmo import AsDmo, dmo_steps, render
-from dmo.replay.resettle import ResettleError, recorded_day, recorded_rule
-from ..console import UsageError, print_json, progress
-from .flags import RECORDING_HELP, TRUST_FLAG, add_bus_flags, add_trust_flag, bus_config, credentials_for, load_recording, recorded_day_flag, recording_path, setup_logging, untrusted
 from ..arguments import market_day, nonneg_float
+from ..console import UsageError, print_json, progress
+from .flags import (RECORDING_HELP, TRUST_FLAG, add_bus_flags, add_trust_flag, bus_config, credentials_for,
+                    load_recording, recorded_day_flag, recording_path, setup_logging, untrusted)
 
 HELP = "republish a recording (or a run directory's) over Zenoh under a new run prefix"
 

@@ -8,9 +8,10 @@ import threading
 
 import zenoh
 
-from ..console import UsageError
-from .flags import DEFAULT_AGENTS, add_bus_flags, agent_ids, announce_run_id, bus_config, check_bus_flags, credentials_for, run_id_of, setup_logging
 from ..arguments import agents
+from ..console import UsageError
+from .flags import (DEFAULT_AGENTS, add_bus_flags, agent_ids, announce_run_id, bus_config, check_bus_flags,
+                    credentials_for, run_id_of, setup_logging)
 
 HELP = "a standalone Zenoh router for the DMO and agents to connect to"
 log = logging.getLogger("dmosim")

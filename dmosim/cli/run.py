@@ -13,22 +13,22 @@ import signal
 import sys
 from pathlib import Path
 
+from dmo.market.choice import Trust, UntrustedRule, choose
 from messages.keys import new_run_id
+from microgrid_agent.agent.strategies import strategy_name
 from scenarios.case import load_case, parse_toml
 
-from ..experiment.rundir import RunDir, RunDirError, check_directory
-from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment,
-                               settled_by, with_settings)
+from ..console import Progress, UsageError, print_json
+from ..experiment.rundir import RunDir, RunDirError
+from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, settled_by,
+                               with_settings)
 from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, run_locally
 from ..launch.roles import resolved, strategy_of
-from dmo.market.choice import Trust, UntrustedRule, choose
-from microgrid_agent.agent.strategies import strategy_name
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
+from .flags import add_trust_flag, check_out, load_recording, recording_path, untrusted
 from .settings import add_setting_flags, experiment_with_flags
-from ..console import Progress, UsageError, print_json
-from .flags import add_trust_flag, load_recording, recording_path, untrusted
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
 FAULT_HELP = ("a fault to inject (repeatable; docs/faults.md): kill:AGENT:HOUR[:DAY] (SIGKILL the agent when the "
@@ -155,11 +155,7 @@ def run(args) -> int:
     if args.no_record and recorder_faults:
         raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
     if args.check:
-        if args.out is not None:
-            try:
-                check_directory(Path(args.out), args.overwrite)  # where the run itself would stop
-            except RunDirError as exc:
-                raise UsageError(str(exc)) from None
+        check_out(args)
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
               f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, bidding with "

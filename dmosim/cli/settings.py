@@ -8,12 +8,12 @@ from __future__ import annotations
 import argparse
 from typing import Iterable
 
+from dmo.market.rules import MAX_MW, MAX_RATE
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.days import MAX_SEED
 from scenarios.generation import MAX_SCENARIOS
 
-from dmo.market.rules import MAX_MW, MAX_RATE
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
 from ..experiment.spec import FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
 from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT

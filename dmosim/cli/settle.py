@@ -17,13 +17,14 @@ import csv
 import sys
 from pathlib import Path
 
-from ..experiment.rundir import RunDir
 from dmo.market.choice import ChosenRule, Trust, UntrustedRule, choose, paper_rule
 from dmo.replay.resettle import (RecordedDay, ResettleError, compare, gaps, held_days, recorded_day, recorded_rule,
-                               recording_days, resettle)
-from ..console import UsageError, print_json
-from .flags import add_trust_flag, load_recording, recorded_day_flag, untrusted
+                                 recording_days, resettle)
+
 from ..arguments import market_day, nonneg_float
+from ..console import UsageError, print_json
+from ..experiment.rundir import RunDir
+from .flags import add_trust_flag, load_recording, recorded_day_flag, untrusted
 
 HELP = "re-settle the market days of recordings, run directories or sweep directories: compare with the recorded statements, or under other settlement rules"
 FIXED = ("re-settled with the agents' recorded behaviour held fixed: their metered imports are what they were under "

@@ -11,6 +11,7 @@ import math
 import time
 from typing import TYPE_CHECKING
 
+from dmo.market.rules import MAX_RATE
 from messages.schemas import MAX_SUBPERIODS
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.case import load_case
@@ -18,9 +19,8 @@ from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE
 from scenarios.generation import MAX_SAMPLE, MAX_SCENARIOS
 
-from dmo.market.rules import MAX_RATE
-from ..console import UsageError, print_json, progress
 from ..arguments import gap, hours, integer, number, seconds, seed
+from ..console import UsageError, print_json, progress
 from ..experiment.spec import MAX_WORKERS
 
 if TYPE_CHECKING:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 from scenarios.case import load_case
 
-from ..experiment.rundir import RunDirError, claim_directory
 from ..console import UsageError, progress
+from ..experiment.rundir import RunDirError, claim_directory
 from .solve import add_instance_flags, check_instance_flags, instance_from_args, solve_verified
 
 HELP = "reproduce the paper's Table II and Figures 2-5"

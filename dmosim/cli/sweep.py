@@ -18,14 +18,15 @@ import sys
 import time
 from pathlib import Path
 
-from ..experiment.rundir import RUNS, RunDirError, check_directory, claim_directory
+from ..arguments import integer
+from ..console import Progress, UsageError, print_json
+from ..experiment.rundir import RUNS, RunDirError, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
-from ..launch.roles import resolved, strategy_of
 from ..launch.processes import dmosim_command, role_env
+from ..launch.roles import resolved, strategy_of
 from .checks import Checked, check_inputs, strategy_source
-from ..console import Progress, UsageError, print_json
-from ..arguments import integer
+from .flags import check_out
 
 HELP = "run an experiment once per combination of swept settings, into one table and figure"
 
@@ -66,11 +67,7 @@ def run(args) -> int:
     keys = list(runs[0].settings)
     parallel = args.parallel or max(1, (os.cpu_count() or 1) // agents)
     if args.check:
-        if args.out is not None:
-            try:
-                check_directory(Path(args.out), args.overwrite)  # where the sweep itself would stop
-            except RunDirError as exc:
-                raise UsageError(str(exc)) from None
+        check_out(args)
         print(f"dmosim sweep: {len(runs)} valid run(s) of {args.experiment}, sweeping {', '.join(keys)}:")
         for v in runs:
             print(f"  {v.label}")

@@ -17,17 +17,16 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
+from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
 from microgrid_agent.solvers.routes import METHODS
 from scenarios.case import read_toml
 from scenarios.days import MAX_SEED, market_days
 from scenarios.fleet import MAX_SCALE, MAX_STRATEGY
 from scenarios.generation import MAX_SCENARIOS
 from scenarios.horizon import HOURS
-
-from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
-from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
-from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 
 # Bounds of the settings defined here (the others are where theirs are: docs/experiments.md, "Bounds").
 MAX_WORKERS = 64           # Benders processes per agent: each holds its scenarios' LPs; more than a host's cores

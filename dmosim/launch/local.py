@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from dmo.replay.reproduce import differences, statements_of
 from messages import Clock, Schedule
 from messages.keys import new_run_id
 from messages.recording import Recording, RecordingError, read_recording
@@ -29,12 +30,11 @@ from scenarios.fleet import FleetMember
 
 from ..experiment.rundir import RunDir
 from ..experiment.spec import Experiment, load_experiment, to_toml
-from dmo.replay.reproduce import differences, statements_of
 from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
 from .faults import Fault, parse_fault
-from .roles import fleet_of, resolved
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
+from .roles import fleet_of, resolved
 
 OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies

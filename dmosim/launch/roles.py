@@ -11,13 +11,13 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 
+from dmo.market.choice import ChosenRule, choose
+from dmo.market.rules import market_parameters
+from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
 from scenarios.case import Case, load_case
 from scenarios.fleet import FleetMember, derive_case, load_fleet, make_fleet
 
-from dmo.market.choice import ChosenRule, choose
-from dmo.market.rules import market_parameters
-from dmo.operator.config import DayConfig, islanding_by_day
 from ..experiment.spec import Experiment, ExperimentError
 from .faults import parse_fault
 

@@ -23,9 +23,8 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 from matplotlib.ticker import FuncFormatter, MultipleLocator  # noqa: E402
 
-from messages.recording import Recording  # noqa: E402
-
 from dmo.replay.resettle import day_messages, rule_named  # noqa: E402
+from messages.recording import Recording  # noqa: E402
 
 _AWARD, _IMPORT, _ENERGY = "black", "#1f77b4", "#8c9fc4"
 _PENALTY, _CREDIT, _ISLANDED = "#d62728", "#2ca02c", "0.85"

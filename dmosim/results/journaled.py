@@ -7,10 +7,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from dmo.operator.journal import traffic
 from messages import Keys, MessageError, decode, parse_key, relative_key
 from messages.recording import RecordedMessage, Recording
-
-from dmo.operator.journal import traffic
 
 JOURNAL_LIBRARY = "dmosim journal"  # the ``library`` of a recording read from a journal
 

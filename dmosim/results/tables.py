@@ -19,10 +19,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from dmo.replay.resettle import accepted_messages, accepted_meter_reports, day_messages
 from messages import relative_key
 from messages.recording import Recording, read_recording
-
-from dmo.replay.resettle import accepted_messages, accepted_meter_reports, day_messages
 
 _KEY_TYPES = {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64"}
 _MONEY = {"energy_charge": "float64", "deviation_penalty": "float64", "deviation_credit": "float64",
