@@ -97,6 +97,7 @@ def run(args) -> int:
             recorder.run(stop)
     finally:
         writer.close()
-    log.info("recorded %d messages (%d invalid) on %d keys to %s; %.3f s from the first receipt to the last write",
-             writer.messages, writer.invalid, len(writer.counts), out, recorder.busy_s)
+    log.info("recorded %d messages (%d invalid) on %d keys to %s, %d of them caught up from the DMO after the network "
+             "lost them; %.3f s from the first receipt to the last write", writer.messages, writer.invalid,
+             len(writer.counts), out, recorder.caught_up, recorder.busy_s)
     return 0

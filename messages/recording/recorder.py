@@ -1,19 +1,23 @@
 """The recorder's loop: every payload under one run prefix, as it arrived, valid or not, into a RecordingWriter;
-and, for a recorder that joins late, what the run said before it joined, asked of the DMO (``backfill``)."""
+for a recorder that joins late, what the run said before it joined, asked of the DMO (``backfill``); and what the
+network lost on the way to it, asked of the DMO as the day goes on (``catch up``)."""
 
 from __future__ import annotations
 
 import collections
+import hashlib
 import logging
 import queue
 import threading
 import time
 from typing import Callable
 
-from ..keys import HISTORY
+from ..keys import HISTORY, parse_key
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
+CATCH_UP_KINDS = ("clock", "day_summary")  # a DMO message of these kinds: time to ask it for what this recorder lacks
+IN_FLIGHT_S = 2.0  # what the DMO sent this recently may still be on its way: not yet taken as lost
 
 
 class Recorder:
@@ -33,6 +37,10 @@ class Recorder:
         self._live: collections.Counter | None = None  # (key, payload) received live while backfilling
         self._live_lock = threading.Lock()
         self.backfilled = 0
+        self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
+        self._seen: collections.Counter = collections.Counter()  # (key, payload digest) of every payload queued
+        self._wake = threading.Event()
+        self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
         self.last_written_ns = 0     # recorder kept up with (its sustained rate is messages / span)
 
@@ -44,6 +52,8 @@ class Recorder:
         self._subscription = self.bus.subscribe_raw(self.bus.keys.everything(), self._received)
         if backfill:
             self.backfilled = self._backfill(timeout_s)
+            self._catching_up = threading.Thread(target=self._catch_up_loop, name="recorder-catch-up", daemon=True)
+            self._catching_up.start()
         if self.announce:
             self._token = self.bus.session.liveliness().declare_token(self.bus.keys.alive(self.bus.name))
         return self.backfilled
@@ -52,7 +62,37 @@ class Recorder:
         with self._live_lock:
             if self._live is not None:
                 self._live[key, payload] += 1
+            self._seen[key, _digest(payload)] += 1
         self._queue.put((key, payload, at, True))
+        if self._catching_up is not None and _kind(key) in CATCH_UP_KINDS:
+            self._wake.set()
+
+    def _catch_up_loop(self) -> None:
+        """On each clock and day summary of the DMO's, ask it for the latest message on each of its keys and queue
+        those that never arrived here (Zenoh delivers once; a message the network lost would be missing from the
+        recording, though its agent asked the DMO for it again). Off Zenoh's threads: a query must not block one."""
+        while self._subscription is not None:
+            if not self._wake.wait(timeout=0.5):
+                continue
+            self._wake.clear()
+            try:
+                self.caught_up += self._catch_up()
+            except Exception:  # the DMO may be gone: what is missing stays missing, the recording goes on
+                log.debug("catching up failed", exc_info=True)
+
+    def _catch_up(self) -> int:
+        added, now = 0, time.time_ns()
+        for key, payload, at in self.bus.fetch(self.bus.keys.everything(), timeout_s=5.0):
+            with self._live_lock:
+                missing = at is not None and now - at > IN_FLIGHT_S * 1e9 and not self._seen[key, _digest(payload)]
+                if missing:
+                    self._seen[key, _digest(payload)] += 1
+            if missing:
+                self._queue.put((key, payload, at, False))
+                added += 1
+        if added:
+            log.info("caught up on %d message(s) the network lost on the way here", added)
+        return added
 
     def _backfill(self, timeout_s: float) -> int:
         """The DMO's history of the run (dmo/operator/history.py) minus what arrived live meanwhile: a payload the
@@ -65,6 +105,8 @@ class Recorder:
             if live[key, payload] > 0:
                 live[key, payload] -= 1
                 continue
+            with self._live_lock:
+                self._seen[key, _digest(payload)] += 1
             self._queue.put((key, payload, at or time.time_ns(), False))
             added += 1
         if added:
@@ -120,3 +162,14 @@ class Recorder:
         subscription, self._subscription = self._subscription, None
         if subscription is not None:
             subscription.close()
+
+
+def _digest(payload: bytes) -> bytes:
+    return hashlib.sha256(payload).digest()
+
+
+def _kind(key: str) -> str | None:
+    try:
+        return parse_key(key).kind
+    except ValueError:
+        return None

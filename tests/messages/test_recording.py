@@ -33,6 +33,7 @@ from messages import SCHEMA_VERSION, decode
 from messages.transport import Bus, BusConfig
 from messages.keys import key_pattern, new_run_id
 from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
+from messages.recording.recorder import Recorder
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -538,3 +539,36 @@ def test_the_same_configuration_and_seed_record_the_same_contents(day, tmp_path)
     first, second = read_recording(day[0]), read_recording(again)
     assert first.run_id != second.run_id
     assert content_signature(first) == content_signature(second)
+
+
+def test_the_recorder_catches_up_on_what_the_network_lost_on_its_way(tmp_path):
+    """A message of the DMO's that never reached the recorder (the agent it was for asked again and alone got the
+    answer) is asked of the DMO on its next clock and recorded, with the DMO's time; one that came is not again."""
+    run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
+    day = synthetic_day(run_id, 1, 1)
+    lost, clock = (next(e for e in day if e[0].endswith(k)) for k in ("/dmo/award/mg1", "/dmo/clock"))
+    sent_at = time.time_ns() - 10 * 10**9
+    latest = [(lost[0], lost[1], sent_at), (clock[0], clock[1], sent_at)]  # what the DMO answers: it sent both
+    done = threading.Event()
+    with Bus(run_id, "dmo", BusConfig(mode="router", listen=[endpoint])) as dmo:
+        dmo.serve(dmo.keys.everything(), lambda key, parameters: [] if "history" in parameters else latest)
+        with Bus(run_id, "recorder", BusConfig(mode="client", connect=[endpoint]), announce=False) as bus:
+            recorder = Recorder(bus, RecordingWriter(tmp_path / "caught.mcap", run_id))
+            recorder.writer.start({}, [])
+            assert recorder.start() == 0  # joined before anything was said
+            stop = threading.Event()
+            loop = threading.Thread(target=recorder.run, args=(stop,))
+            loop.start()
+            try:
+                assert dmo.wait_for_subscribers(clock[0], 10)
+                dmo.publish_raw(clock[0], clock[1])  # arrives; the award was lost on its way
+                deadline = time.monotonic() + 30
+                while recorder.caught_up < 1 and time.monotonic() < deadline:
+                    done.wait(0.1)
+            finally:
+                stop.set()
+                loop.join(30)
+    rec = read_recording(tmp_path / "caught.mcap")
+    assert recorder.caught_up == 1
+    assert [(m.relative_key, m.log_time) for m in rec.messages if m.kind == "award"] == [("dmo/award/mg1", sent_at)]
+    assert sum(m.kind == "clock" for m in rec.messages) == 1  # what came live is not caught up again
