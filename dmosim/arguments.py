@@ -10,6 +10,7 @@ import math
 from messages.schemas import MAX_AGENTS
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE
+from scenarios.horizon import HOURS
 
 from .experiment.spec import MAX_PROFILE_DAYS, MAX_SECONDS
 
@@ -18,67 +19,45 @@ def _shown(text: str) -> str:
     return repr(text if len(text) <= 40 else text[:37] + "...")
 
 
-def integer(low: int, high: int):
-    """The type of a flag that takes an integer in low..high (docs/experiments.md, "Bounds")."""
+def integer(low: int, high: int | None = None):
+    """The type of a flag that takes an integer in low..high, or from low on without ``high`` (docs/experiments.md,
+    "Bounds")."""
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:  # also an integer of more digits than Python converts
             value = None
-        if value is None or not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"expected an integer in {low:,}..{high:,}, got {_shown(text)}")
+        if value is None or value < low or (high is not None and value > high):
+            where = f"in {low:,}..{high:,}" if high is not None else f">= {low:,}"
+            raise argparse.ArgumentTypeError(f"expected an integer {where}, got {_shown(text)}")
         return value
     return parse
 
 
-def number(low: float, high: float, *, above: bool = False, allow_inf: bool = False):
-    """The type of a flag that takes a number in [low, high] ((low, high] if ``above``), or inf if ``allow_inf``."""
+def number(low: float, high: float = math.inf, *, above: bool = False, allow_inf: bool = False):
+    """The type of a flag that takes a finite number in [low, high] ((low, high] if ``above``), or inf if
+    ``allow_inf``."""
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             value = math.nan
-        if not (allow_inf and value == math.inf) and not (low < value <= high if above else low <= value <= high):
-            where = f"{'(' if above else '['}{low:,g}, {high:,.15g}]" + (" or inf" if allow_inf else "")
-            raise argparse.ArgumentTypeError(f"expected a number in {where}, got {_shown(text)}")
+        inside = (low < value if above else low <= value) and value <= high and value < math.inf
+        if not (allow_inf and value == math.inf) and not inside:
+            where = (f"in {'(' if above else '['}{low:,g}, {high:,.15g}]" if high < math.inf else
+                     f"{'>' if above else '>='} {low:,g}, finite") + (" or inf" if allow_inf else "")
+            raise argparse.ArgumentTypeError(f"expected a number {where}, got {_shown(text)}")
         return value
     return parse
 
 
 seed = integer(0, MAX_SEED)
 agents = integer(1, MAX_AGENTS)
+positive_int = integer(1)
+hours = integer(0, HOURS)                      # whole hours of the day
 seconds = number(0, MAX_SECONDS, above=True)   # a deadline or time limit
 wait = number(0, MAX_SECONDS)                  # how long to wait for something, 0: not at all
-
-
-def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return value
-
-
-def hours(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if not 0 <= value <= 24:
-        raise argparse.ArgumentTypeError(f"expected whole hours 0..24, got {text!r}")
-    return value
-
-
-def nonneg_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {_shown(text)}") from None
-    if not 0 <= value < math.inf:
-        raise argparse.ArgumentTypeError(f"expected a non-negative number, got {_shown(text)}")
-    return value
+nonneg_float = number(0)
 
 
 def gap(text: str) -> float:
