@@ -102,7 +102,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             for member in fleet:
                 roles.start(member.id, dmosim_command("agent", *common, "--id", member.id, "--connect", endpoint,
                                                       "--lease", "1"), log=logs / f"{member.id}.log")
-            failed = _wait_for_run(roles, watch)
+            failed = wait_for_run(roles, watch)
         if failed:
             raise RoleFailed(failed, roles)
         recorder = _stop_recorder(roles, watch, faults) if record else None
@@ -240,20 +240,26 @@ def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, dict]
                  "complete": rec.complete and recorder is None, "recorder": recorder}
 
 
-def _wait_for_run(roles: Roles, watch: _Watch) -> list[str]:
+def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0) -> list[str]:
     """Block on process exits until the DMO is done and the agents have left; return the names that failed.
 
     An agent that exits non-zero on its own stops the run. One killed on purpose is the DMO's problem: the day
-    goes on and settles it by the missing-data rule. The recorder is an observer: whenever it exits, the run goes
+    goes on and settles it by the missing-data rule. Once the DMO is done, the agents have ``leave_s`` to leave;
+    one still there has failed, unless it was restarted on purpose: its restart came after the run had ended (a
+    fault fires when the launcher sees the clock reach its hour, which a fast day may have passed by then), and
+    what it did before is settled, so it is stopped. The recorder is an observer: whenever it exits, the run goes
     on (the DMO needs it only before its first message) and ``watch.recorder_exit`` notes when.
     """
     pending = set(roles.roles) - {"recorder"}
     while pending:
-        timeout = 60.0 if "dmo" not in pending else None  # once the run is settled, agents get a minute to leave
+        timeout = leave_s if "dmo" not in pending else None
         try:
             name, code = roles.exits.get(timeout=timeout)
         except queue.Empty:
-            return sorted(pending)
+            late = sorted(n for n in pending if roles.roles[n].restarts)
+            if late:
+                watch.say(f"{', '.join(late)} restarted after the run had ended: stopped")
+            return sorted(pending - set(late))
         if name == "recorder":
             watch.recorder_exit = watch.when()
             watch.say(f"the recorder exited at {watch.recorder_exit} ({_exit_status(code)}); the run goes on, and "
