@@ -22,10 +22,10 @@ from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
              ("hour", "each hour's meter reports"))
 # The settings of each role: what it reads of the experiment and may be told on its command line.
-RUN_SETTINGS = ("agents.count", "agents.fleet", "agents.strategy", "days", "market_day", "seed")
+RUN_SETTINGS = ("agents.count", "agents.fleet", "days", "market_day", "seed")
 MARKET_SETTINGS = tuple(k for k in FLAGS if k.startswith("market."))
 DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
-AGENT_SETTINGS = RUN_SETTINGS + ("market.island_hours",) + tuple(
+AGENT_SETTINGS = RUN_SETTINGS + ("agents.strategy", "market.island_hours") + tuple(
     k for k in FLAGS if k.startswith(("schedule.", "profiles.")))
 
 
