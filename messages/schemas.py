@@ -28,6 +28,9 @@ SCHEMA_VERSION = 6
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
+# The bid prices a call for bids allows by default, $/MWh: the DMO's, and what an agent tries a strategy against
+PRICE_FLOOR = -1000.0
+PRICE_CAP = 10_000.0
 MAX_PIECES = 8
 MAX_UNITS = 64
 MAX_AGENTS = 1024

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from messages.schemas import PRICE_CAP, PRICE_FLOOR
 from scenarios.days import day_seed, market_days
 from scenarios.horizon import HOURS
 
@@ -35,8 +36,8 @@ class DayConfig:
     schedule_s: float
     hour_s: float
     fixed_awards: tuple[float, ...] | None = None
-    price_floor: float = -1000.0
-    price_cap: float = 10_000.0
+    price_floor: float = PRICE_FLOOR
+    price_cap: float = PRICE_CAP
     linger_s: float = 5.0  # after the summary, how long to wait for the agents to leave before closing
     journal: str | None = None  # where the DMO journals its day, to resume it if it is restarted
     resume_wait_s: float = 30.0  # a resumed DMO waits this long for its agents to reconnect

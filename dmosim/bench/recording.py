@@ -30,10 +30,12 @@ from dmo.operator.outbox import day_summary, statement_message
 from messages import (DMO, Award, Bid, BidStep, CallForBids, Clock, GridState, MeterReport, Registration, Schedule,
                       encode)
 from messages.keys import Keys, new_run_id
+from messages.schemas import PRICE_CAP, PRICE_FLOOR
 from messages.recording import CHUNK_MESSAGES, RecordingWriter, read_recording
 
 from ..arguments import positive_int
 from ..launch.processes import dmosim_command, role_env
+from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT
 
 GOAL_MSGS_S = 20_000
 
@@ -105,8 +107,9 @@ def synthetic_day(run_id: str, agents: int, subperiods: int = 6, market_day: str
     for a in names:
         put(Registration(sender=a, market_day=market_day, case="paper", max_import_mw=cap, max_export_mw=cap))
     put(Clock(sender=DMO, market_day=market_day, phase="bidding", deadline_s=600.0, day=1, days=1))
-    put(CallForBids(sender=DMO, market_day=market_day, iso_price_per_mwh=prices, price_floor_per_mwh=-1000.0,
-                    price_cap_per_mwh=10_000.0, import_limit_mw=8.0 * agents, export_limit_mw=5.0 * agents,
+    put(CallForBids(sender=DMO, market_day=market_day, iso_price_per_mwh=prices, price_floor_per_mwh=PRICE_FLOOR,
+                    price_cap_per_mwh=PRICE_CAP, import_limit_mw=IMPORT_LIMIT_PER_AGENT * agents,
+                    export_limit_mw=EXPORT_LIMIT_PER_AGENT * agents,
                     penalty_per_mwh=penalty, subperiods=k, deadline_s=600.0))
     for a in names:
         put(Bid(sender=a, market_day=market_day, hours=tuple(

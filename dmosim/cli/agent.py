@@ -7,12 +7,12 @@ import dataclasses
 
 from messages.keys import check_run_id
 from messages.transport import Bus
-from scenarios.fleet import MAX_SCALE, MAX_SHIFT_HOURS, FleetError
+from scenarios.fleet import MAX_SCALE, MAX_SHIFT_HOURS, member_case
 
 from ..arguments import integer, number, seconds
 from ..console import UsageError
 from ..experiment.spec import ExperimentError
-from ..launch.roles import agent_config, member_case, member_of, resolved, strategy_of
+from ..launch.roles import agent_config, member_of, strategy_of
 from .flags import (add_bus_flags, add_fault_flags, bus_config, check_bus_flags, check_fault_flags, message_faults,
                     setup_logging)
 from .settings import AGENT_SETTINGS, add_experiment_flag, role_experiment
@@ -49,10 +49,10 @@ def run(args) -> int:
         check_run_id(args.run_id)
     except ValueError as exc:
         raise UsageError(f"--run-id: {exc}") from None
+    experiment = role_experiment(args)
     try:
-        experiment = resolved(role_experiment(args))
         member = member_of(experiment, args.id)
-    except (ExperimentError, FleetError) as exc:
+    except ExperimentError as exc:
         raise UsageError(str(exc)) from None
     given = {"case": args.member_case, "scale": args.scale, "shift_hours": args.shift_hours}
     member = dataclasses.replace(member, **{k: v for k, v in given.items() if v is not None})

@@ -11,12 +11,11 @@ from pathlib import Path
 from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
 from messages.transport import Bus
-from scenarios.fleet import FleetError
 
 from ..arguments import wait
 from ..console import UsageError
-from ..experiment.spec import Experiment, ExperimentError
-from ..launch.roles import day_config, fleet_of, resolved
+from ..experiment.spec import Experiment
+from ..launch.roles import day_config, fleet_of
 from .flags import (add_bus_flags, add_fault_flags, announce_run_id, bus_config, check_bus_flags, check_fault_flags,
                     credentials_for, message_faults, run_id_of, setup_logging)
 from .settings import DMO_SETTINGS, add_experiment_flag, role_experiment
@@ -40,16 +39,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_bus_flags(p, "router")
 
 
-def experiment_of(args) -> Experiment:
-    """The run as the DMO reads it: ``--experiment`` and the flags given, its market day fixed (today if none)."""
-    try:
-        experiment = resolved(role_experiment(args))
-        fleet_of(experiment)  # a fleet file that cannot be read fails here, in one line
-    except (ExperimentError, FleetError) as exc:
-        raise UsageError(str(exc)) from None
-    return experiment
-
-
 def day_config_of(experiment: Experiment, journal: str | None) -> DayConfig:
     """The DMO's days; a settlement rule that cannot be loaded or disagrees with the market is a UsageError."""
     try:
@@ -63,7 +52,7 @@ def run(args) -> int:
     setup_logging("dmo", args.quiet)
     check_fault_flags(args)
     check_bus_flags(args, "router")
-    experiment = experiment_of(args)
+    experiment = role_experiment(args)
     names = [m.id for m in fleet_of(experiment)]
     config = day_config_of(experiment, args.journal)
     run_id = run_id_of(args)

@@ -12,11 +12,13 @@ from dmo.market.rules import MAX_MW, MAX_RATE
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.days import MAX_SEED
+from scenarios.fleet import FleetError
 from scenarios.generation import MAX_SCENARIOS
 
+from ..console import UsageError
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
 from ..experiment.spec import FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
-from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT
+from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT, fleet_of, resolved
 from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 
 DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
@@ -124,6 +126,12 @@ def experiment_with_flags(base: Experiment, args) -> Experiment:
 
 
 def role_experiment(args) -> Experiment:
-    """The experiment a role runs: ``--experiment FILE`` (else the defaults) with its flags given."""
-    base = load_experiment(args.experiment) if args.experiment else Experiment()
-    return experiment_with_flags(base, args)
+    """The experiment a role runs: ``--experiment FILE`` (else the defaults) with its flags given, resolved
+    (``launch.roles.resolved``), its fleet read; what cannot be used is the one-line UsageError."""
+    try:
+        base = load_experiment(args.experiment) if args.experiment else Experiment()
+        experiment = resolved(experiment_with_flags(base, args))
+        fleet_of(experiment)  # a fleet file that cannot be read fails here, in one line
+    except (ExperimentError, FleetError) as exc:
+        raise UsageError(str(exc)) from None
+    return experiment

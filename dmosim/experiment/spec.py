@@ -213,10 +213,17 @@ def settled_by(market: Market, case_penalty: float) -> str:
     if market.settlement is None:
         return paper_rule(case_penalty if market.penalty is None else market.penalty, market.credit).label
     chosen = built_in_rule(market.settlement)
-    if chosen is None:
-        return market.settlement
+    return market.settlement if chosen is None else with_market_terms(chosen, market, case_penalty).label
+
+
+def with_market_terms(chosen: ChosenRule, market: Market, case_penalty: float) -> ChosenRule:
+    """A built-in rule with the parameters it settles by in ``market`` (``rules.market_parameters``: ``paper`` takes
+    the rates it is not given from the market's penalty, else its case's ``case_penalty``, and credit; ValueError
+    where they disagree); a rule of one's own as it is."""
+    if chosen.built_in is None:
+        return chosen
     params = market_parameters(chosen.built_in, chosen.params, market.penalty, market.credit, case_penalty)
-    return ChosenRule(chosen.name, chosen.rule, params).label
+    return ChosenRule(chosen.name, chosen.rule, params)
 
 
 def parse_experiment(data: dict, source: str = "<experiment>") -> Experiment:

@@ -11,14 +11,13 @@ from __future__ import annotations
 import datetime as dt
 from pathlib import Path
 
-from dmo.market.choice import ChosenRule, choose
-from dmo.market.rules import market_parameters
+from dmo.market.choice import choose
 from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
-from scenarios.case import Case, load_case
-from scenarios.fleet import FleetMember, derive_case, load_fleet, make_fleet
+from scenarios.case import load_case
+from scenarios.fleet import FleetMember, load_fleet, make_fleet
 
-from ..experiment.spec import Experiment, ExperimentError
+from ..experiment.spec import Experiment, ExperimentError, with_market_terms
 from .faults import parse_fault
 
 IMPORT_LIMIT_PER_AGENT = 8.0  # MW of feeder import per agent, where the experiment sets no import limit
@@ -58,12 +57,6 @@ def member_of(experiment: Experiment, agent_id: str) -> FleetMember:
     raise ExperimentError(f"{agent_id} is not an agent of the experiment ({names}; --agents N or --fleet FILE)")
 
 
-def member_case(member: FleetMember) -> Case:
-    """The member's microgrid: its base case, scaled and shifted as the fleet says."""
-    name = member.case if member.scale == 1 else f"{member.case}x{member.scale:g}"
-    return derive_case(load_case(member.case), member.scale, member.shift_hours, name)
-
-
 def agent_config(experiment: Experiment, member: FleetMember):
     """How ``member`` schedules its days (``AgentConfig``): the experiment's schedule settings and profiles, the
     islanding hours the market announces, the member's own seed."""
@@ -81,13 +74,7 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
     e, m, d = experiment, experiment.market, experiment.deadlines
     case = load_case(m.case)
     agents = len(fleet_of(e))
-    rule = None
-    if m.settlement is not None:
-        chosen = choose(m.settlement)
-        if chosen.built_in is not None:
-            params = market_parameters(chosen.built_in, chosen.params, m.penalty, m.credit, case.grid.penalty)
-            chosen = ChosenRule(chosen.name, chosen.rule, params)
-        rule = chosen
+    rule = None if m.settlement is None else with_market_terms(choose(m.settlement), m, case.grid.penalty)
     return DayConfig(
         market_day=e.market_day, agents=agents, iso_price=tuple(case.grid.iso_price),
         import_limit=m.import_limit if m.import_limit is not None else IMPORT_LIMIT_PER_AGENT * agents,

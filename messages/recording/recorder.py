@@ -13,6 +13,7 @@ import time
 from typing import Callable
 
 from ..keys import HISTORY, parse_key
+from ..schemas import DMO
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
@@ -38,7 +39,7 @@ class Recorder:
         self._live_lock = threading.Lock()
         self.backfilled = 0
         self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
-        self._seen: collections.Counter = collections.Counter()  # (key, payload digest) of every payload queued
+        self._seen: collections.Counter = collections.Counter()  # (key, payload digest) of the DMO's payloads queued
         self._wake = threading.Event()
         self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
@@ -59,13 +60,19 @@ class Recorder:
         return self.backfilled
 
     def _received(self, key: str, payload: bytes, at: int) -> None:
+        parsed = _parsed(key)
         with self._live_lock:
             if self._live is not None:
                 self._live[key, payload] += 1
-            self._seen[key, _digest(payload)] += 1
+            self._saw(parsed, key, payload)
         self._queue.put((key, payload, at, True))
-        if self._catching_up is not None and _kind(key) in CATCH_UP_KINDS:
+        if self._catching_up is not None and parsed is not None and parsed.kind in CATCH_UP_KINDS:
             self._wake.set()
+
+    def _saw(self, parsed, key: str, payload: bytes) -> None:
+        """Count a payload of the DMO's (what catching up asks it for) as queued; the caller holds the lock."""
+        if parsed is not None and parsed.role == DMO:
+            self._seen[key, _digest(payload)] += 1
 
     def _catch_up_loop(self) -> None:
         """On each clock and day summary of the DMO's, ask it for the latest message on each of its keys and queue
@@ -83,10 +90,11 @@ class Recorder:
     def _catch_up(self) -> int:
         added, now = 0, time.time_ns()
         for key, payload, at in self.bus.fetch(self.bus.keys.everything(), timeout_s=5.0):
+            seen = key, _digest(payload)
             with self._live_lock:
-                missing = at is not None and now - at > IN_FLIGHT_S * 1e9 and not self._seen[key, _digest(payload)]
+                missing = at is not None and now - at > IN_FLIGHT_S * 1e9 and not self._seen[seen]
                 if missing:
-                    self._seen[key, _digest(payload)] += 1
+                    self._seen[seen] += 1
             if missing:
                 self._queue.put((key, payload, at, False))
                 added += 1
@@ -106,7 +114,7 @@ class Recorder:
                 live[key, payload] -= 1
                 continue
             with self._live_lock:
-                self._seen[key, _digest(payload)] += 1
+                self._saw(_parsed(key), key, payload)
             self._queue.put((key, payload, at or time.time_ns(), False))
             added += 1
         if added:
@@ -168,8 +176,8 @@ def _digest(payload: bytes) -> bytes:
     return hashlib.sha256(payload).digest()
 
 
-def _kind(key: str) -> str | None:
+def _parsed(key: str):
     try:
-        return parse_key(key).kind
-    except ValueError:
+        return parse_key(key)
+    except ValueError:  # a key outside the layout: recorded, never caught up
         return None

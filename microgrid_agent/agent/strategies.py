@@ -21,8 +21,9 @@ from typing import Protocol
 import numpy as np
 
 from messages import DMO, Award, BidStep, CallForBids, DaySummary, SettlementStatement
-from messages.schemas import MAX_BID_STEPS
+from messages.schemas import MAX_BID_STEPS, PRICE_CAP, PRICE_FLOOR
 from scenarios.case import Case
+from scenarios.fleet import MAX_SCALE
 from scenarios.horizon import HOURS
 
 from ..usercode import CodeKind, check_target, code_of, load, params_text, split_spec
@@ -96,8 +97,8 @@ class TableOne:
     The paper's market outcome taken as a bid: a strategy that ignores prices."""
 
     def __init__(self, scale: float = 1.0):
-        if not 0 <= scale <= 10:
-            raise ValueError(f"strategy table1: scale must be in [0, 10], got {scale:g}")
+        if not 0 <= scale <= MAX_SCALE:
+            raise ValueError(f"strategy table1: scale must be in [0, {MAX_SCALE:g}], got {scale:g}")
         self.scale = scale
 
     def bids(self, call: CallForBids, microgrid: Microgrid) -> Curve:
@@ -287,7 +288,7 @@ def make_strategy(name: StrategyName, cls: type | None = None) -> ChosenStrategy
 def trial_call(case: Case) -> CallForBids:
     """A call for bids such as a DMO sends, at ``case``'s ISO price: what a strategy is tried on before it bids."""
     return CallForBids(sender=DMO, market_day="2000-01-01", iso_price_per_mwh=tuple(case.grid.iso_price),
-                       price_floor_per_mwh=-1000.0, price_cap_per_mwh=10_000.0, import_limit_mw=case.grid.p_m_max,
+                       price_floor_per_mwh=PRICE_FLOOR, price_cap_per_mwh=PRICE_CAP, import_limit_mw=case.grid.p_m_max,
                        export_limit_mw=case.grid.p_m_max, penalty_per_mwh=case.grid.penalty, subperiods=1,
                        deadline_s=600.0)
 

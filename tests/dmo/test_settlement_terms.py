@@ -10,7 +10,8 @@ import pytest
 
 from dmosim.cli import main
 from dmosim.console import UsageError
-from dmosim.cli.dmo import day_config_of, experiment_of
+from dmosim.cli.dmo import day_config_of
+from dmosim.cli.settings import role_experiment
 from dmosim.cli.main import build_parser
 from dmosim.experiment.spec import Experiment, ExperimentError, parse_experiment, settled_by, with_settings
 from dmosim.experiment.sweep import parse_setting, variants
@@ -126,7 +127,7 @@ def test_a_sweep_of_the_penalty_under_a_named_rule_settles_each_run_at_its_own_r
 
 def dmo_config(*flags: str):
     """The DMO's days as ``dmosim dmo`` reads them from its flags."""
-    return day_config_of(experiment_of(build_parser("dmo").parse_args(["dmo", "--agents", "1", *flags])), None)
+    return day_config_of(role_experiment(build_parser("dmo").parse_args(["dmo", "--agents", "1", *flags])), None)
 
 
 def test_the_dmo_settles_by_the_rule_with_the_markets_rates():
