@@ -165,7 +165,8 @@ def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir
     meta = _run_metadata(experiment, fleet)
     fleet_file = rundir.logs / "fleet.toml"
     fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
-                                  f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n\n"
+                                  f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n"
+                                  + (f"strategy = {json.dumps(m.strategy)}\n" if m.strategy else "") + "\n"
                                   for m in fleet))
     cases = sorted({str(p) for p in map(case_path, [experiment.market.case, *(m.case for m in fleet)]) if p.is_file()})
     flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
