@@ -1,0 +1,420 @@
+"""Radial distribution feeders as data: buses, lines, voltage limits, the substation and the fixed loads per hour.
+
+A ``Network`` is what the DMO clears on instead of the copper plate (docs/network.md): a radial feeder whose lines
+have a series resistance and reactance (ohm) and a thermal limit (MVA), whose buses have voltage limits (p.u.) and
+fixed non-microgrid loads (MW, Mvar, times an hourly profile), and whose substation bus is where the DMO trades
+with the ISO. Built in: the IEEE 33-bus feeder of Baran and Wu (1989), taken from pandapower's ``case33bw``, and
+``feeder5``, a five-bus feeder for tests. A user's feeder is a TOML file (docs/network.md) or a pandapower JSON.
+
+Everything here is validated once, on load, with one line naming the file and what is wrong: a meshed or
+disconnected feeder, a line of zero impedance, a bus that does not exist, limits that are not limits.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from scenarios.case import DATA_DIR, read_toml
+from scenarios.horizon import HOURS
+
+S_BASE_MVA = 1.0  # the per-unit power base: MW and Mvar are per unit as they are
+# Lines a feeder file gives no rating get RATING_MARGIN times the nominal apparent power of the fixed load
+# downstream of them (at the profile's peak), and never less than MIN_RATING_MVA (docs/network.md, "Line ratings").
+RATING_MARGIN = 1.5
+MIN_RATING_MVA = 0.5
+UNRATED_KA = 9_999.0  # pandapower's way of saying "no rating" (case33bw gives 99,999 kA): at or above it, unrated
+V_MIN, V_MAX = 0.95, 1.05  # p.u., a bus's limits when its file gives none (ANSI C84.1 range A)
+MAX_BUSES = 5_000
+# A typical residential feeder's day, peak 1.0 at 19:00 (hour 20), night trough 0.55: the shape of every bus's
+# fixed load unless the network file gives its own ``load_profile``.
+LOAD_PROFILE = (0.62, 0.57, 0.55, 0.55, 0.56, 0.60, 0.68, 0.76, 0.80, 0.80, 0.79, 0.78,
+                0.77, 0.76, 0.76, 0.78, 0.83, 0.91, 0.98, 1.00, 0.97, 0.89, 0.78, 0.68)
+_TOP = ("name", "base_kv", "substation", "v_min", "v_max", "load_profile", "load_scale", "rating_margin",
+        "power_factor", "buses", "lines")
+_BUS = ("name", "p_mw", "q_mvar", "v_min", "v_max")
+_LINE = ("from", "to", "r_ohm", "x_ohm", "s_max_mva")
+
+
+class NetworkError(ValueError):
+    """A network that cannot be used; the message names the file (or the network) and what is wrong."""
+
+
+@dataclass(frozen=True, eq=False)
+class Network:
+    """A radial feeder, checked. Buses are indexed 0..n-1 in the order given, lines 0..n-2 and oriented away from
+    the substation: line l runs from ``parent[l]`` to ``child[l]``, and ``line_to[b]`` is the line feeding bus b
+    (-1 at the substation). Arrays are read-only.
+
+    ``r_ohm``, ``x_ohm``: series impedance per line; ``s_max_mva``: thermal limit per line; ``v_min``, ``v_max``:
+    voltage limits per bus (p.u.; the substation is held at ``v_substation``); ``load_p_mw``, ``load_q_mvar``:
+    nominal fixed load per bus, which ``fixed_p``/``fixed_q`` give per hour (times ``load_profile`` and
+    ``load_scale``); ``power_factor``: every microgrid's, Q = tan(phi) P (docs/network.md).
+    """
+
+    name: str
+    base_kv: float
+    buses: tuple[str, ...]
+    root: int
+    parent: np.ndarray
+    child: np.ndarray
+    r_ohm: np.ndarray
+    x_ohm: np.ndarray
+    s_max_mva: np.ndarray
+    v_min: np.ndarray
+    v_max: np.ndarray
+    load_p_mw: np.ndarray
+    load_q_mvar: np.ndarray
+    load_profile: tuple[float, ...] = LOAD_PROFILE
+    load_scale: float = 1.0
+    power_factor: float = 1.0
+    v_substation: float = 1.0
+
+    @property
+    def substation(self) -> str:
+        """The substation bus's name: the DMO's point of exchange with the ISO."""
+        return self.buses[self.root]
+
+    @property
+    def n_buses(self) -> int:
+        return len(self.buses)
+
+    @property
+    def n_lines(self) -> int:
+        return len(self.child)
+
+    @cached_property
+    def index(self) -> dict[str, int]:
+        """Bus name -> bus index."""
+        return {b: i for i, b in enumerate(self.buses)}
+
+    @cached_property
+    def line_to(self) -> np.ndarray:
+        out = np.full(self.n_buses, -1)
+        out[self.child] = np.arange(self.n_lines)
+        return _frozen(out)
+
+    @cached_property
+    def downstream(self) -> np.ndarray:
+        """(lines x buses) 0/1: whether bus b lies at or below line l's child, i.e. whether a load at b flows
+        through l. It is the radial feeder's sensitivity of every line flow to every bus's load (LinDistFlow)."""
+        d = np.zeros((self.n_lines, self.n_buses))
+        for b in range(self.n_buses):  # walk each bus up to the substation: O(n depth), once per network
+            line = self.line_to[b]
+            while line >= 0:
+                d[line, b] = 1.0
+                line = self.line_to[self.parent[line]]
+        return _frozen(d)
+
+    @property
+    def tan_phi(self) -> float:
+        """Q/P of every microgrid's exchange at its power factor (lagging: a microgrid importing P draws Q)."""
+        return math.tan(math.acos(self.power_factor))
+
+    @property
+    def z_base_ohm(self) -> float:
+        return self.base_kv ** 2 / S_BASE_MVA
+
+    @property
+    def r_pu(self) -> np.ndarray:
+        return self.r_ohm / self.z_base_ohm
+
+    @property
+    def x_pu(self) -> np.ndarray:
+        return self.x_ohm / self.z_base_ohm
+
+    @cached_property
+    def fixed_p(self) -> np.ndarray:
+        """(24 x buses) fixed non-microgrid load, MW: nominal x profile x scale."""
+        return _frozen(np.outer(np.asarray(self.load_profile) * self.load_scale, self.load_p_mw))
+
+    @cached_property
+    def fixed_q(self) -> np.ndarray:
+        """(24 x buses) fixed non-microgrid load, Mvar."""
+        return _frozen(np.outer(np.asarray(self.load_profile) * self.load_scale, self.load_q_mvar))
+
+    @cached_property
+    def voltage_sensitivity(self) -> tuple[np.ndarray, np.ndarray]:
+        """(buses x buses) R, X: the drop of U = V^2 (p.u.^2) at bus j per MW and per Mvar of load at bus b,
+        2 sum of r (x) over the lines the two buses' paths share (LinDistFlow, Baran and Wu 1989)."""
+        d = self.downstream
+        return _frozen(2 * d.T @ (self.r_pu[:, None] * d)), _frozen(2 * d.T @ (self.x_pu[:, None] * d))
+
+    def lindistflow(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """LinDistFlow's line flows and bus voltages for loads ``p`` (MW) and ``q`` (Mvar) per bus (shape (...,
+        buses), positive consumption, the substation's ignored): P and Q on each line away from the substation
+        (..., lines) and V (p.u., (..., buses)) = sqrt(v_substation^2 - R p - X q). Losses are neglected."""
+        r, x = self.voltage_sensitivity
+        u = self.v_substation ** 2 - p @ r.T - q @ x.T
+        return p @ self.downstream.T, q @ self.downstream.T, np.sqrt(np.maximum(u, 0.0))
+
+    def bus_of(self, bus: object, where: str = "bus") -> int:
+        """The index of a bus named by a string or integer; NetworkError naming the network if there is none, or
+        if it is the substation (a microgrid trades through the feeder, not at the ISO's bus)."""
+        name = str(bus) if isinstance(bus, (str, int)) and not isinstance(bus, bool) else None
+        if name not in self.index:
+            raise NetworkError(f"{where}: no bus {bus!r} in network {self.name} (buses: {_sample(self.buses)})")
+        if self.index[name] == self.root:
+            raise NetworkError(f"{where}: bus {name} is network {self.name}'s substation; place microgrids on "
+                               "the feeder's other buses")
+        return self.index[name]
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+def _sample(names, k: int = 6) -> str:
+    return ", ".join(names[:k]) + (f", ... ({len(names)} buses)" if len(names) > k else "")
+
+
+# --- building and checking ---------------------------------------------------------------------------------------
+
+def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], substation: str, *,
+          load_profile=LOAD_PROFILE, load_scale: float = 1.0, rating_margin: float = RATING_MARGIN,
+          power_factor: float = 1.0, v_min: float = V_MIN, v_max: float = V_MAX) -> Network:
+    """A checked ``Network`` from plain rows: ``buses`` [{name, p_mw, q_mvar, v_min?, v_max?}], ``lines``
+    [{from, to, r_ohm, x_ohm, s_max_mva?}] (either direction). NetworkError names what is wrong."""
+    _positive(base_kv, "base_kv", name)
+    _fraction(power_factor, "power_factor", name)
+    _positive(load_scale, "load_scale", name)
+    _positive(rating_margin, "rating_margin", name)
+    profile = _profile(load_profile, name)
+    if not 2 <= len(buses) <= MAX_BUSES:
+        raise NetworkError(f"network {name}: {len(buses)} buses; a feeder has 2..{MAX_BUSES}")
+    names = [str(b["name"]) for b in buses]
+    if len(set(names)) != len(names):
+        dup = sorted(n for n in set(names) if names.count(n) > 1)[0]
+        raise NetworkError(f"network {name}: bus {dup} is listed twice")
+    index = {b: i for i, b in enumerate(names)}
+    if str(substation) not in index:
+        raise NetworkError(f"network {name}: substation {substation!r} is not one of its buses ({_sample(names)})")
+    root = index[str(substation)]
+    lo = np.array([_number(b.get("v_min", v_min), f"bus {b['name']} v_min", name) for b in buses])
+    hi = np.array([_number(b.get("v_max", v_max), f"bus {b['name']} v_max", name) for b in buses])
+    bad = np.flatnonzero(~((0.5 <= lo) & (lo < hi) & (hi <= 1.5)))
+    if bad.size:
+        raise NetworkError(f"network {name}: bus {names[bad[0]]}: voltage limits {lo[bad[0]]:g}..{hi[bad[0]]:g} p.u. "
+                           "are not limits (need 0.5 <= v_min < v_max <= 1.5)")
+    p = np.array([_number(b.get("p_mw", 0.0), f"bus {b['name']} p_mw", name) for b in buses])
+    q = np.array([_number(b.get("q_mvar", 0.0), f"bus {b['name']} q_mvar", name) for b in buses])
+    if p[root] or q[root]:
+        raise NetworkError(f"network {name}: the substation bus {names[root]} carries no fixed load")
+
+    if len(lines) != len(names) - 1:
+        what = "meshed" if len(lines) > len(names) - 1 else "not connected"
+        raise NetworkError(f"network {name}: {len(lines)} lines for {len(names)} buses: a radial feeder has one "
+                           f"line fewer than buses (this one is {what})")
+    ends, r, x, s = [], [], [], []
+    for k, line in enumerate(lines):
+        where = f"line {k + 1} ({line.get('from')}-{line.get('to')})"
+        a, b = (str(line.get(end)) for end in ("from", "to"))
+        for end in (a, b):
+            if end not in index:
+                raise NetworkError(f"network {name}: {where}: no bus {end!r} ({_sample(names)})")
+        if a == b:
+            raise NetworkError(f"network {name}: {where}: a line from a bus to itself")
+        rk, xk = (_number(line.get(f, None), f"{where} {f}", name) for f in ("r_ohm", "x_ohm"))
+        if rk < 0 or xk < 0 or rk + xk <= 0:
+            raise NetworkError(f"network {name}: {where}: impedance {rk:g} + j{xk:g} ohm; a line needs r, x >= 0 and "
+                               "not both zero (join the buses instead)")
+        rating = line.get("s_max_mva")
+        s.append(math.nan if rating is None else _positive(rating, f"{where} s_max_mva", name))
+        ends.append((index[a], index[b]))
+        r.append(rk)
+        x.append(xk)
+    parent, child, order = _orient(ends, root, len(names), name, names)
+    net = Network(name=name, base_kv=float(base_kv), buses=tuple(names), root=root,
+                  parent=_frozen(np.array(parent)), child=_frozen(np.array(child)),
+                  r_ohm=_frozen(np.array(r)[order]), x_ohm=_frozen(np.array(x)[order]),
+                  s_max_mva=np.array(s)[order], v_min=_frozen(lo), v_max=_frozen(hi),
+                  load_p_mw=_frozen(p), load_q_mvar=_frozen(q), load_profile=profile,
+                  load_scale=float(load_scale), power_factor=float(power_factor))
+    unrated = np.isnan(net.s_max_mva)
+    peak = max(profile) * load_scale
+    downstream_s = np.hypot(net.downstream @ p, net.downstream @ q) * peak
+    net.s_max_mva[unrated] = np.maximum(rating_margin * downstream_s[unrated], MIN_RATING_MVA)
+    _frozen(net.s_max_mva)
+    return net
+
+
+def _orient(ends, root: int, n: int, name: str, names) -> tuple[list[int], list[int], list[int]]:
+    """Each line as (parent, child) away from the substation, lines kept in their given order; NetworkError if
+    a bus cannot be reached (then, with n - 1 lines, the feeder also has a loop)."""
+    adjacent: list[list[tuple[int, int]]] = [[] for _ in range(n)]
+    for k, (a, b) in enumerate(ends):
+        adjacent[a].append((b, k))
+        adjacent[b].append((a, k))
+    parent_of = {root: -1}
+    via = [-1] * len(ends)
+    stack = [root]
+    while stack:
+        bus = stack.pop()
+        for other, k in adjacent[bus]:
+            if other not in parent_of:
+                parent_of[other] = bus
+                via[k] = other
+                stack.append(other)
+    if len(parent_of) < n:
+        lost = next(names[b] for b in range(n) if b not in parent_of)
+        raise NetworkError(f"network {name}: bus {lost} cannot be reached from the substation and the lines form a "
+                           "loop: a feeder must be radial (a tree)")
+    order = list(range(len(ends)))
+    child = [via[k] for k in order]
+    return [parent_of[c] for c in child], child, order
+
+
+def _number(value, what: str, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise NetworkError(f"network {name}: {what} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _positive(value, what: str, name: str) -> float:
+    value = _number(value, what, name)
+    if value <= 0:
+        raise NetworkError(f"network {name}: {what} must be > 0, got {value:g}")
+    return value
+
+
+def _fraction(value, what: str, name: str) -> float:
+    value = _number(value, what, name)
+    if not 0 < value <= 1:
+        raise NetworkError(f"network {name}: {what} must be in (0, 1], got {value:g}")
+    return value
+
+
+def _profile(profile, name: str) -> tuple[float, ...]:
+    if isinstance(profile, (str, bytes)) or not hasattr(profile, "__len__") or len(profile) != HOURS:
+        raise NetworkError(f"network {name}: load_profile must list {HOURS} hourly multipliers")
+    out = tuple(_number(v, f"load_profile hour {h + 1}", name) for h, v in enumerate(profile))
+    if min(out) < 0:
+        raise NetworkError(f"network {name}: load_profile must be >= 0")
+    return out
+
+
+# --- files ----------------------------------------------------------------------------------------------------
+
+def parse_network(data: dict, name: str) -> Network:
+    """A network from the dict of a network TOML (docs/network.md); NetworkError names ``name`` and the field."""
+    unknown = sorted(set(data) - set(_TOP))
+    if unknown:
+        raise NetworkError(f"network {name}: unknown field {unknown[0]!r} (fields: {', '.join(_TOP)})")
+    for part, fields in (("buses", _BUS), ("lines", _LINE)):
+        rows = data.get(part)
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise NetworkError(f"network {name}: {part} must be a list of tables ([[{part}]])")
+        for k, row in enumerate(rows):
+            extra = sorted(set(row) - set(fields))
+            if extra:
+                raise NetworkError(f"network {name}: {part}[{k}].{extra[0]}: unknown field (fields: {', '.join(fields)})")
+            if part == "buses" and "name" not in row:
+                raise NetworkError(f"network {name}: buses[{k}].name: missing field")
+    for key in ("base_kv", "substation"):
+        if key not in data:
+            raise NetworkError(f"network {name}: {key}: missing field")
+    options = {k: data[k] for k in ("load_profile", "load_scale", "rating_margin", "power_factor", "v_min", "v_max")
+               if k in data}
+    return build(str(data.get("name", name)), data["base_kv"], data["buses"], data["lines"], str(data["substation"]),
+                 **options)
+
+
+def from_pandapower(net, name: str, **options) -> Network:
+    """A network from a pandapower net: its in-service lines (r and x per km times length over parallel
+    circuits; ``max_i_ka`` at or above ``UNRATED_KA`` is no rating), loads less static generators summed per bus,
+    bus voltage limits where given, the ext_grid's bus as the substation. Transformers are refused (a feeder here
+    is one voltage level)."""
+    if len(net.trafo) or len(getattr(net, "trafo3w", ())):
+        raise NetworkError(f"network {name}: has transformers; a feeder here is one voltage level")
+    grids = net.ext_grid[net.ext_grid.in_service]
+    if len(grids) != 1:
+        raise NetworkError(f"network {name}: needs exactly one external grid (the substation), has {len(grids)}")
+    levels = set(net.bus.vn_kv[net.bus.in_service])
+    if len(levels) != 1:
+        raise NetworkError(f"network {name}: buses at several voltages {sorted(levels)} kV; a feeder here is one level")
+    kv = float(levels.pop())
+    label = {i: str(i) for i in net.bus.index[net.bus.in_service]}
+    p = dict.fromkeys(label, 0.0)
+    q = dict.fromkeys(label, 0.0)
+    for table, sign in ((net.load, 1.0), (net.sgen, -1.0)):
+        live = table[table.in_service]
+        for bus, pk, qk, scaling in zip(live.bus, live.p_mw, live.q_mvar, live.scaling):
+            p[bus] += sign * pk * scaling
+            q[bus] += sign * qk * scaling
+    buses = []
+    for i in label:
+        row = {"name": label[i], "p_mw": p[i], "q_mvar": q[i]}
+        for col, key in (("min_vm_pu", "v_min"), ("max_vm_pu", "v_max")):
+            value = net.bus.at[i, col] if col in net.bus else math.nan
+            if not math.isnan(value):
+                row[key] = float(value)
+        buses.append(row)
+    root = int(grids.bus.iloc[0])
+    buses[list(label).index(root)].update(p_mw=0.0, q_mvar=0.0, v_min=0.5, v_max=1.5)  # held at its set point
+    lines = []
+    for _, ln in net.line[net.line.in_service].iterrows():
+        factor = ln.length_km / ln.parallel
+        row = {"from": label[ln.from_bus], "to": label[ln.to_bus], "r_ohm": ln.r_ohm_per_km * factor,
+               "x_ohm": ln.x_ohm_per_km * factor}
+        if ln.max_i_ka < UNRATED_KA:
+            row["s_max_mva"] = math.sqrt(3) * kv * ln.max_i_ka * ln.parallel
+        lines.append(row)
+    return build(name, kv, buses, lines, label[root], **options)
+
+
+def synthetic(n: int, seed: int = 0, **options) -> Network:
+    """A random radial feeder of ``n`` buses for benchmarks: bus b hangs off one of the buses 3b/4..b-1 (about log(n)/log(4/3) deep), lines of
+    0.01..0.05 + j0.01..0.04 ohm at 12.47 kV, 2..10 kW per bus at power factor 0.9, limits 0.9..1.1 p.u."""
+    rng = np.random.default_rng([seed, n])
+    parent = [int(rng.integers(b * 3 // 4, b)) for b in range(1, n)]
+    p = rng.uniform(0.002, 0.01, n)
+    p[0] = 0.0
+    buses = [{"name": str(b), "p_mw": p[b], "q_mvar": p[b] * 0.4843, "v_min": 0.9, "v_max": 1.1} for b in range(n)]
+    lines = [{"from": str(a), "to": str(b + 1), "r_ohm": r, "x_ohm": x}
+             for b, (a, r, x) in enumerate(zip(parent, rng.uniform(0.01, 0.05, n - 1), rng.uniform(0.01, 0.04, n - 1)))]
+    return build(f"synthetic{n}", 12.47, buses, lines, "0", **options)
+
+
+def ieee33(**options) -> Network:
+    """The IEEE 33-bus feeder of Baran and Wu (1989), as pandapower's ``case33bw``: 12.66 kV, 32 lines in service
+    (its 5 tie switches open), 3.715 MW / 2.300 Mvar of load, bus limits 0.9..1.1 p.u.; lines rated by the rule."""
+    import pandapower.networks as pn  # 1 s to import: only when this feeder is asked for
+
+    return from_pandapower(pn.case33bw(), "ieee33", **options)
+
+
+NETWORKS = {"ieee33": ieee33, "feeder5": lambda **options: _toml(DATA_DIR / "feeder5.toml", options)}
+
+
+def load_network(source: str | Path, **options) -> Network:
+    """A built-in network by name (``NETWORKS``), or a file: ``*.json`` a pandapower net, anything else a network
+    TOML. ``options`` (load_scale, rating_margin, ...) override the file's. NetworkError names what is wrong."""
+    if isinstance(source, str) and source in NETWORKS:
+        return NETWORKS[source](**options)
+    path = Path(source)
+    if path.suffix.lower() == ".json":
+        try:
+            import pandapower as pp
+
+            net = pp.from_json(str(path))
+        except FileNotFoundError:
+            raise NetworkError(f"network file not found: {path}") from None
+        except Exception as exc:  # pandapower raises what its JSON reader meets: say so in one line
+            raise NetworkError(f"network file {path}: not a pandapower JSON ({type(exc).__name__}: {exc})") from None
+        return from_pandapower(net, path.stem, **options)
+    if not path.suffix and not path.exists():
+        raise NetworkError(f"unknown network {source!r}: not a built-in ({', '.join(NETWORKS)}) nor a file")
+    return _toml(path, options)
+
+
+def _toml(path: Path, options: dict) -> Network:
+    data = read_toml(path, "network", NetworkError)
+    try:
+        return parse_network({**data, **options}, path.stem)
+    except NetworkError as exc:
+        raise NetworkError(f"{path}: {exc}") from None
