@@ -39,7 +39,8 @@ MAX_PRICE_FACTOR = 100.0
 @dataclass(frozen=True)
 class SettlementDay:
     """What a rule settles, checked by ``settlement.settlement_day``: ``awards`` agent -> 24 P_sch (MW, + import),
-    ``prices`` the 24 clearing prices ($/MWh), ``meter`` agent -> {hour index 0..23: K readings of P_M (MW), None
+    ``prices`` the 24 clearing prices ($/MWh) on a copper plate, the substation's (energy) prices on a feeder,
+    ``agent_prices`` agent -> the 24 prices at its own bus (``price_of``: on a copper plate ``prices``), ``meter`` agent -> {hour index 0..23: K readings of P_M (MW), None
     for a missing sub-period} (an absent hour is missing), ``subperiods`` K (dt = 1/K h), and each agent's
     registered ``max_import`` and ``max_export`` (MW): its readings lie in [-max_export, max_import]."""
 
@@ -49,6 +50,11 @@ class SettlementDay:
     subperiods: int
     max_import: Mapping[str, float]
     max_export: Mapping[str, float]
+    agent_prices: Mapping[str, tuple[float, ...]] | None = None
+
+    def price_of(self, agent: str) -> tuple[float, ...]:
+        """The 24 prices the agent's energy is settled at: its bus's on a feeder, the clearing prices otherwise."""
+        return self.prices if self.agent_prices is None else self.agent_prices[agent]
 
     @cached_property
     def exact_awards(self) -> dict[str, tuple[Fraction, ...]]:
@@ -59,6 +65,12 @@ class SettlementDay:
     def exact_prices(self) -> tuple[Fraction, ...]:
         """The 24 clearing prices exactly, converted once."""
         return tuple(exact(p) for p in self.prices)
+
+    @cached_property
+    def exact_agent_prices(self) -> dict[str, tuple[Fraction, ...]]:
+        """Each agent's ``price_of`` exactly, converted once."""
+        return {agent: self.exact_prices if self.agent_prices is None else tuple(exact(p) for p in self.agent_prices[agent])
+                for agent in self.awards}
 
     @property
     def dt(self) -> Fraction:
@@ -134,7 +146,7 @@ class DeviationRule:
 
     def __call__(self, day: SettlementDay, **params) -> dict[str, list[Charges]]:
         return {agent: [self._hour(day, agent, h, f)
-                        for h, f in enumerate(self._hours(params, day.exact_awards[agent], day.exact_prices))]
+                        for h, f in enumerate(self._hours(params, day.exact_awards[agent], day.exact_agent_prices[agent]))]
                 for agent in day.awards}
 
     def parameters(self, given: Mapping[str, object]) -> dict[str, float]:
@@ -178,7 +190,7 @@ class DeviationRule:
 
     def _hour(self, day: SettlementDay, agent: str, h: int, f: DeviationPrice) -> Charges:
         """One agent-hour under the hour's deviation price ``f``."""
-        p_sch, price, dt = day.exact_awards[agent][h], day.exact_prices[h], day.dt
+        p_sch, price, dt = day.exact_awards[agent][h], day.exact_agent_prices[agent][h], day.dt
         readings = day.readings(agent, h)
         money = [f.at(exact(p) - p_sch) * dt for p in readings if p is not None]
         # A missing sub-period costs the worst the agent could have done within its registered limits, and earns

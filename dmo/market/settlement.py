@@ -128,7 +128,7 @@ def hour_line(day: SettlementDay, agent: str, hour: int, charges: Charges) -> Ho
         if total != energy + penalty - credit:
             raise RuleError(f"{where}: total {dollars(total)} is not energy_charge + penalty - credit "
                             f"({dollars(energy + penalty - credit)})")
-    return HourLine(hour=hour, award_mwh=float(day.awards[agent][hour]), price=float(day.prices[hour]),
+    return HourLine(hour=hour, award_mwh=float(day.awards[agent][hour]), price=float(day.price_of(agent)[hour]),
                     energy_charge=dollars(energy), import_mwh=float(imported), deviation_mwh=float(over),
                     under_import_mwh=float(under), penalty=dollars(penalty), credit=dollars(credit),
                     missing=n_missing > 0, missing_subperiods=n_missing, total=dollars(energy + penalty - credit))
@@ -204,8 +204,11 @@ def _check_meter(meter: Meter, day: SettlementDay) -> None:
 
 def settlement_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *,
                    subperiods: int, p_m_max: float | Mapping[str, float],
-                   p_m_min: float | Mapping[str, float] | None = None) -> SettlementDay:
-    """The day a rule settles, checked: ValueError with a one-line reason for invalid input (``settle``)."""
+                   p_m_min: float | Mapping[str, float] | None = None,
+                   agent_prices: Mapping[str, Sequence[float]] | None = None) -> SettlementDay:
+    """The day a rule settles, checked: ValueError with a one-line reason for invalid input (``settle``).
+    ``agent_prices`` (agent -> 24 $/MWh, on a feeder: each agent's bus price) settles each agent's energy at its
+    own prices; without it every agent's are ``prices``."""
     if not isinstance(awards, Mapping):
         raise ValueError("awards must map agent id to 24 hourly MW values")
     agents = sorted(awards)
@@ -218,21 +221,30 @@ def settlement_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float
     day = SettlementDay(awards={a: hourly(awards[a], f"award of {a}") for a in agents},
                         prices=hourly(prices, "clearing price"), meter=meter, subperiods=subperiods,
                         max_import=max_import,
-                        max_export=max_import if p_m_min is None else _limits("p_m_min", p_m_min, agents))
+                        max_export=max_import if p_m_min is None else _limits("p_m_min", p_m_min, agents),
+                        agent_prices=None if agent_prices is None else _agent_prices(agent_prices, agents))
     _check_meter(meter, day)
     return day
 
 
+def _agent_prices(agent_prices, agents: list[str]) -> dict[str, tuple[float, ...]]:
+    if not isinstance(agent_prices, Mapping) or set(agent_prices) != set(agents):
+        raise ValueError("agent prices must map each awarded agent, and only those, to 24 hourly prices")
+    return {a: hourly(agent_prices[a], f"price of {a}") for a in agents}
+
+
 def accepted_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *, subperiods: int,
-                 registered: Mapping[str, Registration]) -> SettlementDay:
+                 registered: Mapping[str, Registration],
+                 agent_prices: Mapping[str, Sequence[float]] | None = None) -> SettlementDay:
     """The day the DMO settles, from what it accepted: each awarded agent's P_sch (MW) and the clearing prices, the
     meter reports it took (agent -> {hour index 0..23: K readings}; an absent hour is missing) and each agent's
     registration, whose limits bound its readings and price its missing sub-periods. The live DMO
     (operator/day.py), re-settlement (replay/resettle.py) and the replayed DMO (replay/as_dmo.py) all settle this
-    day, so a recorded day re-settles identically."""
+    day, so a recorded day re-settles identically. On a feeder, ``prices`` are the substation's and
+    ``agent_prices`` each agent's bus prices, its award's clearing prices."""
     return settlement_day(awards, prices, meter, subperiods=subperiods,
                           p_m_max={a: r.max_import_mw for a, r in registered.items()},
-                          p_m_min={a: r.max_export_mw for a, r in registered.items()})
+                          p_m_min={a: r.max_export_mw for a, r in registered.items()}, agent_prices=agent_prices)
 
 
 def settle_day(day: SettlementDay, rule: Rule, name: str, **params) -> tuple[dict[str, Statement], DayTotals]:

@@ -210,3 +210,21 @@ def test_resettling_from_a_json_recording_reproduces_statements(case):
         assert Decimal(repr(out["total"])) == s.total
         assert [Decimal(repr(line["total"])) for line in out["lines"]] == [line.total for line in s.lines]
     assert Decimal(repr(json.loads(json.dumps(first[1].as_dict()))["total"])) == first[1].total
+
+
+def test_on_a_feeder_each_agent_is_settled_at_its_own_bus_price():
+    from dmo.market.rules import BUILT_IN
+    from dmo.market.settlement import settle_day, settlement_day
+
+    awards = {"near": day(2.0), "far": day(2.0)}
+    meter = {a: {h: (3.0,) for h in range(HOURS)} for a in awards}  # 1 MW over the award every hour
+    own = {"near": day(40.0), "far": day(65.0)}
+    for rule, params in ((BUILT_IN["paper"], {"penalty": 100.0}), (BUILT_IN["price-linked"], {"k": 2.0})):
+        settled = settlement_day(awards, day(40.0), meter, subperiods=1, p_m_max=10.0, agent_prices=own)
+        statements, _ = settle_day(settled, rule, rule.name, **params)
+        for agent, price in (("near", 40.0), ("far", 65.0)):
+            line = statements[agent].lines[0]
+            assert line.price == price and line.energy_charge == Decimal(str(2 * price))
+            assert line.penalty == Decimal(str(100.0 if rule.name == "paper" else max(2 * price, 50.0)))
+    with pytest.raises(ValueError, match="agent prices must map each awarded agent"):
+        settlement_day(awards, day(40.0), meter, subperiods=1, p_m_max=10.0, agent_prices={"near": day(1.0)})
