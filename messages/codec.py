@@ -62,7 +62,10 @@ ADDED = ((2, "clock", {"day": 1, "days": 1}),
          (3, "settlement_statement", {"settlement_rule": None}),
          (4, "*", {"run": "", "incarnation": 0}),
          (5, "award", {"congestion": None}),
-         (6, "registration", {"strategy": None}))
+         (6, "registration", {"strategy": None}),
+         (7, "registration", {"bus": None}),
+         (7, "award", {"bus": None, "energy_price_per_mwh": None, "congestion_price_per_mwh": None,
+                       "voltage_price_per_mwh": None}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -71,7 +74,8 @@ def _upgrade(payload: bytes) -> bytes | None:
     names no settlement rule, which is the paper's at its penalty and credit rates. Version 3 -> 4: a message is
     bound to no run token and no incarnation (empty, 0), which a live DMO refuses and a recording reader accepts.
     Version 4 -> 5: an award states no congestion (null), which the tables show as unknown. Version 5 -> 6: a
-    registration names no bidding strategy (null). An older message that already has a field of a later version is
+    registration names no bidding strategy (null). Version 6 -> 7: a registration and an award name no bus and
+    the award no price components (null): the copper plate. An older message that already has a field of a later version is
     left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)

@@ -2,7 +2,7 @@
 
 Layout (``<run>`` is the run id, ``<agent>`` an agent id)::
 
-    dmosim/<run>/dmo/call_for_bids | clock | grid | summary | rejected
+    dmosim/<run>/dmo/call_for_bids | clock | grid | network | summary | rejected
     dmosim/<run>/dmo/award/<agent> | statement/<agent> | receipt/<agent>
     dmosim/<run>/agent/<agent>/register | bid | schedule | meter | day
     dmosim/<run>/alive/<name>            liveliness tokens: "dmo", "recorder" or an agent id
@@ -37,6 +37,7 @@ ROUTES: dict[str, tuple[str, str, bool]] = {
     "call_for_bids": ("dmo", "call_for_bids", False),
     "clock": ("dmo", "clock", False),
     "grid_state": ("dmo", "grid", False),
+    "network_hour": ("dmo", "network", False),
     "award": ("dmo", "award", True),
     "settlement_statement": ("dmo", "statement", True),
     "day_summary": ("dmo", "summary", False),

@@ -18,13 +18,14 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, TypeA
 
 from scenarios.horizon import HOURS
 from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
+from scenarios.network import MAX_BUSES
 
 # 2: the clock says which day of how many (a run of several market days); 3: awards and statements name their
 # settlement rule, and awards carry its price of a deviation; 4: every message is bound to its run (``run``) and
 # its sender's process (``incarnation``), and the DMO answers every agent message with a receipt; 5: awards carry the
 # clearing's congestion per hour, and an agent may report its realised day (``agent_day``); 6: a registration
 # names the agent's bidding strategy
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -69,6 +70,8 @@ Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
 Congestion = Literal["none", "import", "export"]
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 Piece = tuple[Float, Float]
+BusName = Annotated[str, Strict(), Field(min_length=1, max_length=64)]
+PerBus = Annotated[tuple[Float, ...], Field(min_length=1, max_length=MAX_BUSES)]
 RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]
 # The run's token: 32 hex digits the DMO draws when a run starts (empty in messages older than version 4).
 RUN_TOKEN_PATTERN = r"^([0-9a-f]{32})?$"
@@ -174,6 +177,11 @@ class Registration(_FromAgent):
         "the agent's bidding strategy as named, parameters included (docs/strategies.md), e.g. \"price-response\" "
         "or \"examples/strategy.py:Shaded:shade=0.9\"; informative, for the record; null: not said (an agent of "
         "another make, or older than version 6)"))] = None
+    bus: Annotated[BusName | None, Field(description=(
+        "the bus of the DMO's feeder the microgrid is connected at (docs/network.md); the DMO refuses a "
+        "registration whose bus is not a bus of its feeder other than the substation, or not the bus the run "
+        "placed the agent at. null: not said (a copper-plate market, or an agent older than version 7), and on a "
+        "feeder the DMO then takes the run's placement"))] = None
 
 
 # --- bidding ------------------------------------------------------------------------------------------------
@@ -238,7 +246,20 @@ class Award(_FromDmo):
     agent: Annotated[AgentId, Field(description="the agent awarded (the key names it too)")]
     p_sch_mw: Annotated[Hourly, Field(description=(
         "24 hourly awards P_sch, MW, hour 1 first; positive imports, negative exports"))]
-    clearing_price_per_mwh: Annotated[Hourly, Field(description="24 hourly clearing prices, $/MWh")]
+    clearing_price_per_mwh: Annotated[Hourly, Field(description=(
+        "24 hourly clearing prices, $/MWh: the agent's energy is settled at them. On a feeder, its own bus's prices "
+        "(the DLMP: energy + congestion + voltage, docs/market.md)"))]
+    bus: Annotated[BusName | None, Field(description=(
+        "on a feeder, the bus the agent is awarded at; null on the copper plate (and before version 7)"))] = None
+    energy_price_per_mwh: Annotated[Hourly | None, Field(description=(
+        "on a feeder, the energy component of the agent's prices: the substation's price, the same at every bus; "
+        "null on the copper plate"))] = None
+    congestion_price_per_mwh: Annotated[Hourly | None, Field(description=(
+        "on a feeder, the congestion component at the agent's bus (what binding line limits add); null on the "
+        "copper plate"))] = None
+    voltage_price_per_mwh: Annotated[Hourly | None, Field(description=(
+        "on a feeder, the voltage component at the agent's bus (what binding voltage limits add); null on the "
+        "copper plate"))] = None
     penalty_per_mwh: Annotated[NonNeg, Field(description=(
         "c: $ per MWh imported above the award, under the paper rule (under another rule, the c an agent that does "
         "not read deviation_cost schedules against)"))]
@@ -266,6 +287,71 @@ class Award(_FromDmo):
 
 
 # --- scheduling ---------------------------------------------------------------------------------------------
+
+class ACCheck(_WireModel):
+    """The AC power flow of one hour of a feeder (docs/network.md, "The AC check")."""
+
+    converged: Annotated[Bool, Field(description="whether the Newton-Raphson power flow converged")]
+    v_min_pu: Annotated[Float, Field(description="the lowest bus voltage, p.u.")]
+    v_min_bus: Annotated[BusName, Field(description="the bus of the lowest voltage")]
+    v_max_pu: Annotated[Float, Field(description="the highest bus voltage, p.u. (the substation excluded)")]
+    v_max_bus: Annotated[BusName, Field(description="the bus of the highest voltage")]
+    max_loading: Annotated[NonNeg, Field(description="the most loaded line's apparent power over its limit")]
+    max_loading_line: Annotated[Annotated[str, Strict(), Field(max_length=130)], Field(description=(
+        "the most loaded line, \"from-to\""))]
+    voltage_error_pu: Annotated[NonNeg, Field(description="max over buses of |V LinDistFlow - V AC|, p.u.")]
+    flow_error_mw: Annotated[NonNeg, Field(description="max over lines of |P LinDistFlow - P AC|, MW")]
+    losses_mw: Annotated[Float, Field(description="the feeder's losses, MW")]
+    substation_mw: Annotated[Float, Field(description="the AC import at the substation, MW")]
+    violations: Annotated[tuple[Text, ...], Field(max_length=MAX_BUSES * 2), Field(description=(
+        "each limit the AC flow breaks, one short line each, e.g. \"undervoltage 17 0.9491<0.95\""))]
+
+
+class NetworkHour(_FromDmo):
+    """Clearing and settlement, DMO -> all, on a feeder only: one hour of the feeder as planned (after clearing,
+    the hour's awards) or as realised (after real time, the hour's metered transfers), with its AC check."""
+
+    kind: Annotated[Literal["network_hour"], Field(description=KIND)] = "network_hour"
+    hour: Annotated[Hour, Field(description="the hour, 1..24")]
+    stage: Annotated[Literal["plan", "realised"], Field(description=(
+        "\"plan\": the awards as cleared; \"realised\": the hour's mean metered transfers (a missing reading "
+        "counts as 0 here: the grid, not the settlement)"))]
+    network: Annotated[Annotated[str, Strict(), Field(min_length=1, max_length=64)], Field(description=(
+        "the feeder's name"))]
+    buses: Annotated[tuple[BusName, ...], Field(min_length=2, max_length=MAX_BUSES), Field(description=(
+        "the feeder's buses, in its order; every per-bus field follows it"))]
+    substation_mw: Annotated[Float, Field(description=(
+        "the DMO's position at the substation by LinDistFlow, MW, + import: in the plan, its bid to the ISO "
+        "(paper Fig. 1)"))]
+    injection_mw: Annotated[PerBus, Field(description="the microgrids' net import at each bus, MW")]
+    voltage_pu: Annotated[PerBus, Field(description="each bus's voltage by LinDistFlow, p.u.")]
+    line_loading: Annotated[tuple[Float, ...], Field(min_length=1, max_length=MAX_BUSES), Field(description=(
+        "each line's apparent power by LinDistFlow over its limit, lines in the feeder's order"))]
+    energy_price_per_mwh: Annotated[Float | None, Field(description=(
+        "the substation's price, $/MWh (plan only; null when realised)"))] = None
+    bus_price_per_mwh: Annotated[PerBus | None, Field(description=(
+        "each bus's price (DLMP), $/MWh: energy + congestion + voltage (plan only)"))] = None
+    congestion_price_per_mwh: Annotated[PerBus | None, Field(description=(
+        "each bus's congestion component, $/MWh (plan only)"))] = None
+    voltage_price_per_mwh: Annotated[PerBus | None, Field(description=(
+        "each bus's voltage component, $/MWh (plan only)"))] = None
+    shed_mw: Annotated[PerBus | None, Field(description=(
+        "fixed load the clearing shed at each bus to stay within the limits, MW, at the value of lost load "
+        "(docs/market.md; plan only)"))] = None
+    ac: Annotated[ACCheck, Field(description="the hour's AC power flow")]
+
+    @model_validator(mode="after")
+    def _per_bus(self):
+        n = len(self.buses)
+        for name in ("injection_mw", "voltage_pu", "bus_price_per_mwh", "congestion_price_per_mwh",
+                     "voltage_price_per_mwh", "shed_mw"):
+            values = getattr(self, name)
+            if values is not None and len(values) != n:
+                raise ValueError(f"{name} has {len(values)} values for {n} buses")
+        if len(self.line_loading) != n - 1:
+            raise ValueError(f"line_loading has {len(self.line_loading)} values for a radial feeder of {n} buses")
+        return self
+
 
 class Schedule(_FromAgent):
     """Phase 4, agent -> DMO: the day-ahead schedule the agent solved against its award."""
@@ -567,12 +653,12 @@ class Receipt(_FromDmo):
 MODELS: dict[str, type[Envelope]] = {
     model.model_fields["kind"].default: model
     for model in (Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport, AgentDay,
-                  SettlementStatement, DaySummary, Rejection, Receipt)
+                  NetworkHour, SettlementStatement, DaySummary, Rejection, Receipt)
 }
 KINDS = tuple(MODELS)
 
 Message = Annotated[Union[Registration, CallForBids, Bid, Award, Schedule, Clock, GridState, MeterReport, AgentDay,
-                          SettlementStatement, DaySummary, Rejection, Receipt], Field(discriminator="kind")]
+                          NetworkHour, SettlementStatement, DaySummary, Rejection, Receipt], Field(discriminator="kind")]
 MESSAGE_ADAPTER: TypeAdapter[Message] = TypeAdapter(Message)
 
 

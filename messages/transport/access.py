@@ -36,7 +36,7 @@ CA_FILE, CERT_FILE, KEY_FILE = "ca.pem", "cert.pem", "key.pem"
 READERS = ("recorder",)              # processes that may hear everything of the run and say nothing
 # What the DMO says to every agent. A rejection carries the key, code and reason of a refused message (never its
 # payload); it is public so an agent learns why its own message was refused, e.g. a refused rejoin.
-PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "summary", "rejected")
+PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "network", "summary", "rejected")
 PRIVATE_TOPICS = ("award", "statement", "receipt")  # what the DMO says to one agent, each on dmo/<topic>/<id>
 AGENT_TOPICS = ("register", "bid", "schedule", "meter", "day")      # what an agent says, each on agent/<id>/<topic>
 

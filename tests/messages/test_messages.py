@@ -15,7 +15,7 @@ from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, 
                       SettlementStatement, StatementLine, check_route, decode, encode, json_schema, make_receipt,
                       make_rejection, new_run_id, parse_key, sender_matches_key)
 from messages.transport import BusConfig
-from messages.schemas import AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit
+from messages.schemas import ACCheck, AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit, NetworkHour
 
 DAY = "2024-07-01"
 K = 6
@@ -66,6 +66,15 @@ SAMPLES = {
                           messages=MessageCounts(published=60, received=80, rejected={}, handler_errors=0,
                                                  ignored={"award_again": 1}, sent_again=2, asked=0,
                                                  faults_injected={"drop": 1})),
+    "network_hour": NetworkHour(sender="dmo", market_day=DAY, hour=19, stage="plan", network="feeder5",
+                                buses=["0", "1", "2"], substation_mw=1.2, injection_mw=[0.0, 0.5, -0.1],
+                                voltage_pu=[1.0, 0.99, 0.985], line_loading=[0.4, 1.0], energy_price_per_mwh=40.0,
+                                bus_price_per_mwh=[40.0, 40.0, 55.5], congestion_price_per_mwh=[0.0, 0.0, 15.5],
+                                voltage_price_per_mwh=[0.0, 0.0, 0.0], shed_mw=[0.0, 0.0, 0.0],
+                                ac=ACCheck(converged=True, v_min_pu=0.984, v_min_bus="2", v_max_pu=0.99,
+                                           v_max_bus="1", max_loading=1.01, max_loading_line="1-2",
+                                           voltage_error_pu=0.001, flow_error_mw=0.01, losses_mw=0.012,
+                                           substation_mw=1.212, violations=["overload 1-2 101.0%"])),
     "settlement_statement": _statement(),
     "day_summary": DaySummary(sender="dmo", market_day=DAY, agents=["mg1", "mg2"],
                               clearing_price_per_mwh=[41.0] * HOURS,
@@ -144,22 +153,30 @@ def _older(kind: str, version: int, *dropped: str) -> bytes:
 BOUND = ("run", "incarnation")  # version 4's envelope fields
 
 
+FEEDER = ("bus", "energy_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh")  # since version 7
+
+
 def test_older_messages_read_as_they_were_meant():
     """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates; a
-    version-3 message is bound to no run and no process; a version-4 award states no congestion."""
+    version-3 message is bound to no run and no process; a version-4 award states no congestion; a version-6 award
+    or registration names no bus (the copper plate)."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
-    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND))
+    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER))
     assert award.settlement_rule is None and award.deviation_cost is None
     assert award.p_sch_mw == SAMPLES["award"].p_sch_mw
     assert decode(_older("settlement_statement", 2, "settlement_rule", *BOUND)).settlement_rule is None
-    award = decode(_older("award", 4, "congestion"))
+    award = decode(_older("award", 4, "congestion", *FEEDER))
     assert award.congestion is None and award.settlement_rule == SAMPLES["award"].settlement_rule
+    award = decode(_older("award", 6, *FEEDER))
+    assert award.bus is None and award.energy_price_per_mwh is None and award.congestion == SAMPLES["award"].congestion
+    assert decode(_older("registration", 6, "bus")).bus is None
     bid = decode(_older("bid", 3, *BOUND))
     assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
     # a message of an older version that has a later version's field is not upgraded, and a current one that
     # leaves a field out is refused
     _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
+    _rejects(_older("award", 6, "bus"), "invalid", "bus")
     _rejects(_older("bid", 3, "run"), "invalid", "run")
     _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
     _rejects(_older("award", SCHEMA_VERSION, "congestion"), "invalid", "congestion")
@@ -200,8 +217,8 @@ def test_rejects_wrong_lengths():
 def test_rejects_bad_envelopes():
     _rejects(_with("bid", kind="offer"), "unknown_kind", "'offer'")
     _rejects(_bytes({"sender": "mg1"}), "unknown_kind", "kind")
-    err = _rejects(_with("bid", schema_version=7, new_field=1), "unsupported_version")
-    assert str(err) == f"schema_version 7 is newer than supported {SCHEMA_VERSION}"
+    err = _rejects(_with("bid", schema_version=SCHEMA_VERSION + 1, new_field=1), "unsupported_version")
+    assert str(err) == f"schema_version {SCHEMA_VERSION + 1} is newer than supported {SCHEMA_VERSION}"
     _rejects(_with("bid", schema_version=0), "invalid", "schema_version")
     _rejects(_with("bid", bogus=1), "invalid", "bogus")
     missing = _wire("bid")
