@@ -12,7 +12,10 @@ disconnected feeder, a line of zero impedance, a bus that does not exist, limits
 
 from __future__ import annotations
 
+import logging
 import math
+import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -367,6 +370,22 @@ def from_pandapower(net, name: str, **options) -> Network:
     return build(name, kv, buses, lines, label[root], **options)
 
 
+@contextmanager
+def quiet_pandapower():
+    """While pandapower is imported or run: its log records below ERROR and its Python warnings are dropped, so
+    none of its chatter reaches a role's stderr (on import it logs that plotly is missing, at INFO); its errors
+    still log and its exceptions still raise."""
+    logger = logging.getLogger("pandapower")
+    level = logger.level
+    logger.setLevel(max(level, logging.ERROR))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            yield
+    finally:
+        logger.setLevel(level)
+
+
 def synthetic(n: int, seed: int = 0, **options) -> Network:
     """A random radial feeder of ``n`` buses for benchmarks: bus b hangs off one of the buses 3b/4..b-1 (about log(n)/log(4/3) deep), lines of
     0.01..0.05 + j0.01..0.04 ohm at 12.47 kV, 2..10 kW per bus at power factor 0.9, limits 0.9..1.1 p.u."""
@@ -383,9 +402,11 @@ def synthetic(n: int, seed: int = 0, **options) -> Network:
 def ieee33(**options) -> Network:
     """The IEEE 33-bus feeder of Baran and Wu (1989), as pandapower's ``case33bw``: 12.66 kV, 32 lines in service
     (its 5 tie switches open), 3.715 MW / 2.300 Mvar of load, bus limits 0.9..1.1 p.u.; lines rated by the rule."""
-    import pandapower.networks as pn  # 1 s to import: only when this feeder is asked for
+    with quiet_pandapower():
+        import pandapower.networks as pn  # 1 s to import: only when this feeder is asked for
 
-    return from_pandapower(pn.case33bw(), "ieee33", **options)
+        case = pn.case33bw()
+    return from_pandapower(case, "ieee33", **options)
 
 
 NETWORKS = {"ieee33": ieee33, "feeder5": lambda **options: _toml(DATA_DIR / "feeder5.toml", options)}
@@ -399,9 +420,10 @@ def load_network(source: str | Path, **options) -> Network:
     path = Path(source)
     if path.suffix.lower() == ".json":
         try:
-            import pandapower as pp
+            with quiet_pandapower():
+                import pandapower as pp
 
-            net = pp.from_json(str(path))
+                net = pp.from_json(str(path))
         except FileNotFoundError:
             raise NetworkError(f"network file not found: {path}") from None
         except Exception as exc:  # pandapower raises what its JSON reader meets: say so in one line

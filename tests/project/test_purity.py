@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PURE = ("dmo.market", "dmo.market.acceptance", "dmo.market.settlement", "microgrid_agent.model",
+PURE = ("dmo.market", "dmo.market.acflow", "dmo.market.acceptance", "dmo.market.settlement", "microgrid_agent.model",
         "microgrid_agent.agent.bidding", "messages", "messages.schemas")
 HEAVY = ("zenoh", "matplotlib")
 
