@@ -79,11 +79,17 @@ class ClearingResult:
         """The DMO's net position with the ISO in one hour: the sum of the awards (MW)."""
         return math.fsum(a[hour] for a in self.awards.values())
 
+    @property
+    def agent_price(self) -> dict[str, tuple[float, ...]]:
+        """The price each microgrid's award is settled at, per hour: the uniform price, the same for every agent
+        (a ``distflow.NetworkClearing`` gives each agent its bus's price under the same name)."""
+        return {a: self.price for a in self.awards}
+
 
 # --- one hour's order book ----------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
-class _Book:
+class Book:
     """One hour's steps as arrays: owner index into ``agents``, price, signed quantity (zero steps dropped)."""
 
     owner: np.ndarray
@@ -91,37 +97,37 @@ class _Book:
     quantity: np.ndarray
 
 
-def _book(bids: Sequence[BidCurve], agents: Sequence[str], hour: int) -> _Book:
+def hour_book(bids: Sequence[BidCurve], agents: Sequence[str], hour: int) -> Book:
     index = {a: i for i, a in enumerate(agents)}
     rows = [(index[b.agent], s.price, s.quantity) for b in bids for s in b.hours[hour] if s.quantity != 0.0]
     owner, price, quantity = (np.array(c) for c in zip(*rows)) if rows else (np.zeros(0, int), np.zeros(0), np.zeros(0))
-    return _Book(owner.astype(int), price.astype(float), quantity.astype(float))
+    return Book(owner.astype(int), price.astype(float), quantity.astype(float))
 
 
-def _net(book: _Book, buy: np.ndarray, sell: np.ndarray) -> float:
+def _net(book: Book, buy: np.ndarray, sell: np.ndarray) -> float:
     """Net import (MW) when the purchases selected by ``buy`` and the sales selected by ``sell`` are accepted."""
     q = book.quantity
     return math.fsum(np.concatenate([q[(q > 0) & buy], q[(q < 0) & sell]]))
 
 
-def net_import_low(book: _Book, p: float) -> float:
+def net_import_low(book: Book, p: float) -> float:
     """Least net import consistent with price p: purchases priced > p, sales priced <= p (non-increasing in p)."""
     return _net(book, book.price > p, book.price <= p)
 
 
-def net_import_high(book: _Book, p: float) -> float:
+def net_import_high(book: Book, p: float) -> float:
     """Greatest net import consistent with price p: purchases priced >= p, sales priced < p (non-increasing)."""
     return _net(book, book.price >= p, book.price < p)
 
 
-def net_import_at_iso(book: _Book, iso: float) -> float:
+def net_import_at_iso(book: Book, iso: float) -> float:
     """Net import the ISO price alone calls for: every purchase priced >= ISO and every sale priced <= ISO."""
     return _net(book, book.price >= iso, book.price <= iso)
 
 
 # --- price ------------------------------------------------------------------------------------------------------
 
-def clearing_price(book: _Book, iso: float, import_limit: float, export_limit: float) -> tuple[float, str]:
+def clearing_price(book: Book, iso: float, import_limit: float, export_limit: float) -> tuple[float, str]:
     """The hour's uniform price and congestion state (docs/market.md, "Price").
 
     Uncongested: the ISO price. Import congestion: the lowest price p >= ISO at which the least net import
@@ -160,7 +166,7 @@ def marginal_shares(fixed: float, marginal_buy: float, marginal_sell: float, tar
     return min(max(alpha, 0.0), 1.0), min(max(beta, 0.0), 1.0)
 
 
-def accepted_fractions(book: _Book, price: float, target: float | None) -> np.ndarray:
+def accepted_fractions(book: Book, price: float, target: float | None) -> np.ndarray:
     """Per step, the accepted fraction of its quantity at ``price``: 1 in the money, 0 out of it, and at the
     margin the pro-rata share that brings the net import to ``target`` (None: all marginal steps accepted)."""
     q, pr = book.quantity, book.price
@@ -177,26 +183,23 @@ def accepted_fractions(book: _Book, price: float, target: float | None) -> np.nd
     return frac
 
 
-def clear_hour(book: _Book, iso: float, import_limit: float, export_limit: float) -> tuple[float, str, np.ndarray]:
+def clear_hour(book: Book, iso: float, import_limit: float, export_limit: float) -> tuple[float, str, np.ndarray]:
     """Price, congestion state and per-step awards (MW, signed) of one hour."""
     price, congested = clearing_price(book, iso, import_limit, export_limit)
     target = {"none": None, "import": import_limit, "export": -export_limit}[congested]
     return price, congested, book.quantity * accepted_fractions(book, price, target)
 
 
-def _per_agent(book: _Book, step_awards: np.ndarray, n_agents: int) -> list[float]:
+def per_agent(book: Book, step_awards: np.ndarray, n_agents: int) -> list[float]:
     # + 0.0 turns a -0.0 (a rejected sale) into 0.0 so equal results print equal.
     return [math.fsum(step_awards[book.owner == i]) + 0.0 for i in range(n_agents)]
 
 
-def clear(bids: Iterable[BidCurve], iso_price: float | Sequence[float], import_limit: float | Sequence[float],
-          export_limit: float | Sequence[float], agents: Iterable[str] = ()) -> ClearingResult:
-    """Clear one market day: a uniform price and an award per microgrid for each of the 24 hours.
-
-    ``iso_price`` ($/MWh) and the feeder limits (MW, >= 0) are a scalar or 24 hourly values. ``agents`` names
-    microgrids that may have sent no bid; they, like bidders with no accepted step, get award 0. Raises
-    ValueError with a one-line reason for invalid input, including two bids from one agent.
-    """
+def market_inputs(bids: Iterable[BidCurve], iso_price: float | Sequence[float], import_limit: float | Sequence[float],
+                  export_limit: float | Sequence[float], agents: Iterable[str] = ()) -> tuple[
+                      list[BidCurve], list[str], tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+    """A market day's inputs, checked (ValueError with a one-line reason): the bids, the sorted names of the
+    bidders and of ``agents``, and the 24 hourly ISO prices, import limits and export limits."""
     bids = list(bids)
     if not all(isinstance(b, BidCurve) for b in bids):
         raise ValueError("every bid must be a BidCurve")
@@ -208,14 +211,25 @@ def clear(bids: Iterable[BidCurve], iso_price: float | Sequence[float], import_l
     iso = tuple(p + 0.0 for p in hourly(iso_price, "iso_price"))  # no -0.0 price, as in Step
     imp = hourly(import_limit, "import_limit", non_negative=True)
     exp = hourly(export_limit, "export_limit", non_negative=True)
+    return bids, names, iso, imp, exp
 
+
+def clear(bids: Iterable[BidCurve], iso_price: float | Sequence[float], import_limit: float | Sequence[float],
+          export_limit: float | Sequence[float], agents: Iterable[str] = ()) -> ClearingResult:
+    """Clear one market day: a uniform price and an award per microgrid for each of the 24 hours.
+
+    ``iso_price`` ($/MWh) and the feeder limits (MW, >= 0) are a scalar or 24 hourly values. ``agents`` names
+    microgrids that may have sent no bid; they, like bidders with no accepted step, get award 0. Raises
+    ValueError with a one-line reason for invalid input, including two bids from one agent.
+    """
+    bids, names, iso, imp, exp = market_inputs(bids, iso_price, import_limit, export_limit, agents)
     prices, congested, columns = [], [], []
     for h in range(HOURS):
-        book = _book(bids, names, h)
+        book = hour_book(bids, names, h)
         p, c, step_awards = clear_hour(book, iso[h], imp[h], exp[h])
         prices.append(p)
         congested.append(c)
-        columns.append(_per_agent(book, step_awards, len(names)))
+        columns.append(per_agent(book, step_awards, len(names)))
     awards = {a: tuple(columns[h][i] for h in range(HOURS)) for i, a in enumerate(names)}
     return ClearingResult(tuple(prices), awards, tuple(congested))
 

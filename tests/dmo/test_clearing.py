@@ -113,6 +113,11 @@ def test_agents_without_bids_get_zero_awards_and_results_are_sorted():
     assert r.awards["mg1"] == r.awards["mg3"] == (0.0,) * HOURS
 
 
+def test_every_agent_faces_the_uniform_price():
+    r = clear([one_hour("mg1", [(50, 1)])], 40, 0.5, 10, agents=["mg2"])
+    assert r.agent_price == {"mg1": r.price, "mg2": r.price} and r.price[0] == 50.0
+
+
 def test_fixed_mode_publishes_given_awards_at_iso_price():
     table = [float(h % 7) - 1.5 for h in range(HOURS)]
     r = fixed_awards({"mg1": table}, 42.0)
