@@ -66,8 +66,9 @@ RejectCode = Literal["oversize", "not_json", "not_object", "unknown_kind", "unsu
                      "stale"]
 REJECT_CODES: tuple[str, ...] = get_args(RejectCode)
 Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
-# Whether a feeder limit bound an hour, as the clearing decided it (docs/market.md, "Price").
-Congestion = Literal["none", "import", "export"]
+# Which limit bound an hour, as the clearing decided it (docs/market.md, "Price" and "Clearing on a feeder"):
+# the substation's ("import", "export"), else on a feeder a line's or a bus voltage's, else "none".
+Congestion = Literal["none", "import", "export", "line", "voltage"]
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 Piece = tuple[Float, Float]
 BusName = Annotated[str, Strict(), Field(min_length=1, max_length=64)]
@@ -282,8 +283,10 @@ class Award(_FromDmo):
         description=(
             "24 hourly congestion states, hour 1 first, as the clearing decided them (docs/market.md): \"import\" "
             "where the net import the ISO price calls for exceeds the feeder's import limit, \"export\" where the "
-            "net export exceeds its export limit, else \"none\" (bids summing exactly to a limit do not congest "
-            "it); the same for every agent. null only in awards older than version 5"))] = None
+            "net export exceeds its export limit; on a feeder (a network clearing), else \"line\" where a line's "
+            "thermal limit binds and else \"voltage\" where a bus's voltage limit does; else \"none\" (bids summing "
+            "exactly to a limit do not congest it); the same for every agent. null only in awards older than "
+            "version 5"))] = None
 
 
 # --- scheduling ---------------------------------------------------------------------------------------------

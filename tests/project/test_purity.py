@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-PURE = ("dmo.market", "dmo.market.acflow", "dmo.market.acceptance", "dmo.market.settlement", "microgrid_agent.model",
-        "microgrid_agent.agent.bidding", "messages", "messages.schemas")
+PURE = ("dmo.market", "dmo.market.acflow", "dmo.market.acceptance", "dmo.market.distflow", "dmo.market.settlement",
+        "microgrid_agent.model", "microgrid_agent.agent.bidding", "messages", "messages.schemas")
 HEAVY = ("zenoh", "matplotlib")
 
 

@@ -1,0 +1,335 @@
+"""Clearing on a feeder: hand cases of docs/market.md ("Clearing on a feeder"), the copper plate as its special case,
+prices checked against the LP's KKT conditions and against finite differences of the welfare, order invariance."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import get_args
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from dmo.market.clearing import BidCurve, Step, clear
+from dmo.market.distflow import FACETS, VOLL, NetworkClearing, clear_network, hour_program
+from messages.schemas import PRICE_CAP, Congestion
+from scenarios.horizon import HOURS
+from scenarios.network import build, load_network
+
+TOL = 1e-9
+WIDE = 1e6  # substation limits that never bind
+
+
+def one_hour(agent: str, steps: list[tuple[float, float]], hour: int = 0) -> BidCurve:
+    return BidCurve(agent, tuple(tuple(Step(p, q) for p, q in steps) if h == hour else () for h in range(HOURS)))
+
+
+def at(result, hour: int = 0) -> dict[str, float]:
+    return {a: v[hour] for a, v in result.awards.items()}
+
+
+def chain(n: int, *, r_ohm: float = 0.01, x_ohm: float = 0.01, s_max: float = 1e4, load: float = 0.0,
+          v_min: float = 0.5, v_max: float = 1.5, power_factor: float = 1.0, base_kv: float = 10.0):
+    """A feeder 0-1-...-(n-1): by default unloaded, with lines and voltage limits that never bind."""
+    buses = [{"name": str(b), "p_mw": load if b else 0.0, "q_mvar": 0.0} for b in range(n)]
+    lines = [{"from": str(b), "to": str(b + 1), "r_ohm": r_ohm, "x_ohm": x_ohm, "s_max_mva": s_max} for b in range(n - 1)]
+    return build(f"chain{n}", base_kv, buses, lines, "0", power_factor=power_factor, v_min=v_min, v_max=v_max,
+                 load_profile=(1.0,) * HOURS)
+
+
+def network_limits_hold(net, r: NetworkClearing, tol: float = 1e-7) -> None:
+    facet = FACETS[:, :1, None] * r.flow_p.T[None] + FACETS[:, 1:, None] * r.flow_q.T[None]  # 8 x lines x hours
+    assert (facet <= net.s_max_mva[None, :, None] + tol).all()
+    feeder = np.arange(net.n_buses) != net.root
+    assert (r.voltage_pu[:, feeder] ** 2 >= net.v_min[feeder] ** 2 - tol).all()
+    assert (r.voltage_pu[:, feeder] ** 2 <= net.v_max[feeder] ** 2 + tol).all()
+
+
+def awards_follow_prices(bids, r: NetworkClearing, tol: float = 1e-7) -> None:
+    """Each agent's award lies between what its steps strictly in the money at its price call for and what they
+    call for with its steps at the price accepted too."""
+    for b in bids:
+        for h in range(HOURS):
+            p = r.agent_price[b.agent][h]
+            s = [x for x in b.hours[h] if x.quantity != 0]
+            lo = math.fsum(x.quantity for x in s if (x.quantity > 0 and x.price > p) or (x.quantity < 0 and x.price <= p))
+            hi = math.fsum(x.quantity for x in s if (x.quantity > 0 and x.price >= p) or (x.quantity < 0 and x.price < p))
+            assert lo - tol <= r.awards[b.agent][h] <= hi + tol, (b.agent, h, p)
+
+
+# --- hand cases -----------------------------------------------------------------------------------------------
+
+def test_a_congested_line_raises_the_price_behind_it_to_the_marginal_local_bid():
+    # feeder5's line 2-3 is rated 3 MVA; bus 3's buyer wants 5 MW at $90, its seller offers 1 MW at $70.
+    net = load_network("feeder5")
+    bids = [one_hour("far", [(90, 5)]), one_hour("seller", [(70, -1)]), one_hour("near", [(60, 1)])]
+    r = clear_network(bids, net, {"far": "3", "seller": "3", "near": "1"}, 40, WIDE, WIDE)
+    b3 = net.index["3"]
+    line = int(net.line_to[b3])
+    assert r.congested[0] == "line" and r.lines_binding[0] == (line,)
+    assert r.price[0] == 40.0  # the energy price: the substation is not constrained
+    assert r.agent_price["far"][0] == 90.0 and r.agent_price["near"][0] == 40.0
+    # The line carries bus 3's fixed Q (power factor 1 for the microgrids), so the octagon's facet P + tan(pi/8) Q
+    # <= 3 binds: P = 3 - tan(pi/8) Q reaches bus 3, and with the seller's 1 MW the buyer gets P + 1 - fixed load.
+    p_line = 3.0 - math.tan(math.pi / 8) * net.fixed_q[0, b3]
+    assert r.flow_p[0, line] == pytest.approx(p_line, abs=1e-9)
+    assert at(r)["far"] == pytest.approx(p_line + 1 - net.fixed_p[0, b3], abs=1e-9)
+    assert at(r)["seller"] == -1.0 and at(r)["near"] == 1.0
+    assert r.congestion[0, b3] == pytest.approx(50.0, abs=1e-9) and r.voltage[0, b3] == pytest.approx(0.0, abs=1e-9)
+    assert r.buses_binding[0] == () and r.shed_mw.sum() == 0.0
+
+
+def test_a_voltage_limit_prices_the_far_bus():
+    # One line of 1 ohm at 10 kV (r = 0.01 p.u.): U = 1 - 0.02 P >= 0.95^2 caps the far bus's import at 4.875 MW.
+    net = chain(2, r_ohm=1.0, x_ohm=0.0, v_min=0.95)
+    bids = [one_hour("mg", [(100, 3), (80, 3), (60, 3)])]
+    r = clear_network(bids, net, {"mg": "1"}, 40, WIDE, WIDE)
+    cap = (1 - 0.95 ** 2) / 0.02
+    assert r.congested[0] == "voltage" and r.buses_binding[0] == (1,) and r.lines_binding[0] == ()
+    assert r.agent_price["mg"][0] == 80.0 and r.price[0] == 40.0
+    assert at(r)["mg"] == pytest.approx(cap, abs=1e-9) and r.voltage_pu[0, 1] == pytest.approx(0.95, abs=1e-9)
+    assert r.voltage[0, 1] == pytest.approx(40.0, abs=1e-9) and r.congestion[0, 1] == 0.0
+
+
+def test_fixed_load_beyond_the_import_limit_is_shed_at_voll_and_reported():
+    net = chain(3, load=2.0)  # 2 MW at each of buses 1 and 2, 4 MW in all, behind a 3 MW import limit
+    r = clear_network([one_hour("mg", [(50, 1)])], net, {"mg": "2"}, 40, 3.0, 0.0)
+    assert r.congested[0] == "import" and r.price[0] == VOLL == PRICE_CAP
+    assert math.fsum(r.shed_mw[0]) == pytest.approx(1.0, abs=1e-9) and at(r)["mg"] == 0.0
+    assert r.exchange_mw[0] == pytest.approx(3.0, abs=1e-9)
+    assert r.welfare[0] == pytest.approx(-40 * 3.0 - VOLL * 1.0, abs=1e-6)
+    # an hour without a bid sheds too: the fixed load alone is beyond the limit
+    assert r.congested[1] == "import" and r.price[1] == VOLL and math.fsum(r.shed_mw[1]) == pytest.approx(1.0)
+
+
+def test_steps_tied_at_their_bus_price_share_the_line_pro_rata():
+    # A 5 MW line: the buyer at $90 takes 1 MW, the two at $80 share the other 4 MW as 6 : 4, whatever the LP chose
+    net = chain(2, s_max=5.0)
+    bids = [one_hour("mg1", [(80, 6)]), one_hour("mg2", [(80, 4)]), one_hour("mg3", [(90, 1)])]
+    r = clear_network(bids, net, {"mg1": "1", "mg2": "1", "mg3": "1"}, 40, WIDE, WIDE)
+    assert r.agent_price["mg1"][0] == 80.0 and r.congested[0] == "line"
+    assert at(r) == pytest.approx({"mg1": 2.4, "mg2": 1.6, "mg3": 1.0}, abs=TOL)
+
+
+def test_with_q_the_octagon_bounds_the_apparent_power_from_inside_the_circle():
+    # power factor 0.8: a microgrid importing P draws 0.75 P; the 45-degree-ish flow meets a facet, not the circle
+    net = chain(2, s_max=5.0, power_factor=0.8)
+    r = clear_network([one_hour("mg", [(100, 10), (50, 10)])], net, {"mg": "1"}, 40, WIDE, WIDE)
+    p, q = r.flow_p[0, 0], r.flow_q[0, 0]
+    assert q == pytest.approx(0.75 * p) and math.hypot(p, q) < 5.0
+    assert max(FACETS @ (p, q)) == pytest.approx(5.0, abs=1e-9)
+    assert r.congested[0] == "line" and r.agent_price["mg"][0] == 100.0
+
+
+def test_the_congestion_labels_are_the_messages_literal():
+    assert {"none", "import", "export", "line", "voltage"} == set(get_args(Congestion))
+
+
+@pytest.mark.parametrize("call, reason", [
+    (lambda net: clear_network([one_hour("mg1", [])], net, {"mg1": "9"}, 40, 1, 1), "no bus '9'"),
+    (lambda net: clear_network([one_hour("mg1", [])], net, {"mg1": "0"}, 40, 1, 1), "substation"),
+    (lambda net: clear_network([one_hour("mg1", [])], net, {}, 40, 1, 1), "mg1 has no bus"),
+    (lambda net: clear_network([], net, {}, 40, 1, 1, agents=["mg2"]), "mg2 has no bus"),
+    (lambda net: clear_network([], net, [], 40, 1, 1), "must map"),
+    (lambda net: clear_network([], net, {}, 40, 1, 1, voll=0), "voll"),
+    (lambda net: clear_network([], "feeder5", {}, 40, 1, 1), "Network"),
+    (lambda net: clear_network([], net, {}, 40, -1, 1), ">= 0"),
+    (lambda net: clear_network([one_hour("a", []), one_hour("a", [])], net, {"a": "1"}, 40, 1, 1), "more than one"),
+])
+def test_invalid_input_is_rejected_with_a_one_line_reason(call, reason):
+    with pytest.raises(ValueError, match=reason) as e:
+        call(load_network("feeder5"))
+    assert "\n" not in str(e.value)
+
+
+def test_clearing_writes_nothing_on_stdout(capfd):
+    net = load_network("feeder5")
+    clear_network([one_hour("mg", [(90, 5)])], net, {"mg": "3"}, 40, WIDE, WIDE)  # an LP hour
+    hour_program([one_hour("mg", [(90, 5)])], net, {"mg": "3"}, 0, 40, WIDE, WIDE)
+    assert capfd.readouterr().out == ""
+
+
+# --- the copper plate as the special case -----------------------------------------------------------------------
+
+AGENTS = ("mg1", "mg2", "mg3", "mg4")
+prices = st.integers(0, 12).map(lambda p: 10.0 * p)
+quantities = st.one_of(st.integers(-8, 8).map(float),
+                       st.floats(-8, 8, allow_nan=False, allow_infinity=False, allow_subnormal=False))
+steps = st.lists(st.builds(Step, prices, quantities), max_size=3).map(tuple)
+
+
+@st.composite
+def markets(draw, buses=("1", "2", "3", "4")):
+    agents = draw(st.lists(st.sampled_from(AGENTS), min_size=1, max_size=4, unique=True))
+    busy = draw(st.sets(st.integers(0, HOURS - 1), min_size=1, max_size=3))
+    bids = [BidCurve(a, tuple(draw(steps) if h in busy else () for h in range(HOURS))) for a in agents]
+    where = {a: draw(st.sampled_from(buses)) for a in agents}
+    iso = draw(st.lists(prices, min_size=HOURS, max_size=HOURS))
+    imp = draw(st.lists(st.integers(0, 12).map(float), min_size=HOURS, max_size=HOURS))
+    exp = draw(st.lists(st.integers(0, 12).map(float), min_size=HOURS, max_size=HOURS))
+    return bids, where, iso, imp, exp
+
+
+LOOSE = chain(5)
+
+
+@settings(max_examples=40, deadline=None)
+@given(markets())
+def test_a_feeder_whose_limits_never_bind_clears_as_the_copper_plate_bit_for_bit(market):
+    bids, where, iso, imp, exp = market
+    r = clear_network(bids, LOOSE, where, iso, imp, exp)
+    plate = clear(bids, iso, imp, exp)
+    assert repr((r.price, r.awards, r.congested)) == repr((plate.price, plate.awards, plate.congested))
+    assert r.agent_price == plate.agent_price
+    assert (r.bus_price == np.array(plate.price)[:, None]).all() and not r.congestion.any() and not r.voltage.any()
+    assert r.lines_binding == r.buses_binding == ((),) * HOURS and not r.shed_mw.any()
+
+
+def test_with_fixed_load_the_copper_plate_clears_within_the_substation_limits_less_that_load():
+    net = chain(4, load=0.5)  # 1.5 MW of fixed load
+    bids = [one_hour("mg1", [(100, 3), (60, 2)]), one_hour("mg2", [(70, -1)])]
+    r = clear_network(bids, net, {"mg1": "3", "mg2": "1"}, 40, 4.0, 0.0)
+    plate = clear(bids, 40, 4.0 - 1.5, 1.5)
+    assert repr((r.price, r.awards, r.congested)) == repr((plate.price, plate.awards, plate.congested))
+    assert r.price[0] == 70.0 and r.exchange_mw[0] == pytest.approx(4.0)
+
+
+@st.composite
+def line_limited(draw):
+    """Purchases (or sales) at distinct prices and a line limit falling strictly inside one of them."""
+    n = draw(st.integers(1, 5))
+    price = draw(st.lists(st.integers(1, 40).map(lambda p: 5.0 * p), min_size=n, max_size=n, unique=True))
+    size = draw(st.lists(st.integers(1, 40).map(lambda q: q / 4), min_size=n, max_size=n))
+    sell = draw(st.booleans())
+    order = np.argsort(price)[::-1] if not sell else np.argsort(price)  # the order the limit fills them in
+    k = draw(st.integers(0, n - 1))
+    limit = sum(size[i] for i in order[:k]) + size[order[k]] * draw(st.sampled_from([0.25, 0.5, 0.75]))
+    owners = draw(st.lists(st.sampled_from(AGENTS), min_size=n, max_size=n))
+    bids = [BidCurve(a, tuple(tuple(Step(price[i], -size[i] if sell else size[i]) for i in range(n) if owners[i] == a)
+                              if h == 0 else () for h in range(HOURS))) for a in sorted(set(owners))]
+    iso = 0.0 if not sell else 300.0  # every step is in the money at the ISO price
+    return bids, limit, iso
+
+
+@settings(max_examples=40, deadline=None)
+@given(line_limited())
+def test_a_line_limit_clears_as_the_copper_plates_feeder_limit(case):
+    bids, limit, iso = case
+    net = chain(2, s_max=limit)
+    r = clear_network(bids, net, {b.agent: "1" for b in bids}, iso, WIDE, WIDE)
+    plate = clear(bids, iso, limit, limit)
+    assert r.price[0] == iso and r.congested[0] == "line" and r.lines_binding[0] == (0,)
+    assert [r.agent_price[a][0] for a in r.awards] == [plate.price[0]] * len(r.awards)
+    assert r.awards.keys() == plate.awards.keys()
+    for a in r.awards:
+        assert r.awards[a][0] == pytest.approx(plate.awards[a][0], abs=TOL)
+    assert abs(r.flow_p[0, 0]) == pytest.approx(limit, abs=TOL)
+
+
+# --- prices that can be checked -----------------------------------------------------------------------------------
+
+def random_book(net, rng, agents: int, scale: float, hours=range(HOURS)):
+    buses = [b for b in net.buses if b != net.substation]
+    where = {f"mg{i}": buses[int(rng.integers(len(buses)))] for i in range(agents)}
+    bids = [BidCurve(a, tuple(tuple(Step(float(rng.uniform(10, 150)), float(rng.uniform(-0.4, 1.0)) * scale)
+                                    for _ in range(3)) if h in hours else () for h in range(HOURS))) for a in where]
+    return bids, where
+
+
+def kkt(prog, tol: float = 1e-6) -> None:
+    """Primal feasibility, stationarity and complementary slackness of the hour's LP, in scipy's signs."""
+    x = prog.x
+    assert np.abs(prog.A_eq @ x - prog.b_eq).max() <= tol
+    slack = prog.b_ub - prog.A_ub @ x
+    assert slack.min() >= -tol
+    assert (x >= prog.lower - tol).all() and (x <= prog.upper + tol).all()
+    assert (prog.ub_dual <= tol).all() and (prog.lower_dual >= -tol).all() and (prog.upper_dual <= tol).all()
+    gradient = prog.c - prog.A_eq.T @ prog.eq_dual - prog.A_ub.T @ prog.ub_dual - prog.lower_dual - prog.upper_dual
+    assert np.abs(gradient).max() <= tol * max(1.0, np.abs(prog.c).max())
+    assert np.abs(prog.ub_dual * slack).max() <= tol
+    finite_lo, finite_hi = np.isfinite(prog.lower), np.isfinite(prog.upper)
+    assert np.abs(prog.lower_dual[finite_lo] * (x - prog.lower)[finite_lo]).max(initial=0) <= tol
+    assert np.abs(prog.upper_dual[finite_hi] * (prog.upper - x)[finite_hi]).max(initial=0) <= tol
+
+
+@pytest.mark.parametrize("name, agents, scale, limit", [("feeder5", 8, 2.0, 20.0), ("ieee33", 40, 0.15, 6.0)])
+def test_every_hour_meets_the_kkt_conditions_with_lines_and_voltages_binding(name, agents, scale, limit):
+    net = load_network(name, power_factor=0.95)
+    rng = np.random.default_rng(7)
+    lines = buses = 0
+    for _ in range(3):
+        bids, where = random_book(net, rng, agents, scale)
+        r = clear_network(bids, net, where, 40.0, limit, limit)
+        network_limits_hold(net, r)
+        awards_follow_prices(bids, r)
+        assert np.abs(r.energy[:, None] + r.congestion + r.voltage - r.bus_price).max() <= 1e-9
+        for h in range(0, HOURS, 4):
+            prog = hour_program(bids, net, where, h, 40.0, limit, limit)
+            kkt(prog)
+            assert -prog.objective == pytest.approx(r.welfare[h], rel=1e-9, abs=1e-6)
+        lines += sum(map(bool, r.lines_binding))
+        buses += sum(map(bool, r.buses_binding))
+    assert lines and buses  # the books do bind both kinds of limit
+
+
+def with_more_load(net, bus: int, hour: int, eps: float):
+    """The network with ``eps`` MW (and tan(phi) eps Mvar: a microgrid's exchange) more fixed load at ``bus`` in
+    ``hour``."""
+    factor = net.load_profile[hour] * net.load_scale
+    p, q = net.load_p_mw.copy(), net.load_q_mvar.copy()
+    p[bus] += eps / factor
+    q[bus] += net.tan_phi * eps / factor
+    return dataclasses.replace(net, load_p_mw=p, load_q_mvar=q)
+
+
+@pytest.mark.parametrize("name, agents, scale, limit, seed", [
+    ("feeder5", 8, 2.0, 20.0, 0),  # three voltage limits bind
+    ("feeder5", 8, 2.0, 20.0, 1),  # a line and a voltage limit
+    ("ieee33", 40, 0.15, 6.0, 3),  # five lines and two voltage limits
+])
+def test_each_bus_price_is_the_welfare_lost_per_mw_of_load_there(name, agents, scale, limit, seed):
+    net = load_network(name, power_factor=0.95)
+    h, eps = 19, 1e-5
+    bids, where = random_book(net, np.random.default_rng(seed), agents, scale, hours={h})  # continuous prices: no ties
+    r = clear_network(bids, net, where, 40.0, limit, limit)
+    assert r.lines_binding[h] or r.buses_binding[h]
+    base = hour_program(bids, net, where, h, 40.0, limit, limit).objective
+    for b in range(net.n_buses):
+        more = hour_program(bids, with_more_load(net, b, h, eps), where, h, 40.0, limit, limit).objective
+        assert (more - base) / eps == pytest.approx(r.bus_price[h, b], rel=1e-5, abs=1e-5), net.buses[b]
+
+
+# --- determinism ----------------------------------------------------------------------------------------------
+
+def fingerprint(r: NetworkClearing) -> tuple:
+    arrays = (r.bus_price, r.energy, r.congestion, r.voltage, r.flow_p, r.flow_q, r.voltage_pu, r.shed_mw)
+    return (repr((r.price, r.awards, r.congested, r.agent_price, r.lines_binding, r.buses_binding, r.exchange_mw,
+                  r.welfare)), tuple(a.tobytes() for a in arrays))
+
+
+TIGHT = load_network("feeder5", power_factor=0.9)
+
+
+@settings(max_examples=25, deadline=None)
+@given(markets(), st.data())
+def test_permuting_agents_and_steps_changes_nothing(market, data):
+    bids, where, iso, imp, exp = market
+    r = clear_network(bids, TIGHT, where, iso, imp, exp)
+    shuffled = [BidCurve(b.agent, tuple(tuple(data.draw(st.permutations(steps))) for steps in b.hours))
+                for b in data.draw(st.permutations(bids))]
+    assert fingerprint(clear_network(shuffled, TIGHT, dict(reversed(where.items())), iso, imp, exp)) == fingerprint(r)
+    network_limits_hold(TIGHT, r)
+    awards_follow_prices(bids, r)
+
+
+def test_a_bid_above_voll_behind_a_full_line_sheds_the_fixed_load_for_it():
+    # 2 MW of fixed load behind a 3 MW line; a buyer at $150 outbids a value of lost load of $100
+    net = chain(2, s_max=3.0, load=2.0)
+    r = clear_network([one_hour("mg", [(150, 5)])], net, {"mg": "1"}, 40, WIDE, WIDE, voll=100.0)
+    assert r.shed_mw[0, 1] == pytest.approx(2.0, abs=1e-9) and at(r)["mg"] == pytest.approx(3.0, abs=1e-9)
+    assert r.agent_price["mg"][0] == 150.0 and r.congested[0] == "line"
+    assert r.welfare[0] == pytest.approx(150 * 3 - 40 * 3 - 100 * 2, abs=1e-6)
+    assert r.shed_mw[1, 1] == 0.0  # without the bid, serving the load is worth it
+    kkt(hour_program([one_hour("mg", [(150, 5)])], net, {"mg": "1"}, 0, 40, WIDE, WIDE, voll=100.0))
