@@ -145,3 +145,14 @@ def test_solver_bench_runs_both_routes_and_verifies_showing_progress(capsys):
     iterations = [ln for ln in lines if ln.startswith("dmosim: bench solver, 2 scenarios: benders ") and "iteration" in ln]
     assert len(iterations) == routes["benders"]["iterations"]
     assert lines.index("dmosim: bench solver, 2 scenarios: extensive form (cap 60 s)") > lines.index(iterations[-1])
+
+
+def test_clearing_runs_end_to_end(capsys):
+    out = bench_json(capsys, "clearing", "--agents", "4", "--repeats", "2", "--buses", "60")
+    assert out["agents"] == 4 and out["steps"] == 4 * 24 * 3 and out["repeats"] == 2
+    assert [row["case"] for row in out["rows"]] == ["copper plate", "ieee33", "synthetic60"]
+    for row in out["rows"]:
+        assert 0 < row["min_s"] <= row["median_s"] <= row["max_s"]
+        assert sum(row[f"hours_{label}"] for label in ("none", "import", "export", "line", "voltage")) == 24
+    assert out["rows"][0]["over_copper_plate"] == 1.0
+    assert out["goal"] == {}  # the goals are for 100 agents
