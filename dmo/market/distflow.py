@@ -55,7 +55,7 @@ LIMITS_PER_ROUND = 40
 PRICE_TOLERANCE = 1e-9
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # arrays inside: compare fields, not results
 class NetworkClearing:
     """A market day cleared on a feeder. What ``clearing.ClearingResult`` has, with the same meaning: ``price`` (the
     substation's energy price per hour, $/MWh), ``awards`` (agent -> 24 MW, + import, sorted agents), ``congested``

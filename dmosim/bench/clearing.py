@@ -30,7 +30,8 @@ GOAL_S = {"ieee33": 0.2, "synthetic1000": 1.0}  # a day of 100 agents (docs/benc
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--agents", type=positive_int, default=100, help="agents bidding (default: 100)")
     parser.add_argument("--repeats", type=positive_int, default=5, help="clearings timed per case (default: 5)")
-    parser.add_argument("--buses", type=positive_int, default=1000, help="buses of the synthetic feeder (default: 1000)")
+    parser.add_argument("--buses", type=positive_int, default=1000,
+                        help="buses of the synthetic feeder (default: 1000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the bids and the agents' buses (default: 0)")
 
 

@@ -34,7 +34,8 @@ def chain(n: int, *, r_ohm: float = 0.01, x_ohm: float = 0.01, s_max: float = 1e
           v_min: float = 0.5, v_max: float = 1.5, power_factor: float = 1.0, base_kv: float = 10.0):
     """A feeder 0-1-...-(n-1): by default unloaded, with lines and voltage limits that never bind."""
     buses = [{"name": str(b), "p_mw": load if b else 0.0, "q_mvar": 0.0} for b in range(n)]
-    lines = [{"from": str(b), "to": str(b + 1), "r_ohm": r_ohm, "x_ohm": x_ohm, "s_max_mva": s_max} for b in range(n - 1)]
+    lines = [{"from": str(b), "to": str(b + 1), "r_ohm": r_ohm, "x_ohm": x_ohm, "s_max_mva": s_max}
+             for b in range(n - 1)]
     return build(f"chain{n}", base_kv, buses, lines, "0", power_factor=power_factor, v_min=v_min, v_max=v_max,
                  load_profile=(1.0,) * HOURS)
 
@@ -53,9 +54,10 @@ def awards_follow_prices(bids, r: NetworkClearing, tol: float = 1e-7) -> None:
     for b in bids:
         for h in range(HOURS):
             p = r.agent_price[b.agent][h]
-            s = [x for x in b.hours[h] if x.quantity != 0]
-            lo = math.fsum(x.quantity for x in s if (x.quantity > 0 and x.price > p) or (x.quantity < 0 and x.price <= p))
-            hi = math.fsum(x.quantity for x in s if (x.quantity > 0 and x.price >= p) or (x.quantity < 0 and x.price < p))
+            buy = [x for x in b.hours[h] if x.quantity > 0]
+            sell = [x for x in b.hours[h] if x.quantity < 0]
+            lo = math.fsum([x.quantity for x in buy if x.price > p] + [x.quantity for x in sell if x.price <= p])
+            hi = math.fsum([x.quantity for x in buy if x.price >= p] + [x.quantity for x in sell if x.price < p])
             assert lo - tol <= r.awards[b.agent][h] <= hi + tol, (b.agent, h, p)
 
 
@@ -141,6 +143,14 @@ def test_the_congestion_labels_are_the_messages_literal():
 def test_invalid_input_is_rejected_with_a_one_line_reason(call, reason):
     with pytest.raises(ValueError, match=reason) as e:
         call(load_network("feeder5"))
+    assert "\n" not in str(e.value)
+
+
+def test_a_feeder_that_cannot_be_served_even_unloaded_is_refused_in_one_line():
+    net = build("high", 10.0, [{"name": "0"}, {"name": "1", "p_mw": 1.0, "v_min": 1.01, "v_max": 1.05}],
+                [{"from": "0", "to": "1", "r_ohm": 0.1, "x_ohm": 0.1}], "0")  # held at 1.0 p.u., bus 1 needs 1.01
+    with pytest.raises(ValueError, match="cannot clear even with every fixed load shed") as e:
+        clear_network([], net, {}, 40, WIDE, WIDE)
     assert "\n" not in str(e.value)
 
 
