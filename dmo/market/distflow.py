@@ -124,9 +124,10 @@ class HourProgram:
 
 class Feeder:
     """A network's LinDistFlow sensitivities, sparse: flows P = D p and Q = D q (lines x buses), U = U0 - R p - X q
-    with R = D' diag(2r) D and X = D' diag(2x) D (p.u. on 1 MVA). Loads are per bus, MW and Mvar, + consumption."""
+    with R = D' diag(2r) D and X = D' diag(2x) D (p.u. on 1 MVA), and its limits, the voltage band narrowed by
+    ``margin`` p.u. at each end. Loads are per bus, MW and Mvar, + consumption."""
 
-    def __init__(self, network: Network):
+    def __init__(self, network: Network, margin: float = 0.0):
         self.network = network
         self.D = sp.csr_array(network.downstream)
         self.DT = self.D.T.tocsr()
@@ -135,7 +136,7 @@ class Feeder:
         self.D_x = (sp.diags_array(self.x2) @ self.D).tocsr()
         self.s_max = np.asarray(network.s_max_mva, float)
         self.u0 = network.v_substation ** 2
-        self.u_min, self.u_max = network.v_min ** 2, network.v_max ** 2
+        self.u_min, self.u_max = (network.v_min + margin) ** 2, (network.v_max - margin) ** 2
         self.tan_phi = network.tan_phi
         self.feeder_buses = np.flatnonzero(np.arange(network.n_buses) != network.root)
         # Limits as row ids: line l's facet k is 8 l + k; bus j's lower voltage limit 8 L + 2 j, its upper + 1 (the
@@ -439,15 +440,21 @@ def _agent_buses(network: Network, buses: Mapping[str, object], names: Sequence[
     return np.array([network.bus_of(buses[a], f"bus of agent {a}") for a in names], dtype=int)
 
 
-def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll):
+def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin):
     if not isinstance(network, Network):
         raise ValueError(f"network must be a scenarios.network.Network, got {type(network).__name__}")
     bids, names, iso, imp, exp = market_inputs(bids, iso_price, import_limit, export_limit, agents)
     voll = finite(voll, "voll")
     if voll <= 0:
         raise ValueError(f"voll must be > 0, got {voll}")
+    margin = finite(margin, "margin")
+    narrow = np.flatnonzero((network.v_min + margin >= network.v_max - margin)
+                            & (np.arange(network.n_buses) != network.root))  # the substation is held, not limited
+    if margin < 0 or narrow.size:
+        raise ValueError(f"margin must be >= 0 p.u. and leave each bus a voltage band, got {margin}"
+                         + (f" (bus {network.buses[narrow[0]]} has none left)" if narrow.size else ""))
     at = _agent_buses(network, buses, names)
-    feeder = Feeder(network)
+    feeder = Feeder(network, margin)
 
     def hour(h: int) -> _Hour:
         book = hour_book(bids, names, h)
@@ -461,13 +468,15 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
 
 def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object], hour: int,
                  iso_price: float | Sequence[float], import_limit: float | Sequence[float],
-                 export_limit: float | Sequence[float], agents: Iterable[str] = (), voll: float = VOLL) -> HourProgram:
+                 export_limit: float | Sequence[float], agents: Iterable[str] = (), voll: float = VOLL,
+                 margin: float = 0.0) -> HourProgram:
     """The LP of hour index ``hour`` as ``clear_network`` solves it when the copper plate does not hold (here always
     solved, whether or not it does), written out whole: every line facet and voltage limit, those left out of the
     solve with a zero dual. For checking the prices (KKT conditions, sensitivities)."""
     if isinstance(hour, bool) or not isinstance(hour, int) or not 0 <= hour < HOURS:
         raise ValueError(f"hour must be an hour index 0..{HOURS - 1}, got {hour!r}")
-    names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll)
+    names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
+                                     margin)
     h = make(hour)
     sol = h.solve(_copper_plate(h)[1])
     every, shed_every = feeder.rows, h.shed_buses
@@ -489,15 +498,18 @@ def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str,
 def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object],
                   iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                   export_limit: float | Sequence[float], agents: Iterable[str] = (),
-                  voll: float = VOLL) -> NetworkClearing:
+                  voll: float = VOLL, margin: float = 0.0) -> NetworkClearing:
     """Clear one market day on ``network``: per hour the bus prices, the awards and the feeder's state.
 
     ``buses`` maps every bidder and every name in ``agents`` to its bus (a name or index of ``network.buses``, not
     the substation). ``iso_price`` ($/MWh) and the substation's ``import_limit`` and ``export_limit`` (MW, on its
     exchange with the ISO, fixed load included) are a scalar or 24 hourly values, as in ``clearing.clear``.
-    ``voll``: the value of lost load, $/MWh. Raises ValueError (a ``NetworkError`` for a bus) with a one-line reason.
+    ``voll``: the value of lost load, $/MWh. ``margin`` (p.u., >= 0): LinDistFlow's voltages are held within
+    v_min + margin and v_max - margin, room for its error against AC (docs/network.md, "The AC check"). Raises
+    ValueError (a ``NetworkError`` for a bus) with a one-line reason.
     """
-    names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll)
+    names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
+                                     margin)
     out, columns = [], []
     for h in range(HOURS):
         hour = make(h)

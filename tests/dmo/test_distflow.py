@@ -95,6 +95,14 @@ def test_a_voltage_limit_prices_the_far_bus():
     assert r.voltage[0, 1] == pytest.approx(40.0, abs=1e-9) and r.congestion[0, 1] == 0.0
 
 
+def test_a_voltage_margin_holds_lindistflow_inside_the_narrowed_band():
+    net = chain(2, r_ohm=1.0, x_ohm=0.0, v_min=0.95)
+    bids = [one_hour("mg", [(100, 3), (80, 3), (60, 3)])]
+    r = clear_network(bids, net, {"mg": "1"}, 40, WIDE, WIDE, margin=0.01)
+    assert r.voltage_pu[0, 1] == pytest.approx(0.96, abs=1e-9) and r.buses_binding[0] == (1,)
+    assert at(r)["mg"] == pytest.approx((1 - 0.96 ** 2) / 0.02, abs=1e-9) and r.agent_price["mg"][0] == 80.0
+
+
 def test_fixed_load_beyond_the_import_limit_is_shed_at_voll_and_reported():
     net = chain(3, load=2.0)  # 2 MW at each of buses 1 and 2, 4 MW in all, behind a 3 MW import limit
     r = clear_network([one_hour("mg", [(50, 1)])], net, {"mg": "2"}, 40, 3.0, 0.0)
@@ -136,6 +144,8 @@ def test_the_congestion_labels_are_the_messages_literal():
     (lambda net: clear_network([], net, {}, 40, 1, 1, agents=["mg2"]), "mg2 has no bus"),
     (lambda net: clear_network([], net, [], 40, 1, 1), "must map"),
     (lambda net: clear_network([], net, {}, 40, 1, 1, voll=0), "voll"),
+    (lambda net: clear_network([], net, {}, 40, 1, 1, margin=-0.01), "margin must be >= 0"),
+    (lambda net: clear_network([], net, {}, 40, 1, 1, margin=0.05), "bus 1 has none left"),
     (lambda net: clear_network([], "feeder5", {}, 40, 1, 1), "Network"),
     (lambda net: clear_network([], net, {}, 40, -1, 1), ">= 0"),
     (lambda net: clear_network([one_hour("a", []), one_hour("a", [])], net, {"a": "1"}, 40, 1, 1), "more than one"),
