@@ -167,6 +167,20 @@ class Network:
         return self.index[name]
 
 
+def voltage_band(network: Network, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every bus's voltage limits drawn in by ``margin`` p.u. at each end: the band the clearing holds LinDistFlow's
+    voltages in, room for what it neglects (docs/network.md, "The AC check"). NetworkError, one line, if the margin
+    is negative or leaves a bus (other than the substation, which is held at its voltage) no band."""
+    margin = _number(margin, "voltage margin", network.name)
+    lo, hi = network.v_min + margin, network.v_max - margin
+    narrow = np.flatnonzero((lo >= hi) & (np.arange(network.n_buses) != network.root))
+    if margin < 0 or narrow.size:
+        raise NetworkError(f"network {network.name}: a voltage margin must be >= 0 p.u. and leave each bus a "
+                           f"voltage band, got {margin:g}"
+                           + (f" (bus {network.buses[narrow[0]]} has none left)" if narrow.size else ""))
+    return lo, hi
+
+
 def _frozen(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
     return a

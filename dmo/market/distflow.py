@@ -31,7 +31,7 @@ from scipy.optimize import linprog
 
 from messages.schemas import PRICE_CAP
 from scenarios.horizon import HOURS, finite
-from scenarios.network import Network
+from scenarios.network import Network, voltage_band
 
 from .clearing import BidCurve, Book, accepted_fractions, clear_hour, hour_book, market_inputs, per_agent
 
@@ -136,7 +136,8 @@ class Feeder:
         self.D_x = (sp.diags_array(self.x2) @ self.D).tocsr()
         self.s_max = np.asarray(network.s_max_mva, float)
         self.u0 = network.v_substation ** 2
-        self.u_min, self.u_max = (network.v_min + margin) ** 2, (network.v_max - margin) ** 2
+        v_lo, v_hi = voltage_band(network, margin)
+        self.u_min, self.u_max = v_lo ** 2, v_hi ** 2
         self.tan_phi = network.tan_phi
         self.feeder_buses = np.flatnonzero(np.arange(network.n_buses) != network.root)
         # Limits as row ids: line l's facet k is 8 l + k; bus j's lower voltage limit 8 L + 2 j, its upper + 1 (the
@@ -447,14 +448,8 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
     voll = finite(voll, "voll")
     if voll <= 0:
         raise ValueError(f"voll must be > 0, got {voll}")
-    margin = finite(margin, "margin")
-    narrow = np.flatnonzero((network.v_min + margin >= network.v_max - margin)
-                            & (np.arange(network.n_buses) != network.root))  # the substation is held, not limited
-    if margin < 0 or narrow.size:
-        raise ValueError(f"margin must be >= 0 p.u. and leave each bus a voltage band, got {margin}"
-                         + (f" (bus {network.buses[narrow[0]]} has none left)" if narrow.size else ""))
+    feeder = Feeder(network, margin)  # a margin that leaves a bus no band is refused here
     at = _agent_buses(network, buses, names)
-    feeder = Feeder(network, margin)
 
     def hour(h: int) -> _Hour:
         book = hour_book(bids, names, h)

@@ -144,7 +144,7 @@ def test_the_congestion_labels_are_the_messages_literal():
     (lambda net: clear_network([], net, {}, 40, 1, 1, agents=["mg2"]), "mg2 has no bus"),
     (lambda net: clear_network([], net, [], 40, 1, 1), "must map"),
     (lambda net: clear_network([], net, {}, 40, 1, 1, voll=0), "voll"),
-    (lambda net: clear_network([], net, {}, 40, 1, 1, margin=-0.01), "margin must be >= 0"),
+    (lambda net: clear_network([], net, {}, 40, 1, 1, margin=-0.01), "voltage margin must be >= 0"),
     (lambda net: clear_network([], net, {}, 40, 1, 1, margin=0.05), "bus 1 has none left"),
     (lambda net: clear_network([], "feeder5", {}, 40, 1, 1), "Network"),
     (lambda net: clear_network([], net, {}, 40, -1, 1), ">= 0"),
