@@ -9,6 +9,7 @@ A fleet file (TOML) lists its agents::
     shift_hours = 0       # -23..23: load, renewable and award profiles rolled by this many hours (default 0)
     seed = 1              # 0..2**32-1: the agent's realised-day seed (default: its position in the file, 1-based)
     strategy = "naive"    # its bidding strategy, docs/strategies.md (default: the experiment's agents.strategy)
+    bus = "18"            # its bus on the market's feeder, docs/network.md (default: the experiment's placement)
 
 A file lists at most ``MAX_MEMBERS`` agents.
 """
@@ -34,7 +35,7 @@ MAX_MEMBERS = 1024
 # grid at 160 MW, more than any microgrid; above it a scaled day is all curtailment or all spill.
 MAX_SCALE = 10.0
 MAX_SHIFT_HOURS = 23  # a shift of 24 h or more is a shift of less: the day is rolled round
-_FIELDS = ("id", "case", "scale", "shift_hours", "seed", "strategy")
+_FIELDS = ("id", "case", "scale", "shift_hours", "seed", "strategy", "bus")
 MAX_STRATEGY = 500  # a strategy as named: what a registration's strategy may carry
 
 # Quantities in MW or MWh, by part of the case; costs, times, windows and prices are kept.
@@ -57,7 +58,8 @@ class FleetError(ValueError):
 class FleetMember:
     """One agent of a fleet: its id, its base case (built-in name or path), size, time shift, realised-day seed and
     bidding strategy as named (None: the experiment's; the name is checked where strategies are known,
-    ``microgrid_agent.agent.strategies.strategy_name``)."""
+    ``microgrid_agent.agent.strategies.strategy_name``), and its bus on the market's feeder (None: the
+    experiment's placement; checked against the feeder where the run knows it)."""
 
     id: str
     case: str
@@ -65,6 +67,7 @@ class FleetMember:
     shift_hours: int = 0
     seed: int = 0
     strategy: str | None = None
+    bus: str | None = None
 
 
 def _transform(data: dict, fields: dict[str, tuple[str, ...]], f) -> None:
@@ -172,7 +175,10 @@ def _member(path: Path, index: int, entry, seen: set[str]) -> FleetMember:
     strategy = entry.get("strategy")
     if strategy is not None and (not isinstance(strategy, str) or not 1 <= len(strategy.strip()) <= MAX_STRATEGY):
         _fail(path, f"{where}.strategy", f"must be a strategy's name of 1..{MAX_STRATEGY} characters, got {strategy!r}")
-    member = FleetMember(agent, case, float(scale), shift, seed, strategy)
+    bus = entry.get("bus")
+    if bus is not None and (isinstance(bus, bool) or not isinstance(bus, (str, int)) or not 1 <= len(str(bus)) <= 64):
+        _fail(path, f"{where}.bus", f"must be a bus's name (a string or an integer), got {bus!r}")
+    member = FleetMember(agent, case, float(scale), shift, seed, strategy, None if bus is None else str(bus))
     try:
         member_case(member)
     except CaseError as exc:

@@ -12,7 +12,7 @@ from scenarios.fleet import FleetError, FleetMember, member_case
 
 from ..experiment.spec import Experiment, ExperimentError
 from ..launch.faults import Fault, parse_fault
-from ..launch.roles import fleet_of, strategy_of
+from ..launch.roles import fleet_of, network_of, placement_of, strategy_of
 
 
 class Checked:
@@ -94,6 +94,7 @@ def check_inputs(experiment: Experiment, checked: Checked | None = None) -> list
     late = [f for f in faults if f.day > experiment.days]
     if late:
         raise ExperimentError(f"--fault {late[0]}: day {late[0].day} is past the run's {experiment.days} day(s)")
+    placement_of(experiment, network_of(experiment))  # the feeder loads and has every agent's bus
     return fleet
 
 

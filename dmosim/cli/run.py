@@ -17,6 +17,7 @@ from dmo.market.choice import Trust, UntrustedRule, choose
 from messages.keys import new_run_id
 from microgrid_agent.agent.strategies import strategy_name
 from scenarios.case import load_case, parse_toml
+from scenarios.fleet import FleetError
 
 from ..console import Progress, UsageError, print_json
 from ..experiment.rundir import RunDir, RunDirError
@@ -144,11 +145,12 @@ def experiment_in_recording(path: str) -> Experiment:
 
 
 def run(args) -> int:
-    experiment = resolved(experiment_of(args))
+    experiment = experiment_of(args)
     try:
+        experiment = resolved(experiment)  # on a feeder, places the agents: a fleet or bus that cannot be is here
         fleet = check_inputs(experiment)
         _load_strategies(args, experiment, fleet)
-    except ExperimentError as exc:
+    except (ExperimentError, FleetError) as exc:
         raise UsageError(str(exc)) from None
     record_to = recording_path(args.record, args.overwrite) if args.record else None
     recorder_faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent == "recorder"]
@@ -160,7 +162,8 @@ def run(args) -> int:
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
               f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, bidding with "
               f"{', '.join(sorted({strategy_of(experiment, m) for m in fleet}))}, "
-              f"{len(experiment.faults)} fault(s)")
+              + (f"on feeder {experiment.network.feeder} at buses {', '.join(experiment.network.buses)}, "
+                 if experiment.network.feeder else "") + f"{len(experiment.faults)} fault(s)")
         return 0
     run_id = new_run_id()
     try:

@@ -12,12 +12,13 @@ from dmo.market.rules import MAX_MW, MAX_RATE
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.days import MAX_SEED
-from scenarios.fleet import FleetError
+from scenarios.fleet import MAX_SCALE, FleetError
 from scenarios.generation import MAX_SCENARIOS
+from scenarios.network import NETWORKS
 
 from ..console import UsageError
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
-from ..experiment.spec import FLAGS, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
+from ..experiment.spec import FLAGS, MAX_VOLTAGE_MARGIN, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
 from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT, fleet_of, resolved
 from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 
@@ -26,8 +27,9 @@ DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "sc
 # The settings of each role: what it reads of the experiment and may be told on its command line.
 RUN_SETTINGS = ("agents.count", "agents.fleet", "days", "market_day", "seed")
 MARKET_SETTINGS = tuple(k for k in FLAGS if k.startswith("market."))
-DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
-AGENT_SETTINGS = RUN_SETTINGS + ("agents.strategy", "market.island_hours") + tuple(
+NETWORK_SETTINGS = tuple(k for k in FLAGS if k.startswith("network."))
+DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + NETWORK_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
+AGENT_SETTINGS = RUN_SETTINGS + ("agents.strategy", "market.island_hours", "network.feeder") + tuple(
     k for k in FLAGS if k.startswith(("schedule.", "profiles.")))
 
 
@@ -86,6 +88,14 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
         "profiles.renewable_scale": ("--renewable-scale", dict(type=scales, metavar="X,Y,...",
                                                                help="each day's renewable forecasts times these, as "
                                                                     "--load-scale (default: 1)")),
+        "network.feeder": ("--feeder", dict(metavar="NETWORK", help=(
+            f"clear on this feeder, a built-in ({', '.join(NETWORKS)}) or a network file (TOML or pandapower "
+            "JSON; docs/network.md), each agent at its bus (default: none, the copper plate)"))),
+        "network.load_scale": ("--network-load-scale", dict(type=number(0, MAX_SCALE, above=True), help=(
+            f"the feeder's fixed loads times this (default: {default.network.load_scale:g})"))),
+        "network.voltage_margin": ("--voltage-margin", dict(type=number(0, MAX_VOLTAGE_MARGIN), help=(
+            "p.u. the clearing keeps inside every bus's voltage limits, for what LinDistFlow neglects "
+            f"(default: {default.network.voltage_margin:g})"))),
     }
     for name, what in DEADLINES:
         flags[f"deadlines.{name}"] = (f"--{name}-timeout", dict(

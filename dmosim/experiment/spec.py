@@ -38,6 +38,7 @@ MAX_PATH = 4096            # a file's path (a case, a fleet), as Linux's PATH_MA
 MAX_RULE = 500             # a settlement rule as named: what an award's settlement_rule may carry
 MAX_FAULT_SPEC = 200       # one fault as written
 MAX_NAME = 100             # an experiment's name: part of a sweep's directory name
+MAX_VOLTAGE_MARGIN = 0.1   # p.u. kept inside a bus's voltage limits: a tenth of nominal, twice ANSI's whole band
 
 
 class ExperimentError(ValueError):
@@ -137,6 +138,17 @@ class Deadlines(_Section):
     hour: Seconds = 300.0
 
 
+class NetworkSettings(_Section):
+    """The feeder the market clears on (docs/network.md): none (the default) is the copper plate. ``feeder`` is a
+    built-in network or a network file (TOML or pandapower JSON, relative to the experiment file); ``buses`` places
+    the agents, in the fleet's order, where a fleet file gives no bus (else they are spread over the feeder)."""
+
+    feeder: PathText | None = None
+    load_scale: Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)] = 1.0
+    voltage_margin: Annotated[float, Field(ge=0, le=MAX_VOLTAGE_MARGIN, allow_inf_nan=False)] = 0.0
+    buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=64)]], Field(max_length=MAX_AGENTS)] = []
+
+
 class Experiment(_Section):
     """A whole run. ``market_day`` None means today (resolved when the run starts)."""
 
@@ -149,7 +161,15 @@ class Experiment(_Section):
     schedule: ScheduleSettings = ScheduleSettings()
     profiles: Profiles = Profiles()
     deadlines: Deadlines = Deadlines()
+    network: NetworkSettings = NetworkSettings()
     faults: Annotated[list[Annotated[str, Field(max_length=MAX_FAULT_SPEC)]], Field(max_length=MAX_FAULTS)] = []
+
+    @model_validator(mode="after")
+    def _bids_on_a_feeder(self):
+        if self.network.feeder is not None and self.market.mode == "fixed":
+            raise ValueError("network.feeder: a feeder is cleared from bids; market.mode \"fixed\" publishes given "
+                             "awards and clears nothing")
+        return self
 
     @field_validator("name")
     @classmethod
@@ -195,6 +215,8 @@ FLAGS = {
     "profiles.load_scale": "load_scale", "profiles.renewable_scale": "renewable_scale",
     "deadlines.registration": "registration_timeout", "deadlines.bid": "bid_timeout",
     "deadlines.schedule": "schedule_timeout", "deadlines.hour": "hour_timeout",
+    "network.feeder": "feeder", "network.load_scale": "network_load_scale",
+    "network.voltage_margin": "voltage_margin",
 }
 
 
@@ -242,9 +264,10 @@ def load_experiment(path: str | Path) -> Experiment:
     """Read and validate an experiment file; a fleet it names is taken relative to the file."""
     path = Path(path)
     data = read_toml(path, "experiment", ExperimentError)
-    fleet = data.get("agents", {}).get("fleet") if isinstance(data.get("agents"), dict) else None
-    if isinstance(fleet, str) and not Path(fleet).is_absolute():
-        data["agents"]["fleet"] = str(path.parent / fleet)
+    for section, key in (("agents", "fleet"), ("network", "feeder")):
+        value = data.get(section, {}).get(key) if isinstance(data.get(section), dict) else None
+        if isinstance(value, str) and not Path(value).is_absolute() and (key != "feeder" or Path(value).suffix):
+            data[section][key] = str(path.parent / value)  # a file; a built-in feeder's name has no suffix
     return parse_experiment(data, str(path))
 
 

@@ -166,9 +166,12 @@ def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir
     fleet_file = rundir.logs / "fleet.toml"
     fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
                                   f"scale = {m.scale!r}\nshift_hours = {m.shift_hours}\nseed = {m.seed}\n"
-                                  + (f"strategy = {json.dumps(m.strategy)}\n" if m.strategy else "") + "\n"
+                                  + (f"strategy = {json.dumps(m.strategy)}\n" if m.strategy else "")
+                                  + (f"bus = {json.dumps(m.bus)}\n" if m.bus else "") + "\n"
                                   for m in fleet))
     cases = sorted({str(p) for p in map(case_path, [experiment.market.case, *(m.case for m in fleet)]) if p.is_file()})
+    feeder = experiment.network.feeder
+    cases += [feeder] if feeder is not None and Path(feeder).is_file() else []  # a network file goes with its run
     flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
     return flags + [flag for path in [str(rundir.experiment), *cases, str(fleet_file)] for flag in ("--attach", path)]
 

@@ -16,6 +16,7 @@ from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
 from scenarios.case import load_case
 from scenarios.fleet import FleetMember, load_fleet, make_fleet
+from scenarios.network import NETWORKS, Network, NetworkError, load_network, voltage_band
 
 from ..experiment.spec import Experiment, ExperimentError, with_market_terms
 from .faults import parse_fault
@@ -25,15 +26,73 @@ EXPORT_LIMIT_PER_AGENT = 5.0  # MW of feeder export per agent, where the experim
 
 
 def resolved(experiment: Experiment) -> Experiment:
-    """The experiment as a run fixes it: its market day (today if it named none) and its fleet file as an absolute
-    path, so each role reads the same run from the run directory's copy, whatever directory it starts in."""
+    """The experiment as a run fixes it: its market day (today if it named none) and its fleet and network files as
+    absolute paths, so each role reads the same run from the run directory's copy, whatever directory it starts in."""
     update = {}
     if experiment.market_day is None:
         update["market_day"] = dt.date.today().isoformat()
     fleet = experiment.agents.fleet
     if fleet is not None and not Path(fleet).is_absolute():
         update["agents"] = experiment.agents.model_copy(update={"fleet": str(Path(fleet).resolve())})
-    return experiment.model_copy(update=update) if update else experiment
+    feeder = experiment.network.feeder
+    if feeder is not None and feeder not in NETWORKS and not Path(feeder).is_absolute():
+        update["network"] = experiment.network.model_copy(update={"feeder": str(Path(feeder).resolve())})
+    out = experiment.model_copy(update=update) if update else experiment
+    if feeder is None:
+        return out
+    fleet, buses = fleet_of(out), out.network.buses
+    if len(buses) != len(fleet) or any(m.bus not in (None, b) for m, b in zip(fleet, buses)):
+        # every agent's bus, written down once: each role then reads its own without loading the feeder
+        placement = placement_of(out, network_of(out))
+        out = out.model_copy(update={"network": out.network.model_copy(update={"buses": list(placement.values())})})
+    return out
+
+
+def bus_of(experiment: Experiment, member: FleetMember) -> str | None:
+    """The bus the agent registers at: its place in the resolved experiment's ``network.buses`` (None on the
+    copper plate)."""
+    if experiment.network.feeder is None:
+        return None
+    return experiment.network.buses[[m.id for m in fleet_of(experiment)].index(member.id)]
+
+
+def network_of(experiment: Experiment) -> Network | None:
+    """The feeder the run's market clears on, at the experiment's load scale (None: the copper plate);
+    ExperimentError, one line, if it cannot be used."""
+    n = experiment.network
+    if n.feeder is None:
+        return None
+    try:
+        network = load_network(n.feeder, load_scale=n.load_scale)
+        voltage_band(network, n.voltage_margin)  # a margin that leaves a bus no band fails here, not in the DMO
+    except NetworkError as exc:
+        raise ExperimentError(f"network.feeder: {exc}") from None
+    return network
+
+
+def placement_of(experiment: Experiment, network: Network | None) -> dict[str, str]:
+    """Agent -> its bus (docs/network.md, "Placing the agents"): its fleet entry's bus, else ``network.buses`` by
+    its position in the fleet, else spread: agent i of n at the feeder's non-substation bus i x m / n (m of them, in
+    the feeder's order). Empty on the copper plate, where a bus is an ExperimentError; so is a bus the feeder lacks,
+    or its substation."""
+    fleet, given = fleet_of(experiment), experiment.network.buses
+    if network is None:
+        if given or any(m.bus for m in fleet):
+            raise ExperimentError("network.buses or a fleet's bus places agents on a feeder, but network.feeder "
+                                  "names none")
+        return {}
+    if len(given) > len(fleet):
+        raise ExperimentError(f"network.buses: {len(given)} buses for {len(fleet)} agents")
+    free = [b for i, b in enumerate(network.buses) if i != network.root]
+    out = {}
+    for i, m in enumerate(fleet):
+        bus = m.bus or (given[i] if i < len(given) else free[i * len(free) // len(fleet)])
+        try:
+            network.bus_of(bus, f"the bus of {m.id}")
+        except NetworkError as exc:
+            raise ExperimentError(str(exc)) from None
+        out[m.id] = bus
+    return out
 
 
 def fleet_of(experiment: Experiment) -> list[FleetMember]:
@@ -65,7 +124,8 @@ def agent_config(experiment: Experiment, member: FleetMember):
     s, p = experiment.schedule, experiment.profiles
     return AgentConfig(scenarios=s.scenarios, island_hours=experiment.market.island_hours, gap=s.gap,
                        time_limit=s.time_limit, seed=member.seed, method=s.method, workers=s.workers,
-                       load_scale=tuple(p.load_scale), renewable_scale=tuple(p.renewable_scale))
+                       load_scale=tuple(p.load_scale), renewable_scale=tuple(p.renewable_scale),
+                       bus=bus_of(experiment, member))
 
 
 def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConfig:
@@ -74,6 +134,7 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
     e, m, d = experiment, experiment.market, experiment.deadlines
     case = load_case(m.case)
     agents = len(fleet_of(e))
+    network = network_of(e)
     rule = None if m.settlement is None else with_market_terms(choose(m.settlement), m, case.grid.penalty)
     return DayConfig(
         market_day=e.market_day, agents=agents, iso_price=tuple(case.grid.iso_price),
@@ -83,7 +144,8 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
         islanded_hours=(), days=e.days, islanding_by_day=islanding_by_day(m.island_hours, e.seed, e.days),
         fixed_awards=tuple(case.grid.p_sch) if m.mode == "fixed" else None,
         registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, journal=journal,
-        settlement=rule)
+        settlement=rule, network=network, placement=placement_of(e, network),
+        voltage_margin=e.network.voltage_margin)
 
 
 def message_faults(experiment: Experiment) -> list[MessageFault]:

@@ -67,6 +67,7 @@ class AgentConfig:
     workers: int
     load_scale: tuple[float, ...]
     renewable_scale: tuple[float, ...]
+    bus: str | None = None  # the bus of the market's feeder it registers at (None: a copper-plate market)
     idle_s: float = 3600.0  # without news from the DMO for this long, the agent gives up
     statement_s: float = 30.0  # after the day summary, how long to wait for the agent's own statement
 
@@ -136,7 +137,7 @@ class MicrogridAgent:
         grid = self.case.grid
         self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.base.name,
                                    max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max,
-                                   strategy=self.strategy.label))
+                                   strategy=self.strategy.label, bus=self.config.bus))
         # Nothing else goes before the registration's receipt: a restarted process's bid, schedule or report would
         # be refused as unregistered (and not sent again) were it to overtake a lost registration.
         if not self.delivery.drained(self.config.idle_s):

@@ -1,0 +1,79 @@
+"""A feeder in an experiment: the [network] section, each agent's bus (fleet, list or spread), and the bus rule of
+registration."""
+
+import pytest
+
+from dmo.market.acceptance import check_bus
+from dmosim.experiment.spec import ExperimentError, load_experiment, parse_experiment
+from dmosim.launch.roles import bus_of, fleet_of, network_of, placement_of, resolved
+from messages import Registration
+from scenarios.network import load_network
+
+
+def _experiment(**network):
+    return parse_experiment({"agents": {"count": 4}, "network": network})
+
+
+def test_agents_are_spread_over_the_feeder_unless_placed():
+    e = _experiment(feeder="feeder5")
+    net = network_of(e)
+    assert placement_of(e, net) == {"mg1": "1", "mg2": "2", "mg3": "3", "mg4": "4"}
+    e = _experiment(feeder="ieee33", buses=["17", "32"])
+    placed = placement_of(e, network_of(e))  # the rest spread: agent i of 4 at bus 1 + i x 32 / 4 of the feeder's
+    assert placed == {"mg1": "17", "mg2": "32", "mg3": "17", "mg4": "25"}
+
+
+def test_a_fleet_entrys_bus_wins_and_the_run_writes_every_bus_down(tmp_path):
+    (tmp_path / "fleet.toml").write_text('[[agents]]\nid = "a"\nbus = 3\n\n[[agents]]\nid = "b"\n')
+    (tmp_path / "e.toml").write_text('[agents]\nfleet = "fleet.toml"\n[network]\nfeeder = "feeder5"\nbuses = ["1", "4"]\n')
+    e = resolved(load_experiment(tmp_path / "e.toml"))
+    assert e.network.buses == ["3", "4"]
+    assert [bus_of(e, m) for m in fleet_of(e)] == ["3", "4"]
+
+
+def test_a_network_file_is_taken_relative_to_the_experiment(tmp_path):
+    from scenarios.case import DATA_DIR
+
+    (tmp_path / "f.toml").write_text((DATA_DIR / "feeder5.toml").read_text())
+    (tmp_path / "e.toml").write_text('[network]\nfeeder = "f.toml"\nload_scale = 2.0\n')
+    e = resolved(load_experiment(tmp_path / "e.toml"))
+    assert e.network.feeder == str(tmp_path / "f.toml")
+    assert network_of(e).fixed_p.sum() == pytest.approx(2 * load_network("feeder5").fixed_p.sum())
+
+
+@pytest.mark.parametrize("network, message", [
+    ({"feeder": "feeder5", "buses": ["9"]}, "no bus '9' in network feeder5"),
+    ({"feeder": "feeder5", "buses": ["0"]}, "substation"),
+    ({"feeder": "feeder5", "buses": ["1"] * 5}, "5 buses for 4 agents"),
+    ({"feeder": "nowhere"}, "unknown network 'nowhere'"),
+    ({"feeder": "feeder5", "voltage_margin": 0.06}, "bus 1 has none left"),
+    ({"buses": ["1"]}, "network.feeder names none"),
+])
+def test_bad_placements_are_one_line(network, message):
+    e = _experiment(**network)
+    with pytest.raises(ExperimentError, match=message) as err:
+        placement_of(e, network_of(e))
+    assert "\n" not in str(err.value)
+
+
+def test_a_feeder_needs_bids():
+    with pytest.raises(ExperimentError, match="a feeder is cleared from bids"):
+        parse_experiment({"market": {"mode": "fixed"}, "network": {"feeder": "feeder5"}})
+
+
+def _registration(bus):
+    return Registration(sender="mg1", market_day="2026-07-01", case="paper", max_import_mw=1.0, max_export_mw=1.0,
+                        bus=bus)
+
+
+def test_registration_bus_rule():
+    net = load_network("feeder5")
+    assert check_bus(_registration(None), None, {}) is None
+    assert check_bus(_registration("1"), None, {})[0] == "invalid"  # a bus, and no feeder
+    assert check_bus(_registration(None), net, {"mg1": "2"}) is None  # the run's placement
+    assert check_bus(_registration("2"), net, {"mg1": "2"}) is None
+    assert "placed it at bus 2" in check_bus(_registration("3"), net, {"mg1": "2"})[1]
+    assert check_bus(_registration("3"), net, {}) is None  # an agent the run does not place names its own
+    assert "names no bus" in check_bus(_registration(None), net, {})[1]
+    assert "substation" in check_bus(_registration("0"), net, {})[1]
+    assert "no bus '7'" in check_bus(_registration("7"), net, {})[1]
