@@ -292,22 +292,31 @@ class Award(_FromDmo):
 # --- scheduling ---------------------------------------------------------------------------------------------
 
 class ACCheck(_WireModel):
-    """The AC power flow of one hour of a feeder (docs/network.md, "The AC check")."""
+    """The AC power flow of one hour of a feeder (docs/network.md, "The AC check"); every number null, every name
+    empty and the one violation "no AC solution" when it did not converge."""
 
     converged: Annotated[Bool, Field(description="whether the Newton-Raphson power flow converged")]
-    v_min_pu: Annotated[Float, Field(description="the lowest bus voltage, p.u.")]
-    v_min_bus: Annotated[BusName, Field(description="the bus of the lowest voltage")]
-    v_max_pu: Annotated[Float, Field(description="the highest bus voltage, p.u. (the substation excluded)")]
-    v_max_bus: Annotated[BusName, Field(description="the bus of the highest voltage")]
-    max_loading: Annotated[NonNeg, Field(description="the most loaded line's apparent power over its limit")]
+    v_min_pu: Annotated[Float | None, Field(description="the lowest bus voltage, p.u.")]
+    v_min_bus: Annotated[Annotated[str, Strict(), Field(max_length=64)], Field(description=(
+        "the bus of the lowest voltage"))]
+    v_max_pu: Annotated[Float | None, Field(description="the highest bus voltage, p.u.")]
+    v_max_bus: Annotated[Annotated[str, Strict(), Field(max_length=64)], Field(description=(
+        "the bus of the highest voltage"))]
+    max_loading: Annotated[NonNeg | None, Field(description=(
+        "the most loaded line's apparent power at its sending end over its limit"))]
     max_loading_line: Annotated[Annotated[str, Strict(), Field(max_length=130)], Field(description=(
         "the most loaded line, \"from-to\""))]
-    voltage_error_pu: Annotated[NonNeg, Field(description="max over buses of |V LinDistFlow - V AC|, p.u.")]
-    flow_error_mw: Annotated[NonNeg, Field(description="max over lines of |P LinDistFlow - P AC|, MW")]
-    losses_mw: Annotated[Float, Field(description="the feeder's losses, MW")]
-    substation_mw: Annotated[Float, Field(description="the AC import at the substation, MW")]
+    voltage_error_pu: Annotated[NonNeg | None, Field(description="max over buses of |V LinDistFlow - V AC|, p.u.")]
+    flow_error_mw: Annotated[NonNeg | None, Field(description=(
+        "max over lines of |P LinDistFlow - P AC| at the line's substation end, MW"))]
+    losses_mw: Annotated[Float | None, Field(description="the feeder's losses, MW")]
+    substation_mw: Annotated[Float | None, Field(description="the AC import at the substation, MW")]
     violations: Annotated[tuple[Text, ...], Field(max_length=MAX_BUSES * 2), Field(description=(
-        "each limit the AC flow breaks, one short line each, e.g. \"undervoltage 17 0.9491<0.95\""))]
+        "each limit the AC flow breaks, one short line each, e.g. \"undervoltage 17 0.9491<0.95\", "
+        "\"overload 2-3 104.2%\" (against the feeder's own limits, not the clearing's margin)"))]
+    margin: Annotated[NonNeg, Field(description=(
+        "the voltage margin, p.u., the clearing kept inside the limits: voltage_error_pu at or below it means the "
+        "margin covered what LinDistFlow neglects that hour"))]
 
 
 class NetworkHour(_FromDmo):
@@ -323,6 +332,9 @@ class NetworkHour(_FromDmo):
         "the feeder's name"))]
     buses: Annotated[tuple[BusName, ...], Field(min_length=2, max_length=MAX_BUSES), Field(description=(
         "the feeder's buses, in its order; every per-bus field follows it"))]
+    lines: Annotated[tuple[Annotated[str, Strict(), Field(min_length=3, max_length=130)], ...],
+                     Field(min_length=1, max_length=MAX_BUSES), Field(description=(
+        "the feeder's lines as \"from-to\" (from the substation's side), in its order; line_loading follows it"))]
     substation_mw: Annotated[Float, Field(description=(
         "the DMO's position at the substation by LinDistFlow, MW, + import: in the plan, its bid to the ISO "
         "(paper Fig. 1)"))]
@@ -351,8 +363,9 @@ class NetworkHour(_FromDmo):
             values = getattr(self, name)
             if values is not None and len(values) != n:
                 raise ValueError(f"{name} has {len(values)} values for {n} buses")
-        if len(self.line_loading) != n - 1:
-            raise ValueError(f"line_loading has {len(self.line_loading)} values for a radial feeder of {n} buses")
+        if len(self.lines) != n - 1 or len(self.line_loading) != n - 1:
+            raise ValueError(f"a radial feeder of {n} buses has {n - 1} lines; lines and line_loading give "
+                             f"{len(self.lines)} and {len(self.line_loading)}")
         return self
 
 

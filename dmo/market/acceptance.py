@@ -65,6 +65,26 @@ def repeated(what: str, sender: str) -> Refusal:
     return "duplicate", f"second {what} from {sender}; the first one stands"
 
 
+def check_bus(msg: Registration, network, placement) -> Refusal | None:
+    """On a feeder (``network``, a ``scenarios.network.Network``; None: the copper plate, where every bus is
+    refused), a registration's bus must be one of the feeder's buses other than the substation, and the one
+    ``placement`` (agent -> bus) places the agent at, if it does; an agent the run does not place must name its bus."""
+    if network is None:
+        return None if msg.bus is None else ("invalid", f"{msg.sender} names bus {msg.bus}, but this market has no "
+                                                        "feeder (a copper plate)")
+    placed = placement.get(msg.sender)
+    bus = msg.bus if msg.bus is not None else placed
+    if bus is None:
+        return "invalid", f"{msg.sender} names no bus and the run places it at none: on a feeder, name your bus"
+    if placed is not None and bus != placed:
+        return "invalid", f"{msg.sender} names bus {bus}, but the run placed it at bus {placed}"
+    try:
+        network.bus_of(bus, f"registration of {msg.sender}")
+    except ValueError as err:
+        return "invalid", str(err)
+    return None
+
+
 def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported, registration: Registration,
                        connected: tuple[bool, ...] | None = None) -> Refusal | None:
     """A meter report is accepted in real-time hour ``hour`` (1..24) if it is for this hour, at the day's

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from messages.schemas import PRICE_CAP, PRICE_FLOOR
 from scenarios.days import day_seed, market_days
 from scenarios.horizon import HOURS
+from scenarios.network import Network
 
 from ..market.choice import ChosenRule, paper_rule
 
@@ -44,6 +46,9 @@ class DayConfig:
     days: int = 1
     islanding_by_day: tuple[tuple[int, ...], ...] | None = None
     settlement: ChosenRule | None = None  # the settlement rule (None: the paper's at penalty and credit)
+    network: Network | None = None  # the feeder the market clears on (None: the copper plate)
+    placement: Mapping[str, str] = field(default_factory=dict)  # agent -> its bus on the feeder
+    voltage_margin: float = 0.0  # p.u. the clearing keeps inside every bus's voltage limits (docs/network.md)
 
     def __post_init__(self):
         if self.days < 1:

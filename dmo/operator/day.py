@@ -30,8 +30,9 @@ from scenarios.names import check_agent_id
 
 from ..market.acceptance import PHASE_ORDER
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
+from ..market.distflow import NetworkClearing, clear_network
 from ..market.settlement import DayTotals, Statement, accepted_day
-from . import intake, outbox, rejoin
+from . import feeder, intake, outbox, rejoin
 from .config import DayConfig
 from .history import DayHistory
 from .journal import Journal, restore
@@ -129,20 +130,26 @@ def bid_curve(bid: Bid) -> BidCurve:
                                       for hour in bid.hours))
 
 
-def clearing_of(config: DayConfig, state: DayState) -> ClearingResult:
-    """The day's clearing, a pure function of the bids it accepted (a resumed DMO gets the same awards again)."""
+def clearing_of(config: DayConfig, state: DayState) -> ClearingResult | NetworkClearing:
+    """The day's clearing, a pure function of the bids it accepted (a resumed DMO gets the same awards again): on
+    the copper plate, or on the feeder with each agent at its bus."""
     agents = sorted(state.registered)
     if config.fixed_awards is not None:
         return fixed_awards({a: config.fixed_awards for a in agents}, config.iso_price)
     bids = [bid_curve(state.bids[a]) for a in sorted(state.bids)]
+    if config.network is not None:
+        return clear_network(bids, config.network, feeder.sites(config, state), config.iso_price,
+                             config.import_limit, config.export_limit, agents=agents, margin=config.voltage_margin)
     return clear(bids, config.iso_price, config.import_limit, config.export_limit, agents=agents)
 
 
-def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult) -> tuple[dict[str, Statement],
-                                                                                           DayTotals]:
-    """The day's statements, a pure function of its awards and the meter reports it accepted."""
-    return config.rule.settle(accepted_day(clearing.awards, clearing.price, state.meter,
-                                           subperiods=config.subperiods, registered=state.registered))
+def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult | NetworkClearing
+                  ) -> tuple[dict[str, Statement], DayTotals]:
+    """The day's statements, a pure function of its awards and the meter reports it accepted; on a feeder each
+    agent's energy at its own bus's prices."""
+    own = dict(clearing.agent_price) if isinstance(clearing, NetworkClearing) else None
+    return config.rule.settle(accepted_day(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods,
+                                           registered=state.registered, agent_prices=own))
 
 
 class MarketDay:
@@ -229,7 +236,7 @@ class MarketDay:
         s, c = self.state, self.config
         self._clock("registration", c.registration_s)
 
-        rule = intake.registration(s)
+        rule = intake.registration(s, c.network, c.placement)
 
         def accept(msg):
             refusal = rule(msg)
@@ -256,10 +263,14 @@ class MarketDay:
         self._clock("clearing", self.config.bids_s)
         self.clearing = clearing_of(self.config, self.state)
         self._publish_awards()
+        if isinstance(self.clearing, NetworkClearing):  # after the awards: the agents need not wait for the AC check
+            for msg in feeder.planned(self.config, self.state.day, self.clearing, feeder.sites(self.config, self.state)):
+                self._publish(msg)
 
     def _publish_awards(self) -> None:
+        at = feeder.sites(self.config, self.state)
         for agent in sorted(self.state.registered):
-            self._publish(outbox.award(self.config, self.state.day, self.clearing, agent))
+            self._publish(outbox.award(self.config, self.state.day, self.clearing, agent, at.get(agent)))
 
     def _scheduling(self) -> None:
         s, c = self.state, self.config
@@ -291,6 +302,9 @@ class MarketDay:
         for incident in s.log.close(s.phase, s.hour):
             log.warning("settlement: %s", incident.reason)
         statements, totals = settlement_of(c, s, self.clearing)
+        if c.network is not None:
+            for msg in feeder.realised(c, s.day, s, feeder.sites(c, s)):
+                self._publish(msg)
         for st in statements.values():
             self._publish(outbox.statement_message(st, s.market_day, *c.rates, c.rule.label))
         self._publish(outbox.day_summary(s.market_day, s.registered, self.clearing.price, statements, s.rejected,
@@ -342,7 +356,8 @@ class MarketDay:
                 due = round(max(0.1, self._bids_due - time.monotonic()), 1)
                 self._publish(outbox.call_for_bids(self.config, self.state.day, due))
             elif kind == rejoin.AWARD:
-                self._publish(outbox.award(self.config, self.state.day, self.clearing, agent))
+                self._publish(outbox.award(self.config, self.state.day, self.clearing, agent,
+                                           feeder.sites(self.config, self.state).get(agent)))
             else:
                 self._publish(self._grid)
         return said

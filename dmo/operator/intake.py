@@ -83,12 +83,16 @@ def realised_day(state: DayState, msg: AgentDay) -> Refusal | None:
 
 # --- each phase's rule (``Accept``), on the state alone ----------------------------------------------------------
 
-def registration(state: DayState) -> Accept:
-    """While registration is open: a registration registers its agent; anything else is out of phase."""
+def registration(state: DayState, network=None, placement=None) -> Accept:
+    """While registration is open: a registration registers its agent, at its bus on a feeder (``network`` and the
+    run's ``placement``, ``acceptance.check_bus``); anything else is out of phase."""
 
     def accept(msg):
         if not isinstance(msg, Registration):
             return acceptance.out_of_phase(msg, state.phase)
+        refusal = acceptance.check_bus(msg, network, placement or {})
+        if refusal is not None:
+            return refusal
         state.registered[msg.sender] = msg
         state.meter[msg.sender] = {}
         return None

@@ -9,6 +9,7 @@ from messages import (DMO, AgentTotals, Award, CallForBids, Clock, DaySummary, G
                       StatementLine)
 
 from ..market.clearing import ClearingResult
+from ..market.distflow import NetworkClearing
 from ..market.settlement import RULES_VERSION, Statement
 from .config import DayConfig
 
@@ -28,16 +29,24 @@ def call_for_bids(config: DayConfig, day: int, deadline_s: float) -> CallForBids
                        credit_per_mwh=credit, subperiods=c.subperiods, deadline_s=deadline_s)
 
 
-def award(config: DayConfig, day: int, clearing: ClearingResult, agent: str) -> Award:
-    """One agent's award of day ``day``: its P_sch, the clearing prices and congestion, and the settlement terms and
-    rules."""
+def award(config: DayConfig, day: int, clearing: ClearingResult | NetworkClearing, agent: str,
+          bus: str | None = None) -> Award:
+    """One agent's award of day ``day``: its P_sch, its clearing prices (on a feeder those of its ``bus``, with their
+    components) and the congestion, and the settlement terms and rules."""
     c = config
     rule, (penalty, credit) = c.rule, c.rates
+    price = tuple(clearing.agent_price[agent])
+    feeder = {}
+    if isinstance(clearing, NetworkClearing):
+        b = c.network.index[bus]
+        feeder = dict(bus=bus, energy_price_per_mwh=tuple(clearing.energy.tolist()),
+                      congestion_price_per_mwh=tuple(clearing.congestion[:, b].tolist()),
+                      voltage_price_per_mwh=tuple(clearing.voltage[:, b].tolist()))
     return Award(sender=DMO, market_day=c.market_day_of(day), agent=agent, p_sch_mw=clearing.awards[agent],
-                 clearing_price_per_mwh=clearing.price, penalty_per_mwh=penalty, credit_per_mwh=credit,
+                 clearing_price_per_mwh=price, penalty_per_mwh=penalty, credit_per_mwh=credit,
                  subperiods=c.subperiods, rules_version=RULES_VERSION, rules=rule.words, settlement_rule=rule.label,
-                 deviation_cost=rule.deviation_cost(clearing.awards[agent], clearing.price),
-                 congestion=clearing.congested)
+                 deviation_cost=rule.deviation_cost(clearing.awards[agent], price),
+                 congestion=clearing.congested, **feeder)
 
 
 def grid_state(config: DayConfig, day: int, hour: int) -> GridState:

@@ -165,13 +165,13 @@ class AsDmo:
 
     def _settle(self) -> dict:
         day, terms, agent = self.day, self.day.terms, self.agent
+        prices, own = day.prices([agent])
         statements, _ = (self.rule or recorded_rule(day)).settle(accepted_day(
-            {agent: day.awards[agent].p_sch_mw}, terms.clearing_price_per_mwh, {agent: self.meter},
-            subperiods=terms.subperiods, registered={agent: self.registration}))
+            {agent: day.awards[agent].p_sch_mw}, prices, {agent: self.meter},
+            subperiods=terms.subperiods, registered={agent: self.registration}, agent_prices=own))
         message = as_message(day, statements[agent])
         self.bus.publish(message)
-        self.bus.publish(day_summary(day.market_day, (agent,), terms.clearing_price_per_mwh, statements,
-                                     self.rejected, ()))
+        self.bus.publish(day_summary(day.market_day, (agent,), prices, statements, self.rejected, ()))
         recorded = day.statements.get(agent)
         return {"run_id": self.bus.keys.run_id, "market_day": day.market_day, "agent": agent,
                 "statement": json.loads(message.model_dump_json(exclude={"seq", "sent_at"})),

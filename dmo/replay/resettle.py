@@ -49,6 +49,14 @@ class RecordedDay:
     def terms(self) -> Award:
         return next(iter(self.awards.values()))
 
+    def prices(self, agents=None) -> tuple[tuple[float, ...], dict[str, tuple[float, ...]] | None]:
+        """The day's clearing prices as its awards carry them and settlement reads them (``accepted_day``): on the
+        copper plate one set for all (and None), on a feeder the substation's and each agent's own bus's."""
+        terms = self.terms
+        if terms.bus is None:
+            return terms.clearing_price_per_mwh, None
+        return terms.energy_price_per_mwh, {a: self.awards[a].clearing_price_per_mwh for a in agents or self.awards}
+
 
 def recording_days(rec: Recording) -> list[str]:
     """The market days the recording is of, in order: as its metadata says (``dmosim run`` writes the first day and
@@ -145,9 +153,13 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
         raise ResettleError(f"{rec.path}: no awards recorded" + (f" for {day}" if day else "")
                             + (f" ({rec.cut_note})" if rec.cut_note else ""))
     first = next(iter(awards.values()))
+    # On a feeder each agent has its own bus's prices; the substation's are common to all.
+    common = "clearing_price_per_mwh" if first.bus is None else "energy_price_per_mwh"
     for a in awards.values():
-        for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", "clearing_price_per_mwh",
-                     "settlement_rule"):
+        if (a.bus is None) != (first.bus is None):
+            raise ResettleError(f"{rec.path}: the award of {first.agent} and that of {a.agent} disagree on whether "
+                                "the day was cleared on a feeder")
+        for name in ("penalty_per_mwh", "credit_per_mwh", "subperiods", "rules_version", common, "settlement_rule"):
             if getattr(a, name) != getattr(first, name):
                 raise ResettleError(f"{rec.path}: the awards of {first.agent} and {a.agent} differ in {name}")
     if first.rules_version != RULES_VERSION:
@@ -255,9 +267,9 @@ def resettle(day: RecordedDay, rule: ChosenRule | None = None) -> dict[str, Stat
     """Every agent's statement from the recorded awards and meter reports, under the recorded rule (a built-in; see
     ``recorded_rule`` for one of the recording's own) unless ``rule`` says otherwise. The agents' recorded behaviour
     is held fixed: their readings are what they were."""
-    terms = day.terms
-    settled = accepted_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, terms.clearing_price_per_mwh,
-                           day.meter, subperiods=terms.subperiods, registered=day.registered)
+    prices, own = day.prices()
+    settled = accepted_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, prices, day.meter,
+                           subperiods=day.terms.subperiods, registered=day.registered, agent_prices=own)
     statements, _ = (rule or recorded_rule(day)).settle(settled)
     return statements
 

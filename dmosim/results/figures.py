@@ -4,7 +4,8 @@ Left column, on one time axis: the hourly clearing price (congested hours marked
 import P_M per sub-period. Right column: the day's bill per agent (several days: each agent's daily total), then
 beside each agent its deviation penalty and credit per hour. Islanded hours are shaded on every time axis, hours
 with no accepted meter report hatched, process restarts dashed. A recording of several market days lays them end
-to end on an axis of hours, each day's start labelled with its date. ``figure_of`` titles it by the run and its
+to end on an axis of hours, each day's start labelled with its date. On a feeder a last row shows its prices by bus
+and hour, its voltages and its line loading at the peak hour (feeder.py). ``figure_of`` titles it by the run and its
 settlement rule.
 """
 
@@ -26,10 +27,13 @@ from matplotlib.ticker import FuncFormatter, MultipleLocator  # noqa: E402
 from dmo.replay.resettle import day_messages, rule_named  # noqa: E402
 from messages.recording import Recording  # noqa: E402
 
+from . import feeder  # noqa: E402
+
 _AWARD, _IMPORT, _ENERGY = "black", "#1f77b4", "#8c9fc4"
 _PENALTY, _CREDIT, _ISLANDED = "#d62728", "#2ca02c", "0.85"
 _MISSING, _RESTART = "#ff7f0e", "#9467bd"
 WIDTH_IN, ROW_IN, DPI = 10.5, 1.75, 120  # 1,260 px wide at DPI; each agent adds a row of ROW_IN inches
+FEEDER_IN = 3.2  # the feeder's row (prices by bus, voltages, loading), on a feeder only
 _DOLLARS = FuncFormatter(lambda y, _: f"{y:,.0f}")
 
 
@@ -78,21 +82,31 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "",
     start = {day: 24 * i for i, day in enumerate(market_days)}  # x: hours from the start of the first day
     hours = hours.assign(t=hours["market_day"].map(start) + hours["hour"] - 1).sort_values(["agent", "t"])
 
-    fig = plt.figure(figsize=(WIDTH_IN, ROW_IN * (1 + len(agents)) + 1.2), dpi=DPI, layout="constrained")
-    grid = fig.add_gridspec(1 + len(agents), 2, width_ratios=(3, 2))
+    on_feeder = not frames.get("network", pd.DataFrame()).empty
+    fig = plt.figure(figsize=(WIDTH_IN, ROW_IN * (1 + len(agents)) + 1.2 + FEEDER_IN * on_feeder), dpi=DPI,
+                     layout="constrained")
+    rows = fig.add_gridspec(2 if on_feeder else 1, 1, height_ratios=(ROW_IN * (1 + len(agents)), FEEDER_IN)
+                            if on_feeder else None)
+    grid = rows[0].subgridspec(1 + len(agents), 2, width_ratios=(3, 2))
+    if on_feeder:
+        feeder.draw(fig, rows[1].subgridspec(1, 3, width_ratios=(3, 2, 2)), frames, start)
     price_ax = fig.add_subplot(grid[0, 0])
     power_axes = [fig.add_subplot(grid[1 + i, 0], sharex=price_ax) for i in range(len(agents))]
     money_axes = [fig.add_subplot(grid[1 + i, 1], sharex=price_ax) for i in range(len(agents))]
 
     per_hour = hours.drop_duplicates(["market_day", "hour"])
-    _hourly_stairs(price_ax, per_hour, "clearing_price_per_mwh", color=_AWARD)
-    for direction, marker in (("import", "^"), ("export", "v")):
-        congested = per_hour[(per_hour["congestion"] == direction).fillna(False)]  # <NA>: not stated, not marked
+    # on a feeder every bus has its price (the heat map below): the one common to all is the substation's
+    price = "energy_price_per_mwh" if on_feeder else "clearing_price_per_mwh"
+    _hourly_stairs(price_ax, per_hour, price, color=_AWARD)
+    for where, marker in (("import", "^"), ("export", "v"), ("line", "s"), ("voltage", "D")):
+        congested = per_hour[(per_hour["congestion"] == where).fillna(False)]  # <NA>: not stated, not marked
         if not congested.empty:
-            price_ax.plot(congested["t"] + 0.5, congested["clearing_price_per_mwh"], marker, color=_PENALTY, ms=5,
-                          ls="none", label=f"{direction} congestion (as the clearing decided)")
+            price_ax.plot(congested["t"] + 0.5, congested[price], marker, color=_PENALTY, ms=5,
+                          ls="none", label=f"{where} {'limit binds' if where in ('line', 'voltage') else 'congestion'}"
+                                           " (as the clearing decided)")
     price_ax.set_ylabel("$/MWh")
-    price_ax.set_title("clearing price per hour", loc="left", fontsize=10)
+    price_ax.set_title("the substation's price per hour" if on_feeder else "clearing price per hour", loc="left",
+                       fontsize=10)
     credit = bool((hours["deviation_credit"] != 0).any())  # a credit of 0 throughout: nothing to draw or name
     for agent, power, money in zip(agents, power_axes, money_axes):
         own = hours[hours["agent"] == agent]

@@ -22,6 +22,7 @@ import pandas as pd
 from dmo.replay.resettle import accepted_messages, accepted_meter_reports, day_messages
 from messages import relative_key
 from messages.recording import Recording, read_recording
+from scenarios.horizon import HOURS
 
 _KEY_TYPES = {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64"}
 _MONEY = {"energy_charge": "float64", "deviation_penalty": "float64", "deviation_credit": "float64",
@@ -31,7 +32,8 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
     "hours": {**_WHEN, "agent": "string", "hour": "int64", "clearing_price_per_mwh": "float64",
               "p_sch_mw": "float64", "import_mwh": "float64", "deviation_mwh": "float64",
               "under_import_mwh": "float64", **_MONEY, "missing_subperiods": "int64", "islanded": "bool",
-              "congestion": "string"},
+              "congestion": "string", "bus": "string", "energy_price_per_mwh": "Float64",
+              "congestion_price_per_mwh": "Float64", "voltage_price_per_mwh": "Float64"},
     "days": {**_WHEN, "agent": "string", **_MONEY, "missing_subperiods": "int64",
              "import_mwh": "float64", "deviation_mwh": "float64", "under_import_mwh": "float64",
              "award_mwh": "float64"},
@@ -46,7 +48,20 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
                    "curtailment": "float64", "penalty": "float64", "total": "float64", "curtailment_mwh": "float64",
                    "deviation_mwh": "float64", "stored_mwh": "Float64", "wall_s": "float64", "cpu_s": "float64",
                    "sent_again": "int64", "asked": "int64"},
+    "network": {**_WHEN, "hour": "int64", "stage": "string", "network": "string", "substation_mw": "float64",
+                "energy_price_per_mwh": "Float64", "shed_mw": "Float64", "v_min_pu": "float64",
+                "max_loading": "float64", "ac_converged": "bool", "ac_v_min_pu": "float64", "ac_v_min_bus": "string",
+                "ac_v_max_pu": "float64", "ac_v_max_bus": "string", "ac_max_loading": "float64",
+                "ac_max_loading_line": "string", "ac_voltage_error_pu": "float64", "ac_flow_error_mw": "float64",
+                "ac_losses_mw": "float64", "ac_substation_mw": "float64", "ac_violations": "string",
+                "ac_margin": "float64"},
+    "buses": {**_WHEN, "hour": "int64", "stage": "string", "bus": "string", "injection_mw": "float64",
+              "voltage_pu": "float64", "bus_price_per_mwh": "Float64", "congestion_price_per_mwh": "Float64",
+              "voltage_price_per_mwh": "Float64", "shed_mw": "Float64"},
+    "lines": {**_WHEN, "hour": "int64", "stage": "string", "line": "string", "loading": "float64"},
 }
+_PER_BUS = ("injection_mw", "voltage_pu", "bus_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh",
+            "shed_mw")
 
 
 def open_recording(path: str | os.PathLike) -> dict[str, pd.DataFrame]:
@@ -59,8 +74,10 @@ def tables(rec: Recording) -> dict[str, pd.DataFrame]:
     """Every table of the recording, by name, in the order of ``TABLE_COLUMNS``."""
     grid, statements = _grid(rec), _statements(rec)
     hours = _hours(statements, grid, _congestion(rec))
+    network = _network_hours(rec)
     return {"hours": hours, "days": _days(statements, hours), "meter": _meter(rec, grid), "bids": _bids(rec),
-            "incidents": _incidents(rec), "rejections": _rejections(rec), "agent_days": _agent_days(rec)}
+            "incidents": _incidents(rec), "rejections": _rejections(rec), "agent_days": _agent_days(rec),
+            "network": _network(network), "buses": _buses(network), "lines": _lines(network)}
 
 
 def write_tables(frames: dict[str, pd.DataFrame], directory: Path, fmt: str = "csv") -> dict[Path, int]:
@@ -136,13 +153,19 @@ def _statements(rec: Recording) -> list[dict]:
     return list(first.values())
 
 
+_COMPONENTS = ["energy_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh"]
+
+
 def _congestion(rec: Recording) -> pd.DataFrame:
-    """(market_day, agent, hour, congestion) from the first award recorded for each day and agent: the clearing's
-    own decision. An award that states none (older than version 5) gives no rows."""
-    awards = _frame(_dumps(rec, "award"), ["market_day", "agent", "congestion"])
+    """(market_day, agent, hour, congestion, bus and price components) from the first award recorded for each day
+    and agent: the clearing's own decision. An award that states no congestion (older than version 5) gives no
+    rows; one of the copper plate no bus and no components (<NA>)."""
+    awards = _frame(_dumps(rec, "award"), ["market_day", "agent", "congestion", "bus", *_COMPONENTS])
     awards = awards.drop_duplicates(["market_day", "agent"])
     awards = awards[awards["congestion"].notna()]
-    return _numbered(awards.explode("congestion", ignore_index=True), ["market_day", "agent"], "hour")
+    for column in _COMPONENTS:  # the copper plate's null: 24 missing values, so every column explodes alike
+        awards[column] = awards[column].map(lambda v: [None] * HOURS if v is None or v is pd.NA else v)
+    return _numbered(awards.explode(["congestion", *_COMPONENTS], ignore_index=True), ["market_day", "agent"], "hour")
 
 
 def _hours(statements: list[dict], grid: pd.DataFrame, congestion: pd.DataFrame) -> pd.DataFrame:
@@ -223,3 +246,44 @@ def _agent_days(rec: Recording) -> pd.DataFrame:
              "wall_s": sum(e.wall_s for e in msg.compute), "cpu_s": sum(e.cpu_s for e in msg.compute),
              "sent_again": msg.messages.sent_again, "asked": msg.messages.asked} for msg in days.values()]
     return _typed("agent_days", pd.DataFrame(rows).sort_values(["market_day", "agent"]))
+
+
+def _network_hours(rec: Recording) -> list[dict]:
+    """The first network_hour recorded of each day, hour and stage (a feeder's day; none on the copper plate)."""
+    first: dict[tuple[str, int, str], dict] = {}
+    for msg in _dumps(rec, "network_hour"):
+        first.setdefault((msg["market_day"], msg["hour"], msg["stage"]), msg)
+    return sorted(first.values(), key=lambda m: (m["market_day"], m["stage"] != "plan", m["hour"]))
+
+
+def _network(hours: list[dict]) -> pd.DataFrame:
+    """One row per day, hour and stage: the DMO's position, LinDistFlow's lowest voltage and highest loading, shed
+    load, and the AC check (its violations joined by "; ")."""
+    if not hours:
+        return _typed("network", None)
+    rows = [{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "network": m["network"],
+             "substation_mw": m["substation_mw"], "energy_price_per_mwh": m["energy_price_per_mwh"],
+             "shed_mw": None if m["shed_mw"] is None else sum(m["shed_mw"]), "v_min_pu": min(m["voltage_pu"][1:]),
+             "max_loading": max(m["line_loading"]),
+             **{f"ac_{k}": ("; ".join(v) if k == "violations" else v) for k, v in m["ac"].items()}}
+            for m in hours]
+    return _typed("network", pd.DataFrame(rows))
+
+
+def _buses(hours: list[dict]) -> pd.DataFrame:
+    """One row per day, hour, stage and bus: the microgrids' injection, the voltage and, in the plan, the prices."""
+    if not hours:
+        return _typed("buses", None)
+    frame = pd.DataFrame([{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "bus": m["buses"],
+                           **{k: m[k] if m[k] is not None else [None] * len(m["buses"]) for k in _PER_BUS}}
+                          for m in hours])
+    return _typed("buses", frame.explode(["bus", *_PER_BUS], ignore_index=True))
+
+
+def _lines(hours: list[dict]) -> pd.DataFrame:
+    """One row per day, hour, stage and line: its loading by LinDistFlow (apparent power over its limit)."""
+    if not hours:
+        return _typed("lines", None)
+    frame = pd.DataFrame([{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "line": m["lines"],
+                           "loading": m["line_loading"]} for m in hours])
+    return _typed("lines", frame.explode(["line", "loading"], ignore_index=True))

@@ -1,0 +1,71 @@
+"""The DMO's feeder, hour by hour: where each agent sits, and the network_hour messages of a day as planned (after
+clearing) and as realised (after real time), each with the AC power-flow check of that hour (docs/network.md)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from messages import DMO
+from messages.schemas import ACCheck, NetworkHour
+from scenarios.horizon import HOURS
+from scenarios.network import Network
+
+from ..market.acflow import check_hours
+from ..market.distflow import NetworkClearing
+from .config import DayConfig
+from .state import DayState
+
+
+def sites(config: DayConfig, state: DayState) -> dict[str, str]:
+    """Agent -> its bus on the feeder (empty on the copper plate): the run's placement, or, for an agent the run does
+    not place, the bus its registration names (``acceptance.check_bus`` admitted only agents that have one)."""
+    if config.network is None:
+        return {}
+    return {a: config.placement.get(a) or reg.bus for a, reg in state.registered.items()}
+
+
+def per_bus(network: Network, at: Mapping[str, str], mw: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(24 x buses) the agents' MW (agent -> 24 values) summed at their buses."""
+    out = np.zeros((HOURS, network.n_buses))
+    for agent, values in mw.items():
+        out[:, network.index[at[agent]]] += values
+    return out
+
+
+def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed: np.ndarray | None = None,
+           **prices) -> list[NetworkHour]:
+    """The 24 network_hour messages of one stage: LinDistFlow's voltages and loadings of the fixed loads (less what
+    was ``shed``, its Q in proportion) plus the microgrids' ``injection`` (24 x buses, MW imported, Q = tan(phi) P),
+    and the AC check of each hour. ``prices`` name per-hour (24) or per-hour-per-bus (24 x buses) arrays."""
+    net = config.network
+    kept = 1.0 if shed is None else 1.0 - np.divide(shed, net.fixed_p, out=np.zeros_like(shed), where=net.fixed_p > 0)
+    p, q = net.fixed_p * kept + injection, net.fixed_q * kept + injection * net.tan_phi
+    flow_p, flow_q, v = net.lindistflow(p, q)
+    loading = np.hypot(flow_p, flow_q) / net.s_max_mva
+    names = tuple(f"{net.buses[a]}-{net.buses[b]}" for a, b in zip(net.parent, net.child))
+    checks = check_hours(net, p - net.fixed_p, q_mvar=q - net.fixed_q, margin=config.voltage_margin)
+    return [NetworkHour(sender=DMO, market_day=config.market_day_of(day), hour=h + 1, stage=stage,
+                        network=net.name, buses=net.buses, lines=names, substation_mw=float(p[h].sum()),
+                        injection_mw=tuple(injection[h].tolist()), voltage_pu=tuple(v[h].tolist()),
+                        line_loading=tuple(loading[h].tolist()), ac=ACCheck(**{k: v for k, v in checks[h].as_dict().items() if k != "hour"}),
+                        **{k: float(a[h]) if np.ndim(a) == 1 else tuple(a[h].tolist()) for k, a in prices.items()})
+            for h in range(HOURS)]
+
+
+def planned(config: DayConfig, day: int, clearing: NetworkClearing, at: Mapping[str, str]) -> list[NetworkHour]:
+    """The day as cleared: each hour's awards at their buses, the bus prices and their components, shed load."""
+    injection = per_bus(config.network, at, {a: np.asarray(v) for a, v in clearing.awards.items()})
+    return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw),
+                  energy_price_per_mwh=np.asarray(clearing.price), bus_price_per_mwh=np.asarray(clearing.bus_price),
+                  congestion_price_per_mwh=np.asarray(clearing.congestion),
+                  voltage_price_per_mwh=np.asarray(clearing.voltage), shed_mw=np.asarray(clearing.shed_mw))
+
+
+def realised(config: DayConfig, day: int, state: DayState, at: Mapping[str, str]) -> list[NetworkHour]:
+    """The day as metered: each hour's mean metered transfer of every agent at its bus (a missing reading, or
+    hour, counts as 0: this is the grid's load, not the settlement's)."""
+    mean = {a: np.array([np.mean([r or 0.0 for r in state.meter.get(a, {}).get(h, (0.0,))]) for h in range(HOURS)])
+            for a in state.registered}
+    return _hours(config, day, "realised", per_bus(config.network, at, mean))

@@ -1,0 +1,59 @@
+"""A market day on a feeder, end to end: two agents at their buses of a five-bus feeder whose far line is rated low,
+cleared with prices per bus, settled at each agent's own price and again, to the cent, from the recording."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+
+import pandas as pd
+import pytest
+
+from messages.recording import read_recording
+from scenarios.case import DATA_DIR
+from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
+
+
+def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(tmp_path):
+    # feeder5 with its far line 2-3 rated 0.5 MVA: an agent at bus 3 importing more than the line's room congests it
+    feeder = (DATA_DIR / "feeder5.toml").read_text().replace("s_max_mva = 3.0", "s_max_mva = 0.5")
+    (tmp_path / "feeder.toml").write_text(feeder)
+    (tmp_path / "fleet.toml").write_text('[[agents]]\nid = "near"\nbus = "1"\n\n[[agents]]\nid = "far"\nbus = "3"\n')
+    (tmp_path / "e.toml").write_text('[agents]\nfleet = "fleet.toml"\n[network]\nfeeder = "feeder.toml"\n')
+    out = tmp_path / "run"
+    argv = dmosim("run", str(tmp_path / "e.toml"), "--subperiods", "1", *TINY, *DEADLINES,
+                  "--settlement", "price-linked", "--out", str(out), "--json", "--quiet")
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads(done.stdout)
+
+    rec = read_recording(result["recording"])
+    awards = {msg.agent: msg for _, msg in rec.decoded("award")}
+    assert (awards["near"].bus, awards["far"].bus) == ("1", "3")
+    for award in awards.values():  # each price is its components' sum
+        for h in range(24):
+            parts = award.energy_price_per_mwh[h] + award.congestion_price_per_mwh[h] + award.voltage_price_per_mwh[h]
+            assert abs(parts - award.clearing_price_per_mwh[h]) < 1e-6
+    far, near = (awards[a] for a in ("far", "near"))
+    line = [h for h in range(24) if result["congestion"][h] == "line"]
+    assert any(far.clearing_price_per_mwh[h] != near.clearing_price_per_mwh[h] for h in line), "prices never separated"
+    for h in range(24):  # the energy price is the substation's, the same for both: only the local parts differ
+        assert far.energy_price_per_mwh[h] == near.energy_price_per_mwh[h]
+        local = [a.congestion_price_per_mwh[h] + a.voltage_price_per_mwh[h] for a in (far, near)]
+        assert abs(far.clearing_price_per_mwh[h] - near.clearing_price_per_mwh[h] - (local[0] - local[1])) < 1e-6
+    hours = pd.read_csv(out / "tables" / "hours.csv", dtype={"bus": str})
+    settled_far = hours[hours["agent"] == "far"].set_index("hour")
+    assert (settled_far["bus"] == "3").all()
+    assert list(settled_far["clearing_price_per_mwh"]) == pytest.approx(far.clearing_price_per_mwh, abs=1e-9)  # its own
+
+    # the feeder as planned and as realised, each hour with its AC check, in the recording and the tables
+    stages = [(msg.stage, msg.hour) for _, msg in rec.decoded("network_hour")]
+    assert sorted(stages) == sorted([(s, h) for s in ("plan", "realised") for h in range(1, 25)])
+    network = pd.read_csv(out / "tables" / "network.csv")
+    assert len(network) == 48 and network["ac_converged"].all()
+    assert (network["ac_voltage_error_pu"] < 0.02).all()
+    assert len(pd.read_csv(out / "tables" / "buses.csv")) == 48 * 5
+
+    settled = json.loads(subprocess.run(dmosim("settle", result["recording"], "--json"), capture_output=True,
+                                        text=True, timeout=300, cwd=ROOT, env=ENV).stdout)
+    assert settled["identical"], settled
