@@ -37,7 +37,7 @@ def render(result: dict, indent: str = "") -> str:
         if isinstance(value, dict):
             lines += [f"{indent}{key}:", render(value, indent + "  ")]
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
-            cols = list(value[0])
+            cols = list(dict.fromkeys(c for row in value for c in row))  # a row may lack a column: "-"
             cells = [[_cell(row.get(c)) for c in cols] for row in value]
             widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(cols)]
             lines.append(f"{indent}{key}:")
@@ -49,6 +49,8 @@ def render(result: dict, indent: str = "") -> str:
 
 
 def _cell(value) -> str:
+    if value is None:
+        return "-"
     if isinstance(value, float):
         return f"{value:.4g}" if abs(value) < 1e4 else f"{value:,.0f}"
     return str(value)

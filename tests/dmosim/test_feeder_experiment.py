@@ -77,3 +77,14 @@ def test_registration_bus_rule():
     assert "names no bus" in check_bus(_registration(None), net, {})[1]
     assert "substation" in check_bus(_registration("0"), net, {})[1]
     assert "no bus '7'" in check_bus(_registration("7"), net, {})[1]
+
+
+def test_the_feeder_example_checks(capsys):
+    from pathlib import Path
+
+    from dmosim.cli.main import main
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "feeder.toml"
+    assert main(["run", str(example), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert "10 agents" in out and "on feeder ieee33 at buses 1, 2, 18, 13, 14, 16, 17, 29, 30, 32" in out

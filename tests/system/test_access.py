@@ -43,7 +43,7 @@ def test_rules_give_each_agent_its_own_keys_and_the_public_topics_only():
     assert all(r["permission"] == "allow" for r in acl["rules"])
     mg1 = _grants(acl, "mg1")
     assert _keys(mg1, "put", "ingress") == {f"dmosim/r1/agent/mg1/{t}" for t in AGENT_TOPICS}
-    hears = {f"dmosim/r1/dmo/{t}" for t in ("call_for_bids", "clock", "grid", "summary", "rejected", "award/mg1",
+    hears = {f"dmosim/r1/dmo/{t}" for t in ("call_for_bids", "clock", "grid", "network", "summary", "rejected", "award/mg1",
                                              "statement/mg1", "receipt/mg1")}
     assert _keys(mg1, "declare_subscriber", "ingress") == hears == _keys(mg1, "put", "egress")
     assert _keys(mg1, "liveliness_token", "ingress") == {"dmosim/r1/alive/mg1"}
