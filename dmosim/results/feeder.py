@@ -39,7 +39,7 @@ def _prices(ax, plan: pd.DataFrame, start: dict[str, int]) -> None:
     image = ax.imshow(spread.to_numpy(dtype=float), aspect="auto", cmap="magma_r", interpolation="nearest",
                       extent=(grid.columns.min(), grid.columns.max() + 1, len(order) - 0.5, -0.5),
                       norm=TwoSlopeNorm(vcenter=top / 2, vmin=0, vmax=top))
-    step = max(1, len(order) // 12)  # at most about 12 bus labels, so 33 (or 1,000) buses stay legible
+    step = _step(len(order), 12)  # at most 12 bus labels, so 33 (or 1,000) buses stay legible
     ax.set_yticks(range(0, len(order), step), order[::step], fontsize=7)
     ax.set_ylabel("bus (feeder order)")
     ax.set_xlabel("hour")
@@ -60,13 +60,13 @@ def _voltages(ax, buses: pd.DataFrame, network: pd.DataFrame, day: str, hour: in
             if where is not None:
                 ax.plot(where, ac["ac_v_min_pu"].iloc[0], "x", color=color, ms=7, label=f"{stage}: AC lowest")
     order = list(dict.fromkeys(buses["bus"]))
-    step = max(1, len(order) // 12)
+    step = _step(len(order), 8)
     ax.set_xticks(range(0, len(order), step), order[::step], fontsize=7)
     ax.set_xlabel("bus (feeder order)")
     ax.set_ylabel("V, p.u.")
     ax.set_title(f"voltage, {day} hour {hour} (peak)", loc="left", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, frameon=False)
+    ax.legend(fontsize=7, loc="best")
 
 
 def _loading(ax, lines: pd.DataFrame) -> None:
@@ -77,8 +77,14 @@ def _loading(ax, lines: pd.DataFrame) -> None:
     if len(real) == len(plan):
         ax.bar(x + 0.2, real["loading"], 0.4, color=_REALISED, label="realised")
     ax.axhline(1.0, color=_LIMIT, lw=1, ls="--", label="thermal limit")
-    step = max(1, len(plan) // 12)
+    step = _step(len(plan), 8)
     ax.set_xticks(x[::step], list(plan["line"])[::step], fontsize=7, rotation=45)
+    ax.set_ylim(0, 1.45 * max(1.0, float(lines["loading"].max())))  # room for the legend above the limit
     ax.set_ylabel("S / S max (LinDistFlow)")
     ax.set_title("line loading, peak hour", loc="left", fontsize=10)
-    ax.legend(fontsize=7, frameon=False)
+    ax.legend(fontsize=7, loc="upper left", ncol=2, frameon=False)
+
+
+def _step(n: int, labels: int) -> int:
+    """Every how many ticks to label so that at most ``labels`` labels show."""
+    return max(1, -(-n // labels))

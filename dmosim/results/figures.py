@@ -236,12 +236,15 @@ def _bill(ax, days: pd.DataFrame, agents: list[str]) -> None:
         up, down = up + np.clip(values, 0, None), down + np.clip(values, None, 0)
     total = bill["total"].to_numpy(dtype=float)
     ax.hlines(total, x - 0.36, x + 0.36, color="black", lw=2, zorder=3, label="total")
+    crowded = len(agents) > 5  # past five bars the amounts stand upright, or they run into each other
     for xi, top, value in zip(x, up, total):
         ax.annotate(f"{'-' if value < 0 else ''}${abs(value):,.2f}", (xi, top), xytext=(0, 3),
-                    textcoords="offset points", ha="center", fontsize=8)
+                    textcoords="offset points", ha="center", fontsize=7 if crowded else 8,
+                    rotation=90 if crowded else 0, va="bottom")
     low, high = min(down.min(), 0.0), max(up.max(), 0.0)
-    ax.set_ylim(low - 0.1 * (high - low), high + 0.4 * (high - low) + 1e-9)  # room for the labels and the legend
-    ax.set_xticks(x, agents)
+    room = 0.9 if crowded else 0.4  # above the bars: the amounts (upright ones are taller) and the legend
+    ax.set_ylim(low - 0.1 * (high - low), high + room * (high - low) + 1e-9)
+    ax.set_xticks(x, agents, rotation=45 if crowded else 0, fontsize=8 if crowded else None)
     ax.set_xlim(-0.6, len(agents) - 0.4)
     ax.axhline(0, color="0.5", lw=0.6)
     ax.set_ylabel("$")
