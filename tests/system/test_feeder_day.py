@@ -53,6 +53,7 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     assert len(network) == 48 and network["ac_converged"].all()
     assert (network["ac_voltage_error_pu"] < 0.02).all()
     assert len(pd.read_csv(out / "tables" / "buses.csv")) == 48 * 5
+    assert result["figure"].endswith("run.png") and (out / "run.png").read_bytes()[:4] == b"\x89PNG"  # feeder row too
 
     settled = json.loads(subprocess.run(dmosim("settle", result["recording"], "--json"), capture_output=True,
                                         text=True, timeout=300, cwd=ROOT, env=ENV).stdout)
