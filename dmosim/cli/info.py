@@ -52,7 +52,7 @@ def describe(rec: Recording) -> dict:
         "messages": len(rec.messages), "invalid_messages": invalid,
         "backfilled_messages": _int(rec.other_metadata.get(BACKFILL_METADATA, {}).get("messages", 0)),
         "missing": gaps(rec), "missing_meter": missing_meter(rec), "settled_by": settled_by(rec),
-        "strategies": strategies(rec),
+        "strategies": strategies(rec), "feeder": feeder(rec),
         "chunks": rec.chunks, "compression": sorted(rec.compression),
         "attachments": [{"name": a.name, "media_type": a.media_type, "bytes": len(a.data)} for a in rec.attachments],
         "channels": [{"key": c.relative_key, "messages": c.messages, "schema": c.schema_name,
@@ -95,6 +95,20 @@ def strategies(rec: Recording) -> dict[str, str | None]:
     return {msg.sender: msg.strategy for _, msg in rec.decoded("registration")}
 
 
+def feeder(rec: Recording) -> dict | None:
+    """The feeder the market cleared on, as its first network_hour names it, and each agent's bus as its (first)
+    award names it; None for a copper-plate market."""
+    hours = day_messages(rec, None, "network_hour")
+    first = next(iter(hours), None)
+    if first is None:
+        return None
+    buses: dict[str, str] = {}
+    for _, award in day_messages(rec, None, "award"):
+        if award.bus is not None:
+            buses.setdefault(award.agent, award.bus)
+    return {"network": first[1].network, "buses": len(first[1].buses), "agents": dict(sorted(buses.items()))}
+
+
 def settled_by(rec: Recording) -> dict[str, str]:
     """Market day -> the settlement rule its awards name (docs/settlement.md)."""
     out: dict[str, str] = {}
@@ -131,6 +145,9 @@ def render(info: dict) -> str:
             f"market day{'s:' if len(info['market_days']) > 1 else ': '} {', '.join(info['market_days']) or '-'}",
             f"agents:      {', '.join(info['agents']) or '-'}",
             f"strategies:  {strategies or '-'}",
+            f"feeder:      " + (f"{info['feeder']['network']} ({info['feeder']['buses']} buses): "
+                                + ", ".join(f"{a} at bus {b}" for a, b in info["feeder"]["agents"].items())
+                                if info["feeder"] else "none (a copper plate)"),
             f"seed:        {info['seed'] if info['seed'] is not None else '-'}"]
     experiment = experiment_toml(info["config"])
     if experiment is None and info["config"] is not None:  # a configuration this version does not read

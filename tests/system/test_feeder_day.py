@@ -55,6 +55,10 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     assert len(pd.read_csv(out / "tables" / "buses.csv")) == 48 * 5
     assert result["figure"].endswith("run.png") and (out / "run.png").read_bytes()[:4] == b"\x89PNG"  # feeder row too
 
+    info = subprocess.run(dmosim("info", result["recording"]), capture_output=True, text=True, timeout=120, cwd=ROOT,
+                          env=ENV).stdout
+    assert "feeder:      feeder5 (5 buses): far at bus 3, near at bus 1\n" in info
+
     settled = json.loads(subprocess.run(dmosim("settle", result["recording"], "--json"), capture_output=True,
                                         text=True, timeout=300, cwd=ROOT, env=ENV).stdout)
     assert settled["identical"], settled
