@@ -17,6 +17,7 @@ from dmo.market.distflow import FACETS, VOLL, NetworkClearing, clear_network, ho
 from messages.schemas import PRICE_CAP, Congestion
 from scenarios.horizon import HOURS
 from scenarios.network import build, load_network
+from test_clearing import AGENTS, prices, steps  # the copper plate's books: ties at the margin common
 
 TOL = 1e-9
 WIDE = 1e6  # substation limits that never bind
@@ -173,11 +174,6 @@ def test_clearing_writes_nothing_on_stdout(capfd):
 
 # --- the copper plate as the special case -----------------------------------------------------------------------
 
-AGENTS = ("mg1", "mg2", "mg3", "mg4")
-prices = st.integers(0, 12).map(lambda p: 10.0 * p)
-quantities = st.one_of(st.integers(-8, 8).map(float),
-                       st.floats(-8, 8, allow_nan=False, allow_infinity=False, allow_subnormal=False))
-steps = st.lists(st.builds(Step, prices, quantities), max_size=3).map(tuple)
 
 
 @st.composite
