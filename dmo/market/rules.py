@@ -40,8 +40,8 @@ MAX_PRICE_FACTOR = 100.0
 class SettlementDay:
     """What a rule settles, checked by ``settlement.settlement_day``: ``awards`` agent -> 24 P_sch (MW, + import),
     ``prices`` the 24 clearing prices ($/MWh) on a copper plate, the substation's (energy) prices on a feeder,
-    ``agent_prices`` agent -> the 24 prices at its own bus (``price_of``: on a copper plate ``prices``), ``meter`` agent -> {hour index 0..23: K readings of P_M (MW), None
-    for a missing sub-period} (an absent hour is missing), ``subperiods`` K (dt = 1/K h), and each agent's
+    ``agent_prices`` agent -> the 24 prices at its own bus (``price_of``: on a copper plate ``prices``), ``meter``
+    agent -> {hour index 0..23: K readings of P_M (MW), None for a missing sub-period} (an absent hour is missing), ``subperiods`` K (dt = 1/K h), and each agent's
     registered ``max_import`` and ``max_export`` (MW): its readings lie in [-max_export, max_import]."""
 
     awards: Mapping[str, tuple[float, ...]]
@@ -69,8 +69,9 @@ class SettlementDay:
     @cached_property
     def exact_agent_prices(self) -> dict[str, tuple[Fraction, ...]]:
         """Each agent's ``price_of`` exactly, converted once."""
-        return {agent: self.exact_prices if self.agent_prices is None else tuple(exact(p) for p in self.agent_prices[agent])
-                for agent in self.awards}
+        if self.agent_prices is None:
+            return dict.fromkeys(self.awards, self.exact_prices)
+        return {agent: tuple(exact(p) for p in self.agent_prices[agent]) for agent in self.awards}
 
     @property
     def dt(self) -> Fraction:
@@ -146,7 +147,8 @@ class DeviationRule:
 
     def __call__(self, day: SettlementDay, **params) -> dict[str, list[Charges]]:
         return {agent: [self._hour(day, agent, h, f)
-                        for h, f in enumerate(self._hours(params, day.exact_awards[agent], day.exact_agent_prices[agent]))]
+                        for h, f in enumerate(self._hours(params, day.exact_awards[agent],
+                                                          day.exact_agent_prices[agent]))]
                 for agent in day.awards}
 
     def parameters(self, given: Mapping[str, object]) -> dict[str, float]:

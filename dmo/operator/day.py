@@ -264,7 +264,8 @@ class MarketDay:
         self.clearing = clearing_of(self.config, self.state)
         self._publish_awards()
         if isinstance(self.clearing, NetworkClearing):  # after the awards: the agents need not wait for the AC check
-            for msg in feeder.planned(self.config, self.state.day, self.clearing, feeder.sites(self.config, self.state)):
+            at = feeder.sites(self.config, self.state)
+            for msg in feeder.planned(self.config, self.state.day, self.clearing, at):
                 self._publish(msg)
 
     def _publish_awards(self) -> None:

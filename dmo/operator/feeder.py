@@ -45,11 +45,12 @@ def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed:
     flow_p, flow_q, v = net.lindistflow(p, q)
     loading = np.hypot(flow_p, flow_q) / net.s_max_mva
     names = tuple(f"{net.buses[a]}-{net.buses[b]}" for a, b in zip(net.parent, net.child))
-    checks = check_hours(net, p - net.fixed_p, q_mvar=q - net.fixed_q, margin=config.voltage_margin)
+    checks = [{k: x for k, x in c.as_dict().items() if k != "hour"}  # the message's hour says which
+              for c in check_hours(net, p - net.fixed_p, q_mvar=q - net.fixed_q, margin=config.voltage_margin)]
     return [NetworkHour(sender=DMO, market_day=config.market_day_of(day), hour=h + 1, stage=stage,
                         network=net.name, buses=net.buses, lines=names, substation_mw=float(p[h].sum()),
                         injection_mw=tuple(injection[h].tolist()), voltage_pu=tuple(v[h].tolist()),
-                        line_loading=tuple(loading[h].tolist()), ac=ACCheck(**{k: v for k, v in checks[h].as_dict().items() if k != "hour"}),
+                        line_loading=tuple(loading[h].tolist()), ac=ACCheck(**checks[h]),
                         **{k: float(a[h]) if np.ndim(a) == 1 else tuple(a[h].tolist()) for k, a in prices.items()})
             for h in range(HOURS)]
 
