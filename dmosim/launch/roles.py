@@ -12,6 +12,8 @@ import datetime as dt
 from pathlib import Path
 
 from dmo.market.choice import choose
+from dmo.market.distflow import clear_network
+from dmo.market.rules import MAX_MW
 from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
 from scenarios.case import load_case
@@ -65,7 +67,10 @@ def network_of(experiment: Experiment) -> Network | None:
     try:
         network = load_network(n.feeder, load_scale=n.load_scale)
         voltage_band(network, n.voltage_margin)  # a margin that leaves a bus no band fails here, not in the DMO
-    except NetworkError as exc:
+        # a feeder no clearing can serve, even shedding all its load (a bus's v_min above the substation's voltage),
+        # fails here too: with no bids and no limit at the substation, only its own limits can exclude every hour
+        clear_network([], network, {}, 0.0, MAX_MW, MAX_MW, margin=n.voltage_margin)
+    except ValueError as exc:  # NetworkError among them
         raise ExperimentError(f"network.feeder: {exc}") from None
     return network
 

@@ -56,6 +56,16 @@ def test_bad_placements_are_one_line(network, message):
     assert "\n" not in str(err.value)
 
 
+def test_a_feeder_no_clearing_can_serve_is_refused_before_the_run(tmp_path):
+    (tmp_path / "high.toml").write_text('base_kv = 10.0\nsubstation = "0"\n[[buses]]\nname = "0"\n[[buses]]\n'
+                                        'name = "1"\np_mw = 1.0\nv_min = 1.01\n[[lines]]\nfrom = "0"\nto = "1"\n'
+                                        'r_ohm = 0.1\nx_ohm = 0.1\n')
+    e = _experiment(feeder=str(tmp_path / "high.toml"))
+    with pytest.raises(ExperimentError, match="network.feeder: network high: the hour cannot clear even with every "
+                                              "fixed load shed"):
+        network_of(e)
+
+
 def test_a_feeder_needs_bids():
     with pytest.raises(ExperimentError, match="a feeder is cleared from bids"):
         parse_experiment({"market": {"mode": "fixed"}, "network": {"feeder": "feeder5"}})
