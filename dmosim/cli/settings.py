@@ -91,9 +91,9 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
         "network.feeder": ("--feeder", dict(metavar="NETWORK", help=(
             f"clear on this feeder, a built-in ({', '.join(NETWORKS)}) or a network file (TOML or pandapower "
             "JSON; docs/network.md), each agent at its bus (default: none, the copper plate)"))),
-        "network.load_scale": ("--network-load-scale", dict(type=number(0, MAX_SCALE, above=True), help=(
+        "network.load_scale": ("--network-load-scale", dict(type=number(0, MAX_SCALE, above=True), metavar="X", help=(
             f"the feeder's fixed loads times this (default: {default.network.load_scale:g})"))),
-        "network.voltage_margin": ("--voltage-margin", dict(type=number(0, MAX_VOLTAGE_MARGIN), help=(
+        "network.voltage_margin": ("--voltage-margin", dict(type=number(0, MAX_VOLTAGE_MARGIN), metavar="PU", help=(
             "p.u. the clearing keeps inside every bus's voltage limits, for what LinDistFlow neglects "
             f"(default: {default.network.voltage_margin:g})"))),
     }
