@@ -5,13 +5,17 @@ Hours are 0..23 inside the DMO (settlement lines, meter hour indices) and 1..24 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from messages import (DMO, AgentTotals, Award, CallForBids, Clock, DaySummary, GridState, Incident, SettlementStatement,
                       StatementLine)
 
 from ..market.clearing import ClearingResult
-from ..market.distflow import NetworkClearing
 from ..market.settlement import RULES_VERSION, Statement
 from .config import DayConfig
+
+if TYPE_CHECKING:  # the feeder's clearing loads scipy's LP, which a reader of recordings never needs
+    from ..market.distflow import NetworkClearing
 
 
 def clock(config: DayConfig, day: int, phase: str, hour: int | None, deadline_s: float) -> Clock:
@@ -31,13 +35,13 @@ def call_for_bids(config: DayConfig, day: int, deadline_s: float) -> CallForBids
 
 def award(config: DayConfig, day: int, clearing: ClearingResult | NetworkClearing, agent: str,
           bus: str | None = None) -> Award:
-    """One agent's award of day ``day``: its P_sch, its clearing prices (on a feeder those of its ``bus``, with their
-    components) and the congestion, and the settlement terms and rules."""
+    """One agent's award of day ``day``: its P_sch, its clearing prices (on a feeder, ``bus`` given, those of its bus
+    with their components) and the congestion, and the settlement terms and rules."""
     c = config
     rule, (penalty, credit) = c.rule, c.rates
     price = tuple(clearing.agent_price[agent])
     feeder = {}
-    if isinstance(clearing, NetworkClearing):
+    if bus is not None:
         b = c.network.index[bus]
         feeder = dict(bus=bus, energy_price_per_mwh=tuple(clearing.energy.tolist()),
                       congestion_price_per_mwh=tuple(clearing.congestion[:, b].tolist()),

@@ -9,7 +9,6 @@ import threading
 from pathlib import Path
 
 from dmo.operator.config import DayConfig
-from dmo.operator.day import MarketDay
 from messages.transport import Bus
 
 from ..arguments import wait
@@ -62,6 +61,8 @@ def run(args) -> int:
     progress = lambda phase, hour: log.info("phase %s%s", phase, f" hour {hour}/24" if hour else "")  # noqa: E731
     with Bus(run_id, "dmo", settings, faults=message_faults(args, run_id, "dmo", experiment)) as bus:
         before_start = (lambda: await_recorder(bus, args.await_recorder)) if args.await_recorder else None
+        from dmo.operator.day import MarketDay  # noqa: PLC0415  (its clearing on a feeder loads scipy's LP)
+
         result = MarketDay(bus, config, progress).run(before_start)
         transport = bus.stats() | ({"faults_injected": bus.faults_injected()} if bus.faults else {})
     text = json.dumps(result.report(run_id, transport), indent=2)

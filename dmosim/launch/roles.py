@@ -12,7 +12,6 @@ import datetime as dt
 from pathlib import Path
 
 from dmo.market.choice import choose
-from dmo.market.distflow import clear_network
 from dmo.market.rules import MAX_MW
 from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
@@ -64,6 +63,8 @@ def network_of(experiment: Experiment) -> Network | None:
     n = experiment.network
     if n.feeder is None:
         return None
+    from dmo.market.distflow import clear_network  # noqa: PLC0415  (scipy's LP: 40 MiB no copper-plate role needs)
+
     try:
         network = load_network(n.feeder, load_scale=n.load_scale)
         voltage_band(network, n.voltage_margin)  # a margin that leaves a bus no band fails here, not in the DMO

@@ -22,3 +22,12 @@ def test_a_pure_module_loads_neither_zenoh_nor_matplotlib(module):
             f"print(','.join(m for m in {HEAVY!r} if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"importing {module} loads {out.stdout.strip()}"
+
+
+def test_the_command_line_loads_no_feeder_machinery():
+    """Every role starts through dmosim.cli, and the recorder and the agents never clear a feeder: scipy's LP (the
+    feeder's clearing, about 40 MiB) and pandapower (its AC check, about 100 MiB) load only where a feeder is used."""
+    code = ("import sys, dmosim.cli, dmosim.cli.record, messages.recording.recorder\n"
+            "print(','.join(m for m in ('dmo.market.distflow', 'pandapower') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", f"starting the command line loads {out.stdout.strip()}"
