@@ -332,6 +332,8 @@ class NetworkHour(_FromDmo):
         "the feeder's name"))]
     buses: Annotated[tuple[BusName, ...], Field(min_length=2, max_length=MAX_BUSES), Field(description=(
         "the feeder's buses, in its order; every per-bus field follows it"))]
+    substation: Annotated[BusName, Field(description=(
+        "the substation bus, one of buses: where the DMO trades with the ISO, held at its voltage"))]
     lines: Annotated[tuple[Annotated[str, Strict(), Field(min_length=3, max_length=130)], ...],
                      Field(min_length=1, max_length=MAX_BUSES), Field(description=(
         "the feeder's lines as \"from-to\" (from the substation's side), in its order; line_loading follows it"))]
@@ -358,6 +360,8 @@ class NetworkHour(_FromDmo):
     @model_validator(mode="after")
     def _per_bus(self):
         n = len(self.buses)
+        if self.substation not in self.buses:
+            raise ValueError(f"substation {self.substation!r} is not one of the buses")
         for name in ("injection_mw", "voltage_pu", "bus_price_per_mwh", "congestion_price_per_mwh",
                      "voltage_price_per_mwh", "shed_mw"):
             values = getattr(self, name)

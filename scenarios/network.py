@@ -141,19 +141,18 @@ class Network:
         return _frozen(np.outer(np.asarray(self.load_profile) * self.load_scale, self.load_q_mvar))
 
     @cached_property
-    def voltage_sensitivity(self) -> tuple[np.ndarray, np.ndarray]:
-        """(buses x buses) R, X: the drop of U = V^2 (p.u.^2) at bus j per MW and per Mvar of load at bus b,
-        2 sum of r (x) over the lines the two buses' paths share (LinDistFlow, Baran and Wu 1989)."""
-        d = self.downstream
-        return _frozen(2 * d.T @ (self.r_pu[:, None] * d)), _frozen(2 * d.T @ (self.x_pu[:, None] * d))
+    def line_names(self) -> tuple[str, ...]:
+        """Each line as "from-to", from the substation's side, in the feeder's line order."""
+        return tuple(f"{self.buses[a]}-{self.buses[b]}" for a, b in zip(self.parent, self.child))
 
     def lindistflow(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """LinDistFlow's line flows and bus voltages for loads ``p`` (MW) and ``q`` (Mvar) per bus (shape (...,
-        buses), positive consumption, the substation's ignored): P and Q on each line away from the substation
-        (..., lines) and V (p.u., (..., buses)) = sqrt(v_substation^2 - R p - X q). Losses are neglected."""
-        r, x = self.voltage_sensitivity
-        u = self.v_substation ** 2 - p @ r.T - q @ x.T
-        return p @ self.downstream.T, q @ self.downstream.T, np.sqrt(np.maximum(u, 0.0))
+        buses), positive consumption, the substation's ignored): P = D p and Q = D q on each line away from the
+        substation (..., lines), and V (p.u., (..., buses)) = sqrt(v_substation^2 - 2 D'(r P + x Q)): U = V^2
+        drops by 2 (r P + x Q) along every line of a bus's path (Baran and Wu 1989). Losses are neglected."""
+        flow_p, flow_q = p @ self.downstream.T, q @ self.downstream.T
+        u = self.v_substation ** 2 - 2 * (flow_p * self.r_pu + flow_q * self.x_pu) @ self.downstream
+        return flow_p, flow_q, np.sqrt(np.maximum(u, 0.0))
 
     def bus_of(self, bus: object, where: str = "bus") -> int:
         """The index of a bus named by a string or integer; NetworkError naming the network if there is none, or
@@ -245,11 +244,10 @@ def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], subst
         ends.append((index[a], index[b]))
         r.append(rk)
         x.append(xk)
-    parent, child, order = _orient(ends, root, len(names), name, names)
+    parent, child = _orient(ends, root, len(names), name, names)
     net = Network(name=name, base_kv=float(base_kv), buses=tuple(names), root=root,
                   parent=_frozen(np.array(parent)), child=_frozen(np.array(child)),
-                  r_ohm=_frozen(np.array(r)[order]), x_ohm=_frozen(np.array(x)[order]),
-                  s_max_mva=np.array(s)[order], v_min=_frozen(lo), v_max=_frozen(hi),
+                  r_ohm=_frozen(np.array(r)), x_ohm=_frozen(np.array(x)), s_max_mva=np.array(s), v_min=_frozen(lo), v_max=_frozen(hi),
                   load_p_mw=_frozen(p), load_q_mvar=_frozen(q), load_profile=profile,
                   load_scale=float(load_scale), power_factor=float(power_factor))
     unrated = np.isnan(net.s_max_mva)
@@ -260,7 +258,7 @@ def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], subst
     return net
 
 
-def _orient(ends, root: int, n: int, name: str, names) -> tuple[list[int], list[int], list[int]]:
+def _orient(ends, root: int, n: int, name: str, names) -> tuple[list[int], list[int]]:
     """Each line as (parent, child) away from the substation, lines kept in their given order; NetworkError if
     a bus cannot be reached (then, with n - 1 lines, the feeder also has a loop)."""
     adjacent: list[list[tuple[int, int]]] = [[] for _ in range(n)]
@@ -268,22 +266,20 @@ def _orient(ends, root: int, n: int, name: str, names) -> tuple[list[int], list[
         adjacent[a].append((b, k))
         adjacent[b].append((a, k))
     parent_of = {root: -1}
-    via = [-1] * len(ends)
+    child = [-1] * len(ends)  # line k's end away from the substation
     stack = [root]
     while stack:
         bus = stack.pop()
         for other, k in adjacent[bus]:
             if other not in parent_of:
                 parent_of[other] = bus
-                via[k] = other
+                child[k] = other
                 stack.append(other)
     if len(parent_of) < n:
         lost = next(names[b] for b in range(n) if b not in parent_of)
         raise NetworkError(f"network {name}: bus {lost} cannot be reached from the substation and the lines form a "
                            "loop: a feeder must be radial (a tree)")
-    order = list(range(len(ends)))
-    child = [via[k] for k in order]
-    return [parent_of[c] for c in child], child, order
+    return [parent_of[c] for c in child], child
 
 
 def _number(value, what: str, name: str) -> float:

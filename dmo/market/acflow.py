@@ -192,16 +192,12 @@ def _hour_check(network: Network, hour: int, ac, ldf_p: np.ndarray, ldf_v: np.nd
     low, high, worst = int(v.argmin()), int(v.argmax()), int(loading.argmax())
     return HourCheck(hour=hour, converged=True, v_min_pu=float(v[low]), v_min_bus=network.buses[low],
                      v_max_pu=float(v[high]), v_max_bus=network.buses[high], max_loading=float(loading[worst]),
-                     max_loading_line=_line_name(network, worst),
+                     max_loading_line=network.line_names[worst],
                      voltage_error_pu=float(np.abs(ldf_v - v).max()),
                      flow_error_mw=float(np.abs(ldf_p - ac["p_from"]).max()),
                      losses_mw=ac["losses"], substation_mw=ac["substation"],
                      violations=_violations(network, v, loading), margin=margin,
                      v_pu=tuple(v.tolist()), loading=tuple(loading.tolist()))
-
-
-def _line_name(network: Network, line: int) -> str:
-    return f"{network.buses[network.parent[line]]}-{network.buses[network.child[line]]}"
 
 
 def _violations(network: Network, v: np.ndarray, loading: np.ndarray) -> tuple[str, ...]:
@@ -210,5 +206,5 @@ def _violations(network: Network, v: np.ndarray, loading: np.ndarray) -> tuple[s
     names = network.buses
     out = [f"undervoltage {names[b]} {v[b]:.4f}<{network.v_min[b]:g}" for b in np.flatnonzero(v < network.v_min)]
     out += [f"overvoltage {names[b]} {v[b]:.4f}>{network.v_max[b]:g}" for b in np.flatnonzero(v > network.v_max)]
-    out += [f"overload {_line_name(network, l)} {100 * loading[l]:.1f}%" for l in np.flatnonzero(loading > 1)]
+    out += [f"overload {network.line_names[l]} {100 * loading[l]:.1f}%" for l in np.flatnonzero(loading > 1)]
     return tuple(out)

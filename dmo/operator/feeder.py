@@ -26,8 +26,8 @@ def sites(config: DayConfig, state: DayState) -> dict[str, str]:
     return {a: config.placement.get(a) or reg.bus for a, reg in state.registered.items()}
 
 
-def per_bus(network: Network, at: Mapping[str, str], mw: Mapping[str, np.ndarray]) -> np.ndarray:
-    """(24 x buses) the agents' MW (agent -> 24 values) summed at their buses."""
+def per_bus(network: Network, at: Mapping[str, str], mw: Mapping[str, object]) -> np.ndarray:
+    """(24 x buses) the agents' MW (agent -> 24 values) summed at their buses (``at``: agent -> bus)."""
     out = np.zeros((HOURS, network.n_buses))
     for agent, values in mw.items():
         out[:, network.index[at[agent]]] += values
@@ -44,11 +44,11 @@ def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed:
     p, q = net.fixed_p * kept + injection, net.fixed_q * kept + injection * net.tan_phi
     flow_p, flow_q, v = net.lindistflow(p, q)
     loading = np.hypot(flow_p, flow_q) / net.s_max_mva
-    names = tuple(f"{net.buses[a]}-{net.buses[b]}" for a, b in zip(net.parent, net.child))
     checks = [{k: x for k, x in c.as_dict().items() if k != "hour"}  # the message's hour says which
               for c in check_hours(net, p - net.fixed_p, q_mvar=q - net.fixed_q, margin=config.voltage_margin)]
     return [NetworkHour(sender=DMO, market_day=config.market_day_of(day), hour=h + 1, stage=stage,
-                        network=net.name, buses=net.buses, lines=names, substation_mw=float(p[h].sum()),
+                        network=net.name, buses=net.buses, substation=net.substation, lines=net.line_names,
+                        substation_mw=float(p[h].sum()),
                         injection_mw=tuple(injection[h].tolist()), voltage_pu=tuple(v[h].tolist()),
                         line_loading=tuple(loading[h].tolist()), ac=ACCheck(**checks[h]),
                         **{k: float(a[h]) if np.ndim(a) == 1 else tuple(a[h].tolist()) for k, a in prices.items()})
@@ -57,7 +57,7 @@ def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed:
 
 def planned(config: DayConfig, day: int, clearing: NetworkClearing, at: Mapping[str, str]) -> list[NetworkHour]:
     """The day as cleared: each hour's awards at their buses, the bus prices and their components, shed load."""
-    injection = per_bus(config.network, at, {a: np.asarray(v) for a, v in clearing.awards.items()})
+    injection = per_bus(config.network, at, clearing.awards)
     return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw),
                   energy_price_per_mwh=np.asarray(clearing.price), bus_price_per_mwh=np.asarray(clearing.bus_price),
                   congestion_price_per_mwh=np.asarray(clearing.congestion),

@@ -19,6 +19,7 @@ import numpy as np
 from dmo.market.clearing import BidCurve, Step, clear
 from dmo.market.acflow import check_hours
 from dmo.market.distflow import clear_network
+from dmo.operator.feeder import per_bus
 from scenarios.horizon import HOURS
 from scenarios.network import Network, load_network, synthetic
 
@@ -71,10 +72,8 @@ def run(args) -> dict:
             figures, plate = _timed(lambda: clear(bids, iso, limit, limit), args.repeats)
             rows.append({"case": "copper plate", "buses": 1, **figures, **_labels(plate.congested), "shed_mw": 0.0})
         figures, cleared = _timed(lambda: clear_network(bids, network, buses, iso, limit, limit), args.repeats)
-        injection = np.zeros((HOURS, network.n_buses))
-        for agent, award in cleared.awards.items():
-            injection[:, network.index[buses[agent]]] += award
-        ac, checks = _timed(lambda: check_hours(network, injection - cleared.shed_mw), args.repeats)
+        injection = per_bus(network, buses, cleared.awards) - cleared.shed_mw
+        ac, checks = _timed(lambda: check_hours(network, injection), args.repeats)
         rows.append({"case": network.name, "buses": network.n_buses, **figures, **_labels(cleared.congested),
                      "shed_mw": float(cleared.shed_mw.sum()), "ac_median_s": ac["median_s"],
                      "ac_max_s": ac["max_s"], "ac_converged": sum(c.converged for c in checks),

@@ -9,6 +9,7 @@ override it. Every setting's default is the one of spec.py: nothing here has a d
 from __future__ import annotations
 
 import datetime as dt
+import functools
 from pathlib import Path
 
 from dmo.market.choice import choose
@@ -61,16 +62,19 @@ def network_of(experiment: Experiment) -> Network | None:
     """The feeder the run's market clears on, at the experiment's load scale (None: the copper plate);
     ExperimentError, one line, if it cannot be used."""
     n = experiment.network
-    if n.feeder is None:
-        return None
+    return None if n.feeder is None else _feeder(n.feeder, n.load_scale, n.voltage_margin)
+
+
+@functools.lru_cache(maxsize=4)  # a run resolves, checks and configures its DMO from one feeder: load it once
+def _feeder(source: str, load_scale: float, margin: float) -> Network:
     from dmo.market.distflow import clear_network  # noqa: PLC0415  (scipy's LP: 40 MiB no copper-plate role needs)
 
     try:
-        network = load_network(n.feeder, load_scale=n.load_scale)
-        voltage_band(network, n.voltage_margin)  # a margin that leaves a bus no band fails here, not in the DMO
+        network = load_network(source, load_scale=load_scale)
+        voltage_band(network, margin)  # a margin that leaves a bus no band fails here, not in the DMO
         # a feeder no clearing can serve, even shedding all its load (a bus's v_min above the substation's voltage),
         # fails here too: with no bids and no limit at the substation, only its own limits can exclude every hour
-        clear_network([], network, {}, 0.0, MAX_MW, MAX_MW, margin=n.voltage_margin)
+        clear_network([], network, {}, 0.0, MAX_MW, MAX_MW, margin=margin)
     except ValueError as exc:  # NetworkError among them
         raise ExperimentError(f"network.feeder: {exc}") from None
     return network

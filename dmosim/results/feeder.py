@@ -50,15 +50,14 @@ def _prices(ax, plan: pd.DataFrame, start: dict[str, int]) -> None:
 def _voltages(ax, buses: pd.DataFrame, network: pd.DataFrame, day: str, hour: int) -> None:
     """Each bus's voltage at the peak hour, planned and realised (LinDistFlow), with the AC lowest marked."""
     for stage, color in (("plan", _PLAN), ("realised", _REALISED)):
-        own = buses[buses["stage"] == stage]
-        if not own.empty:
-            ax.plot(range(len(own)), own["voltage_pu"], ".-", color=color, ms=3, lw=1,
-                    label=f"{stage} (LinDistFlow)")
-        ac = network[network["stage"] == stage]
-        if not ac.empty and not own.empty:
-            where = list(own["bus"]).index(ac["ac_v_min_bus"].iloc[0]) if ac["ac_v_min_bus"].iloc[0] in set(own["bus"]) else None
-            if where is not None:
-                ax.plot(where, ac["ac_v_min_pu"].iloc[0], "x", color=color, ms=7, label=f"{stage}: AC lowest")
+        own, ac = buses[buses["stage"] == stage], network[network["stage"] == stage]
+        if own.empty:
+            continue
+        ax.plot(range(len(own)), own["voltage_pu"], ".-", color=color, ms=3, lw=1, label=f"{stage} (LinDistFlow)")
+        position = {bus: i for i, bus in enumerate(own["bus"])}
+        lowest = ac["ac_v_min_bus"].iloc[0] if not ac.empty else None
+        if lowest in position:  # an hour with no AC solution names no bus
+            ax.plot(position[lowest], ac["ac_v_min_pu"].iloc[0], "x", color=color, ms=7, label=f"{stage}: AC lowest")
     order = list(dict.fromkeys(buses["bus"]))
     step = _step(len(order), 8)
     ax.set_xticks(range(0, len(order), step), order[::step], fontsize=7)

@@ -263,7 +263,8 @@ def _network(hours: list[dict]) -> pd.DataFrame:
         return _typed("network", None)
     rows = [{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "network": m["network"],
              "substation_mw": m["substation_mw"], "energy_price_per_mwh": m["energy_price_per_mwh"],
-             "shed_mw": None if m["shed_mw"] is None else sum(m["shed_mw"]), "v_min_pu": min(m["voltage_pu"][1:]),
+             "shed_mw": None if m["shed_mw"] is None else sum(m["shed_mw"]),
+             "v_min_pu": min(v for b, v in zip(m["buses"], m["voltage_pu"]) if b != m["substation"]),
              "max_loading": max(m["line_loading"]),
              **{f"ac_{k}": ("; ".join(v) if k == "violations" else v) for k, v in m["ac"].items()}}
             for m in hours]

@@ -67,7 +67,7 @@ SAMPLES = {
                                                  ignored={"award_again": 1}, sent_again=2, asked=0,
                                                  faults_injected={"drop": 1})),
     "network_hour": NetworkHour(sender="dmo", market_day=DAY, hour=19, stage="plan", network="feeder5",
-                                buses=["0", "1", "2"], lines=["0-1", "1-2"], substation_mw=1.2, injection_mw=[0.0, 0.5, -0.1],
+                                buses=["0", "1", "2"], substation="0", lines=["0-1", "1-2"], substation_mw=1.2, injection_mw=[0.0, 0.5, -0.1],
                                 voltage_pu=[1.0, 0.99, 0.985], line_loading=[0.4, 1.0], energy_price_per_mwh=40.0,
                                 bus_price_per_mwh=[40.0, 40.0, 55.5], congestion_price_per_mwh=[0.0, 0.0, 15.5],
                                 voltage_price_per_mwh=[0.0, 0.0, 0.0], shed_mw=[0.0, 0.0, 0.0],
