@@ -149,6 +149,99 @@ def clearing_price(book: Book, iso: float, import_limit: float, export_limit: fl
     return iso, "none"
 
 
+# --- the ISO's curve -------------------------------------------------------------------------------------------
+
+MAX_BLOCKS = 50  # blocks of one side of an ISO curve: a wholesale offer curve's length, far more than a study needs
+
+
+@dataclass(frozen=True)
+class IsoCurve:
+    """The ISO's terms at the substation (docs/market.md, "The ISO's curve"): ``import_curve`` are (MW, premium
+    $/MWh) the ISO sells the DMO at its hourly price plus the premium, ``export_curve`` (MW, discount $/MWh) what it
+    buys from the DMO at its price less the discount; each side's blocks in order, premiums and discounts strictly
+    increasing. A side with no blocks is one block as wide as the substation's limit at the ISO price: the flat
+    curve, a price taker's market, is ``IsoCurve()``. The substation's limits cut each side's blocks."""
+
+    import_curve: tuple[tuple[float, float], ...] = ()
+    export_curve: tuple[tuple[float, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        for side in ("import_curve", "export_curve"):
+            blocks = tuple((finite(mw, f"{side} MW"), finite(extra, f"{side} price")) for mw, extra in
+                           getattr(self, side))
+            if len(blocks) > MAX_BLOCKS:
+                raise ValueError(f"{side}: at most {MAX_BLOCKS} blocks, got {len(blocks)}")
+            if any(mw <= 0 for mw, _ in blocks):
+                raise ValueError(f"{side}: every block must have MW > 0")
+            extras = [extra for _, extra in blocks]
+            if any(extra < 0 for extra in extras) or any(b <= a for a, b in zip(extras, extras[1:])):
+                raise ValueError(f"{side}: the {'premiums' if side == 'import_curve' else 'discounts'} must be "
+                                 f">= 0 and strictly increasing, got {extras}")
+            object.__setattr__(self, side, blocks)
+
+    def check_prices(self, iso_price: Sequence[float], floor: float, cap: float) -> None:
+        """ValueError (one line) if the curve prices the substation outside [floor, cap] at the ISO's hourly prices
+        ``iso_price``: a price no message could carry."""
+        low = min(iso_price) - max((extra for _, extra in self.export_curve), default=0.0)
+        high = max(iso_price) + max((extra for _, extra in self.import_curve), default=0.0)
+        if low < floor or high > cap:
+            raise ValueError(f"the ISO's curve prices the substation from {low:g} to {high:g} $/MWh, beyond the "
+                             f"prices messages carry ({floor:g} to {cap:g} $/MWh)")
+
+
+FLAT = IsoCurve()
+
+
+@dataclass(frozen=True)
+class Segments:
+    """The price of the DMO's position P0 at the substation (MW, + import) in one hour: ``price[s]`` ($/MWh,
+    strictly ascending) over P0 in [``low[s]``, ``high[s]``], the segments in order and touching."""
+
+    price: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+    @property
+    def top(self) -> float:
+        """The most the DMO can import."""
+        return float(self.high[-1])
+
+    @property
+    def bottom(self) -> float:
+        """Minus the most it can export."""
+        return float(self.low[0])
+
+    def cost(self, p0: float) -> float:
+        """What the position ``p0`` costs at the ISO's curve ($ per hour; < 0: a revenue): each MW between 0 and
+        p0 at its segment's price (a position past an end by rounding, at the end's price)."""
+        a, b = min(p0, 0.0), max(p0, 0.0)
+        mw = np.clip(self.high, a, b) - np.clip(self.low, a, b)  # exact for the flat curve: p0 - 0
+        mw[-1 if p0 > 0 else 0] += max(p0 - self.top, self.bottom - p0, 0.0)
+        return math.copysign(1.0, p0) * math.fsum(self.price * mw)
+
+
+def segments(curve: IsoCurve, iso: float, import_limit: float, export_limit: float) -> Segments:
+    """One hour's segments of ``curve`` at the ISO price ``iso``, each side cut at the substation's limit; equal
+    prices either side of 0 are one segment (a flat curve is a single one, [-export_limit, import_limit] at iso)."""
+    def side(blocks, limit, sign):
+        mw, extra = np.array(blocks or ((limit, 0.0),), dtype=float).reshape(-1, 2).T
+        end = np.minimum(np.cumsum(mw), limit)
+        start = np.concatenate([[0.0], end[:-1]])
+        keep = end > start
+        return iso + sign * extra[keep], sign * start[keep], sign * end[keep]
+
+    up, down = side(curve.import_curve, import_limit, 1.0), side(curve.export_curve, export_limit, -1.0)
+    price = np.concatenate([down[0][::-1], up[0]]) + 0.0
+    low = np.concatenate([down[2][::-1], up[1]])
+    high = np.concatenate([down[1][::-1], up[2]])
+    if price.size == 0:  # both limits 0: the DMO trades nothing, at the ISO's price
+        return Segments(np.array([iso + 0.0]), np.zeros(1), np.zeros(1))
+    same = np.flatnonzero(price[1:] == price[:-1])  # only the two sides' first blocks can share a price
+    if same.size:
+        price, low, high = np.delete(price, same + 1), np.delete(low, same + 1), np.delete(high, same)
+    return Segments(price, low, high)
+
+
 # --- quantities -------------------------------------------------------------------------------------------------
 
 def marginal_shares(fixed: float, marginal_buy: float, marginal_sell: float, target: float) -> tuple[float, float]:
@@ -190,6 +283,22 @@ def clear_hour(book: Book, iso: float, import_limit: float, export_limit: float)
     return price, congested, book.quantity * accepted_fractions(book, price, target)
 
 
+def clear_on_curve(book: Book, curve: Segments, base: float = 0.0) -> tuple[float, str, np.ndarray]:
+    """Price, congestion state and per-step awards of one hour on the ISO's curve (docs/market.md, "The ISO's
+    curve"), the DMO's position being ``base`` (MW, e.g. fixed load) plus the book's net import.
+
+    The hour clears on the first segment s whose high end holds what the bids want at the next segment's price, all
+    ties accepted (the last segment otherwise), as ``clear_hour`` clears at one ISO price between two limits: at the segment's
+    price, or at a bid's price up to the next segment's when its high end binds. Only the curve's ends are
+    congestion ("import", "export"): a position held at the boundary of two segments is "none". A flat curve is
+    ``clear_hour`` between the limits exactly. ``base`` must lie within the curve's ends.
+    """
+    last = len(curve.price) - 1
+    s = next((s for s in range(last) if net_import_at_iso(book, curve.price[s + 1]) <= curve.high[s] - base), last)
+    price, congested, step_mw = clear_hour(book, float(curve.price[s]), curve.high[s] - base, base - curve.low[s])
+    return price, "none" if congested == "import" and s < last else congested, step_mw
+
+
 def per_agent(book: Book, step_awards: np.ndarray, n_agents: int) -> list[float]:
     # + 0.0 turns a -0.0 (a rejected sale) into 0.0 so equal results print equal.
     return [math.fsum(step_awards[book.owner == i]) + 0.0 for i in range(n_agents)]
@@ -215,18 +324,19 @@ def market_inputs(bids: Iterable[BidCurve], iso_price: float | Sequence[float], 
 
 
 def clear(bids: Iterable[BidCurve], iso_price: float | Sequence[float], import_limit: float | Sequence[float],
-          export_limit: float | Sequence[float], agents: Iterable[str] = ()) -> ClearingResult:
+          export_limit: float | Sequence[float], agents: Iterable[str] = (), curve: IsoCurve = FLAT) -> ClearingResult:
     """Clear one market day: a uniform price and an award per microgrid for each of the 24 hours.
 
     ``iso_price`` ($/MWh) and the feeder limits (MW, >= 0) are a scalar or 24 hourly values. ``agents`` names
-    microgrids that may have sent no bid; they, like bidders with no accepted step, get award 0. Raises
-    ValueError with a one-line reason for invalid input, including two bids from one agent.
+    microgrids that may have sent no bid; they, like bidders with no accepted step, get award 0. ``curve``: the
+    ISO's blocks around its price (the flat curve: a price taker's market). Raises ValueError with a one-line reason
+    for invalid input, including two bids from one agent.
     """
     bids, names, iso, imp, exp = market_inputs(bids, iso_price, import_limit, export_limit, agents)
     prices, congested, columns = [], [], []
     for h in range(HOURS):
         book = hour_book(bids, names, h)
-        p, c, step_awards = clear_hour(book, iso[h], imp[h], exp[h])
+        p, c, step_awards = clear_on_curve(book, segments(curve, iso[h], imp[h], exp[h]))
         prices.append(p)
         congested.append(c)
         columns.append(per_agent(book, step_awards, len(names)))

@@ -33,7 +33,8 @@ from messages.schemas import PRICE_CAP
 from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
-from .clearing import BidCurve, Book, accepted_fractions, clear_hour, hour_book, market_inputs, per_agent
+from .clearing import (FLAT, BidCurve, Book, IsoCurve, Segments, accepted_fractions, clear_on_curve, hour_book,
+                       market_inputs, per_agent, segments)
 
 # The value of lost load ($/MWh): what shedding a MW of fixed load costs the welfare. It is the bid cap, so no bid
 # the DMO accepts outbids serving the fixed load.
@@ -98,7 +99,8 @@ class HourProgram:
     """One hour's LP as the clearing solves it, whole: minimise ``c @ x`` subject to ``A_eq @ x == b_eq`` (the
     substation's balance), ``A_ub @ x <= b_ub`` (every line facet, then every bus's lower and upper voltage limit:
     ``rows`` names them) and ``lower <= x <= upper``. Columns: the book's steps in canonical order (signed MW),
-    the shed load at ``shed_buses`` (MW), the substation's import P0 (MW). ``x`` is the solution; the duals follow
+    the shed load at ``shed_buses`` (MW), and the substation's import P0 (MW) as one column per segment of the ISO's
+    curve (``clearing.segments``; one for the flat curve). ``x`` is the solution; the duals follow
     scipy's convention (d objective / d right-hand side): ``eq_dual`` (the energy price), ``ub_dual`` (<= 0; zero
     for a row the solution holds without it in the LP), ``lower_dual`` (>= 0), ``upper_dual`` (<= 0). ``objective``
     is minus the welfare."""
@@ -205,16 +207,14 @@ class Feeder:
 @dataclass(frozen=True)
 class _Hour:
     """One hour's inputs on the feeder: the book in canonical order with each step's bus, the fixed loads, the
-    ISO price, the substation's limits and the value of lost load."""
+    ISO's curve within the substation's limits and the value of lost load."""
 
     feeder: Feeder
     book: Book
     bus: np.ndarray
     fixed_p: np.ndarray
     fixed_q: np.ndarray
-    iso: float
-    import_limit: float
-    export_limit: float
+    curve: Segments
     voll: float
 
     @property
@@ -231,20 +231,24 @@ class _Hour:
         return (self.fixed_p + inject - shed, self.fixed_q + self.feeder.tan_phi * inject - ratio * shed)
 
     def program(self, g_p: np.ndarray, g_q: np.ndarray, b: np.ndarray, shed_at: np.ndarray) -> tuple[np.ndarray, ...]:
-        """The LP over the steps, the shed loads at ``shed_at`` and P0, with the limits G_P p + G_Q q <= b: c, A_eq,
-        b_eq, A_ub, b_ub, lower, upper (dense)."""
-        book = self.book
+        """The LP over the steps, the shed loads at ``shed_at`` and P0's segments, with the limits G_P p + G_Q q <= b:
+        c, A_eq, b_eq, A_ub, b_ub, lower, upper (dense)."""
+        book, curve = self.book, self.curve
+        n = len(curve.price)
         # A step's MW raises its bus's P by 1 and Q by tan(phi); a shed MW lowers P by 1 and Q by the load's ratio.
         a_ub = np.hstack([(g_p + self.feeder.tan_phi * g_q)[:, self.bus], -self.shed_columns(g_p, g_q, shed_at),
-                          np.zeros((len(b), 1))])
+                          np.zeros((len(b), n))])
         b_ub = b - g_p @ self.fixed_p - g_q @ self.fixed_q
         s, k = len(book.quantity), len(shed_at)
-        # The substation's balance: P0 = fixed load + net import of the steps - shed (LinDistFlow is lossless).
-        a_eq = np.concatenate([-np.ones(s), np.ones(k), [1.0]])[None, :]
+        # The substation's balance: P0 = fixed load + net import of the steps - shed (LinDistFlow is lossless), P0
+        # the sum of its segments' columns, each from 0 outwards (its prices rise with P0: the LP fills them in order)
+        a_eq = np.concatenate([-np.ones(s), np.ones(k), np.ones(n)])[None, :]
         b_eq = np.array([math.fsum(self.fixed_p)])
-        c = np.concatenate([-book.price, np.full(k, self.voll), [self.iso]])
-        lower = np.concatenate([np.minimum(book.quantity, 0.0), np.zeros(k), [-self.export_limit]])
-        upper = np.concatenate([np.maximum(book.quantity, 0.0), self.fixed_p[shed_at], [self.import_limit]])
+        c = np.concatenate([-book.price, np.full(k, self.voll), curve.price])
+        lower = np.concatenate([np.minimum(book.quantity, 0.0), np.zeros(k),
+                                np.minimum(curve.low, 0.0) - np.minimum(curve.high, 0.0)])
+        upper = np.concatenate([np.maximum(book.quantity, 0.0), self.fixed_p[shed_at],
+                                np.maximum(curve.high, 0.0) - np.maximum(curve.low, 0.0)])
         return c, a_eq, b_eq, a_ub, b_ub, lower, upper
 
     def shed_columns(self, g_p: np.ndarray, g_q: np.ndarray, shed_at: np.ndarray) -> np.ndarray:
@@ -270,7 +274,7 @@ class _Hour:
                 message = " ".join(str(res.message).split())
                 raise ValueError(f"network {self.feeder.network.name}: the hour cannot clear even with every fixed "
                                  f"load shed ({message})")
-            solution = _Solution(rows, g_p, g_q, b, shed_at, lp, res)
+            solution = _Solution(rows, g_p, g_q, b, shed_at, len(self.curve.price), lp, res)
             dear = np.setdiff1d(every[self.shed_value(solution, every) > self.voll + PRICE_TOLERANCE], shed_at)
             if dear.size:
                 shed_at = np.union1d(shed_at, dear)
@@ -294,27 +298,33 @@ class _Hour:
 @dataclass(frozen=True)
 class _Solution:
     """An hour's LP as last solved: its limits (ids; left sides G_P, G_Q per bus; right sides b), the buses whose
-    load it may shed, its data (c, A_eq, b_eq, A_ub, b_ub, lower, upper) and scipy's result."""
+    load it may shed, how many segments P0 has, its data (c, A_eq, b_eq, A_ub, b_ub, lower, upper) and scipy's
+    result."""
 
     rows: np.ndarray
     g_p: np.ndarray
     g_q: np.ndarray
     b: np.ndarray
     shed_at: np.ndarray
+    segments: int
     lp: tuple[np.ndarray, ...]
     res: object
 
     @property
     def step_mw(self) -> np.ndarray:
-        return self.res.x[:-1 - len(self.shed_at)]
+        return self.res.x[:-self.segments - len(self.shed_at)]
+
+    @property
+    def p0_segments(self) -> np.ndarray:
+        return self.res.x[-self.segments:]
 
     @property
     def p0(self) -> float:
-        return float(self.res.x[-1])
+        return math.fsum(self.p0_segments)
 
     def shed(self, n_buses: int) -> np.ndarray:
         out = np.zeros(n_buses)
-        out[self.shed_at] = np.maximum(self.res.x[-1 - len(self.shed_at):-1], 0.0)
+        out[self.shed_at] = np.maximum(self.res.x[-self.segments - len(self.shed_at):-self.segments], 0.0)
         return out
 
     @property
@@ -343,10 +353,9 @@ def _copper_plate(hour: _Hour) -> tuple[_Cleared | None, np.ndarray]:
     break. It applies while the substation's limits leave room for the fixed load and its price is within VOLL
     (above it, shedding fixed load for the bids would gain welfare)."""
     fixed = math.fsum(hour.fixed_p)
-    import_room, export_room = hour.import_limit - fixed, hour.export_limit + fixed
-    if import_room < 0 or export_room < 0:
+    if not hour.curve.bottom <= fixed <= hour.curve.top:
         return None, np.zeros(0, int)
-    price, congested, step_mw = clear_hour(hour.book, hour.iso, import_room, export_room)
+    price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
     if price > hour.voll:
         return None, np.zeros(0, int)
     n = len(hour.fixed_p)
@@ -361,10 +370,13 @@ def _prices(hour: _Hour, sol: _Solution) -> tuple[float, np.ndarray, np.ndarray]
     """The energy price and each bus's congestion and voltage components from the duals: each limit's dual times
     the sensitivity of its left side to a microgrid's MW at the bus (P, with tan(phi) Mvar)."""
     energy = sol.res.eqlin.marginals[0] + 0.0
-    if -hour.export_limit + LIMIT_TOLERANCE < sol.p0 < hour.import_limit - LIMIT_TOLERANCE:
-        energy = hour.iso  # P0 within its limits: its reduced cost iso - energy is zero in exact arithmetic
-    else:  # at a limit, the price the duals give within PRICE_TOLERANCE of the ISO's or a bid's is that price
-        candidates = np.append(hour.book.price, hour.iso)
+    curve, x = hour.curve, sol.p0_segments
+    *_, lower, upper = sol.lp
+    inside = np.flatnonzero((lower[-len(x):] + LIMIT_TOLERANCE < x) & (x < upper[-len(x):] - LIMIT_TOLERANCE))
+    if inside.size:
+        energy = float(curve.price[inside[0]])  # a segment within its bounds: its reduced cost is zero exactly
+    else:  # at a bound, the price the duals give within PRICE_TOLERANCE of the ISO's or a bid's is that price
+        candidates = np.append(hour.book.price, curve.price)
         gap = np.abs(candidates - energy)
         if gap.min() <= PRICE_TOLERANCE:
             energy = float(candidates[np.lexsort((candidates, gap))[0]])
@@ -420,9 +432,9 @@ def _on_feeder(hour: _Hour) -> _Cleared:
     base = 8 * hour.feeder.network.n_lines
     lines = tuple(int(x) for x in np.unique(held[held < base] // 8))
     buses = tuple(int(x) for x in np.unique((held[held >= base] - base) // 2))
-    if sol.p0 >= hour.import_limit - LIMIT_TOLERANCE:
+    if sol.p0 >= hour.curve.top - LIMIT_TOLERANCE:
         congested = "import"
-    elif sol.p0 <= -hour.export_limit + LIMIT_TOLERANCE:
+    elif sol.p0 <= hour.curve.bottom + LIMIT_TOLERANCE:
         congested = "export"
     else:
         congested = "line" if lines else "voltage" if buses else "none"
@@ -441,9 +453,11 @@ def _agent_buses(network: Network, buses: Mapping[str, object], names: Sequence[
     return np.array([network.bus_of(buses[a], f"bus of agent {a}") for a in names], dtype=int)
 
 
-def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin):
+def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin, curve):
     if not isinstance(network, Network):
         raise ValueError(f"network must be a scenarios.network.Network, got {type(network).__name__}")
+    if not isinstance(curve, IsoCurve):
+        raise ValueError(f"curve must be a clearing.IsoCurve, got {type(curve).__name__}")
     bids, names, iso, imp, exp = market_inputs(bids, iso_price, import_limit, export_limit, agents)
     voll = finite(voll, "voll")
     if voll <= 0:
@@ -455,8 +469,8 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
         book = hour_book(bids, names, h)
         order = np.lexsort((book.owner, book.quantity, book.price, at[book.owner]))
         canonical = Book(book.owner[order], book.price[order], book.quantity[order])
-        return _Hour(feeder, canonical, at[canonical.owner], network.fixed_p[h], network.fixed_q[h], iso[h], imp[h],
-                     exp[h], voll)
+        return _Hour(feeder, canonical, at[canonical.owner], network.fixed_p[h], network.fixed_q[h],
+                     segments(curve, iso[h], imp[h], exp[h]), voll)
 
     return names, at, feeder, hour
 
@@ -464,20 +478,20 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
 def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object], hour: int,
                  iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                  export_limit: float | Sequence[float], agents: Iterable[str] = (), voll: float = VOLL,
-                 margin: float = 0.0) -> HourProgram:
+                 margin: float = 0.0, curve: IsoCurve = FLAT) -> HourProgram:
     """The LP of hour index ``hour`` as ``clear_network`` solves it when the copper plate does not hold (here always
     solved, whether or not it does), written out whole: every line facet and voltage limit, those left out of the
     solve with a zero dual. For checking the prices (KKT conditions, sensitivities)."""
     if isinstance(hour, bool) or not isinstance(hour, int) or not 0 <= hour < HOURS:
         raise ValueError(f"hour must be an hour index 0..{HOURS - 1}, got {hour!r}")
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
-                                     margin)
+                                     margin, curve)
     h = make(hour)
     sol = h.solve(_copper_plate(h)[1])
     every, shed_every = feeder.rows, h.shed_buses
     c, a_eq, b_eq, a_ub, b_ub, lower, upper = h.program(*feeder.limits(every), shed_every)
     s, k = len(h.book.quantity), len(shed_every)
-    solved = np.concatenate([np.arange(s), s + np.searchsorted(shed_every, sol.shed_at), [s + k]])
+    solved = np.concatenate([np.arange(s), s + np.searchsorted(shed_every, sol.shed_at), s + k + np.arange(sol.segments)])
     x = np.zeros(len(c))
     x[solved] = sol.res.x
     ub_dual = np.zeros(len(every))
@@ -493,25 +507,25 @@ def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str,
 def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object],
                   iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                   export_limit: float | Sequence[float], agents: Iterable[str] = (),
-                  voll: float = VOLL, margin: float = 0.0) -> NetworkClearing:
+                  voll: float = VOLL, margin: float = 0.0, curve: IsoCurve = FLAT) -> NetworkClearing:
     """Clear one market day on ``network``: per hour the bus prices, the awards and the feeder's state.
 
     ``buses`` maps every bidder and every name in ``agents`` to its bus (a name or index of ``network.buses``, not
     the substation). ``iso_price`` ($/MWh) and the substation's ``import_limit`` and ``export_limit`` (MW, on its
     exchange with the ISO, fixed load included) are a scalar or 24 hourly values, as in ``clearing.clear``.
     ``voll``: the value of lost load, $/MWh. ``margin`` (p.u., >= 0): LinDistFlow's voltages are held within
-    v_min + margin and v_max - margin, room for its error against AC (docs/network.md, "The AC check"). Raises
+    v_min + margin and v_max - margin, room for its error against AC (docs/network.md, "The AC check"). ``curve``:
+    the ISO's blocks around its price, which price the substation's exchange (``clearing.IsoCurve``). Raises
     ValueError (a ``NetworkError`` for a bus) with a one-line reason.
     """
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
-                                     margin)
+                                     margin, curve)
     out, columns = [], []
     for h in range(HOURS):
         hour = make(h)
         done = _on_feeder(hour)
         out.append((hour, done))
         columns.append(per_agent(hour.book, done.step_mw, len(names)))
-    n = network.n_buses
     flows_p, flows_q, volts, exchange, welfare = [], [], [], [], []
     for hour, done in out:
         p, q = hour.loads(done.step_mw, done.shed)
@@ -521,7 +535,7 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
         volts.append(np.sqrt(np.maximum(u, 0.0)))
         p0 = math.fsum(np.concatenate([hour.fixed_p, done.step_mw, -done.shed]))
         exchange.append(p0 + 0.0)
-        welfare.append(math.fsum(np.concatenate([hour.book.price * done.step_mw, [-hour.iso * p0],
+        welfare.append(math.fsum(np.concatenate([hour.book.price * done.step_mw, [-hour.curve.cost(p0)],
                                                  -hour.voll * done.shed])) + 0.0)
     bus_price = np.array([done.bus_price for _, done in out])
     awards = {a: tuple(columns[h][i] for h in range(HOURS)) for i, a in enumerate(names)}

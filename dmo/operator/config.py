@@ -13,6 +13,7 @@ from scenarios.horizon import HOURS
 from scenarios.network import Network
 
 from ..market.choice import ChosenRule, paper_rule
+from ..market.clearing import FLAT, IsoCurve
 
 
 @dataclass(frozen=True)
@@ -49,12 +50,14 @@ class DayConfig:
     network: Network | None = None  # the feeder the market clears on (None: the copper plate)
     placement: Mapping[str, str] = field(default_factory=dict)  # agent -> its bus on the feeder
     voltage_margin: float = 0.0  # p.u. the clearing keeps inside every bus's voltage limits (docs/network.md)
+    iso_curve: IsoCurve = FLAT  # the ISO's blocks around its price at the substation (docs/market.md)
 
     def __post_init__(self):
         if self.days < 1:
             raise ValueError(f"a run has at least one day, not {self.days}")
         if self.islanding_by_day is not None and len(self.islanding_by_day) != self.days:
             raise ValueError(f"islanding_by_day gives {len(self.islanding_by_day)} days, the run has {self.days}")
+        self.iso_curve.check_prices(self.iso_price, self.price_floor, self.price_cap)
 
     @property
     def rule(self) -> ChosenRule:

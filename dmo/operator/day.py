@@ -139,8 +139,10 @@ def clearing_of(config: DayConfig, state: DayState) -> ClearingResult | NetworkC
     bids = [bid_curve(state.bids[a]) for a in sorted(state.bids)]
     if config.network is not None:
         return clear_network(bids, config.network, feeder.sites(config, state), config.iso_price,
-                             config.import_limit, config.export_limit, agents=agents, margin=config.voltage_margin)
-    return clear(bids, config.iso_price, config.import_limit, config.export_limit, agents=agents)
+                             config.import_limit, config.export_limit, agents=agents, margin=config.voltage_margin,
+                             curve=config.iso_curve)
+    return clear(bids, config.iso_price, config.import_limit, config.export_limit, agents=agents,
+                 curve=config.iso_curve)
 
 
 def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult | NetworkClearing

@@ -5,6 +5,7 @@ anything starts: its fleet, its cases and its faults, each refused in one line (
 from __future__ import annotations
 
 from dmo.market.choice import choose
+from messages.schemas import PRICE_CAP, PRICE_FLOOR
 from messages.transport.faults import FaultSpecError
 from microgrid_agent.agent.strategies import StrategyError, choose_strategy, strategy_name
 from scenarios.case import CaseError, load_case
@@ -95,6 +96,11 @@ def check_inputs(experiment: Experiment, checked: Checked | None = None) -> list
     if late:
         raise ExperimentError(f"--fault {late[0]}: day {late[0].day} is past the run's {experiment.days} day(s)")
     placement_of(experiment, network_of(experiment))  # the feeder loads and has every agent's bus
+    try:  # the DMO's messages can carry every price the ISO's curve may set
+        experiment.market.iso_curve.check_prices(load_case(experiment.market.case).grid.iso_price, PRICE_FLOOR,
+                                                 PRICE_CAP)
+    except ValueError as exc:
+        raise ExperimentError(f"market: {exc}") from None
     return fleet
 
 

@@ -145,7 +145,7 @@ def render(info: dict) -> str:
             f"market day{'s:' if len(info['market_days']) > 1 else ': '} {', '.join(info['market_days']) or '-'}",
             f"agents:      {', '.join(info['agents']) or '-'}",
             f"strategies:  {strategies or '-'}",
-            f"feeder:      " + (f"{info['feeder']['network']} ({info['feeder']['buses']} buses): "
+            "feeder:      " + (f"{info['feeder']['network']} ({info['feeder']['buses']} buses): "
                                 + ", ".join(f"{a} at bus {b}" for a, b in info["feeder"]["agents"].items())
                                 if info["feeder"] else "none (a copper plate)"),
             f"seed:        {info['seed'] if info['seed'] is not None else '-'}"]

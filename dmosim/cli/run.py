@@ -163,7 +163,11 @@ def run(args) -> int:
               f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, bidding with "
               f"{', '.join(sorted({strategy_of(experiment, m) for m in fleet}))}, "
               + (f"on feeder {experiment.network.feeder} at buses {', '.join(experiment.network.buses)}, "
-                 if experiment.network.feeder else "") + f"{len(experiment.faults)} fault(s)")
+                 if experiment.network.feeder else "")
+              + (f"against the ISO's curve ({len(experiment.market.import_curve)} import and "
+                 f"{len(experiment.market.export_curve)} export blocks), "
+                 if experiment.market.import_curve or experiment.market.export_curve else "")
+              + f"{len(experiment.faults)} fault(s)")
         return 0
     run_id = new_run_id()
     try:

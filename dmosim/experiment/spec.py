@@ -18,6 +18,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
+from dmo.market.clearing import MAX_BLOCKS, IsoCurve
 from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
@@ -55,6 +56,9 @@ Seconds = Annotated[float, Field(gt=0, le=MAX_SECONDS, allow_inf_nan=False)]
 Scales = Annotated[list[Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)]],
                    Field(max_length=MAX_PROFILE_DAYS)]
 PathText = Annotated[str, Field(min_length=1, max_length=MAX_PATH)]
+# An ISO curve's side: blocks [MW, $/MWh away from the ISO's price]; IsoCurve checks their order
+Blocks = Annotated[list[Annotated[list[Annotated[float, Field(ge=0, le=MAX_MW, allow_inf_nan=False)]],
+                                  Field(min_length=2, max_length=2)]], Field(max_length=MAX_BLOCKS)]
 
 
 class Agents(_Section):
@@ -99,6 +103,10 @@ class Market(_Section):
         return value
     import_limit: Megawatts | None = None  # MW (None: 8 x agents)
     export_limit: Megawatts | None = None  # MW (None: 5 x agents)
+    # the ISO's curve (docs/market.md, "The ISO's curve"): [MW, $/MWh over its price] it sells the DMO in order,
+    # [MW, $/MWh under its price] it buys; none: all at its price, within the limits
+    import_curve: Blocks = []
+    export_curve: Blocks = []
     island_hours: Annotated[int, Field(ge=0, le=HOURS)] = 1
     subperiods: Annotated[int, Field(ge=1, le=MAX_SUBPERIODS)] = 6
 
@@ -110,6 +118,18 @@ class Market(_Section):
         if chosen is not None:  # the case's penalty only fills in a rate; a disagreement does not depend on it
             market_parameters(chosen.built_in, chosen.params, self.penalty, self.credit, case_penalty=0.0)
         return self
+
+    @model_validator(mode="after")
+    def _a_curve(self):
+        if (self.import_curve or self.export_curve) and self.mode == "fixed":
+            raise ValueError("import_curve and export_curve price the clearing; mode \"fixed\" clears nothing")
+        self.iso_curve  # raises ValueError unless each side's blocks are in order
+        return self
+
+    @property
+    def iso_curve(self) -> IsoCurve:
+        """The ISO's curve the market clears against (``dmo.market.clearing.IsoCurve``)."""
+        return IsoCurve(tuple(map(tuple, self.import_curve)), tuple(map(tuple, self.export_curve)))
 
 
 class ScheduleSettings(_Section):

@@ -155,7 +155,7 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
         fixed_awards=tuple(case.grid.p_sch) if m.mode == "fixed" else None,
         registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, journal=journal,
         settlement=rule, network=network, placement=placement_of(e, network),
-        voltage_margin=e.network.voltage_margin)
+        voltage_margin=e.network.voltage_margin, iso_curve=m.iso_curve)
 
 
 def message_faults(experiment: Experiment) -> list[MessageFault]:

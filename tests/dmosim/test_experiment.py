@@ -12,6 +12,7 @@ from dmosim.cli import main
 from dmosim.experiment.rundir import RunDir, RunDirError
 from dmosim.experiment.spec import Experiment, ExperimentError, load_experiment, parse_experiment, to_toml, with_settings
 from dmosim.experiment.sweep import parse_setting, variants
+from dmosim.launch.roles import day_config
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
@@ -33,6 +34,11 @@ def test_every_key_has_a_default_and_the_resolved_file_reads_back_the_same():
     ({"market_day": "2026-02-30"}, "market_day: '2026-02-30' is not a date"),
     ({"profiles": {"load_scale": [1.0, -1.0]}}, "profiles.load_scale.1: Input should be greater than 0"),
     ({"market": {"settlement": "deadband:width=1"}}, "market.settlement: settlement rule deadband has no parameter"),
+    ({"market": {"import_curve": [[4.0, 5.0], [2.0, 5.0]]}},
+     "market: import_curve: the premiums must be >= 0 and strictly increasing, got [5.0, 5.0]"),
+    ({"market": {"export_curve": [[4.0]]}}, "market.export_curve.0: List should have at least 2 items"),
+    ({"market": {"export_curve": [[0.0, 1.0]]}}, "market: export_curve: every block must have MW > 0"),
+    ({"market": {"import_curve": [[1.0, 0.0]], "mode": "fixed"}}, "market: import_curve and"),
 ])
 def test_a_bad_experiment_is_one_line_naming_the_key(data, message):
     with pytest.raises(ExperimentError) as err:
@@ -40,6 +46,20 @@ def test_a_bad_experiment_is_one_line_naming_the_key(data, message):
     assert str(err.value).startswith(f"exp.toml: {message}") and "\n" not in str(err.value)
     with pytest.raises(ExperimentError, match="unknown key"):
         with_settings(Experiment(), {"market.pennalty": 1.0}, "--set")
+
+
+def test_the_isos_curve_reads_back_and_a_price_no_message_carries_is_refused_at_check(tmp_path, capsys):
+    curve = parse_experiment({"market": {"import_curve": [[4, 0], [2, 15.5]], "export_curve": [[3.0, 2.0]]}})
+    assert curve.market.iso_curve.import_curve == ((4.0, 0.0), (2.0, 15.5))
+    assert parse_experiment(tomllib.loads(to_toml(curve))) == curve
+    assert day_config(curve).iso_curve == curve.market.iso_curve  # the DMO clears against it
+    path = tmp_path / "exp.toml"
+    path.write_text("[market]\nimport_curve = [[4, 0], [2, 15]]\n")
+    assert main(["run", str(path), "--check"]) == 0 and "ISO's curve (2 import and 0 export blocks)" in capsys.readouterr().out
+    path.write_text("[market]\nexport_curve = [[4, 0], [2, 2000]]\n")
+    assert main(["run", str(path), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "beyond the prices messages carry (-1000 to 10000 $/MWh)" in err and err.count("\n") == 1
 
 
 def test_flags_override_the_file(tmp_path, capsys):
