@@ -39,7 +39,7 @@ def _prices(ax, plan: pd.DataFrame, start: dict[str, int]) -> None:
     image = ax.imshow(spread.to_numpy(dtype=float), aspect="auto", cmap="magma_r", interpolation="nearest",
                       extent=(grid.columns.min(), grid.columns.max() + 1, len(order) - 0.5, -0.5),
                       norm=TwoSlopeNorm(vcenter=top / 2, vmin=0, vmax=top))
-    step = _step(len(order), 12)  # at most 12 bus labels, so 33 (or 1,000) buses stay legible
+    step = label_step(len(order), 12)  # at most 12 bus labels, so 33 (or 1,000) buses stay legible
     ax.set_yticks(range(0, len(order), step), order[::step], fontsize=7)
     ax.set_ylabel("bus (feeder order)")
     ax.set_xlabel("hour")
@@ -59,7 +59,7 @@ def _voltages(ax, buses: pd.DataFrame, network: pd.DataFrame, day: str, hour: in
         if lowest in position:  # an hour with no AC solution names no bus
             ax.plot(position[lowest], ac["ac_v_min_pu"].iloc[0], "x", color=color, ms=7, label=f"{stage}: AC lowest")
     order = list(dict.fromkeys(buses["bus"]))
-    step = _step(len(order), 8)
+    step = label_step(len(order), 8)
     ax.set_xticks(range(0, len(order), step), order[::step], fontsize=7)
     ax.set_xlabel("bus (feeder order)")
     ax.set_ylabel("V, p.u.")
@@ -76,7 +76,7 @@ def _loading(ax, lines: pd.DataFrame) -> None:
     if len(real) == len(plan):
         ax.bar(x + 0.2, real["loading"], 0.4, color=_REALISED, label="realised")
     ax.axhline(1.0, color=_LIMIT, lw=1, ls="--", label="thermal limit")
-    step = _step(len(plan), 8)
+    step = label_step(len(plan), 8)
     ax.set_xticks(x[::step], list(plan["line"])[::step], fontsize=7, rotation=45)
     ax.set_ylim(0, 1.45 * max(1.0, float(lines["loading"].max())))  # room for the legend above the limit
     ax.set_ylabel("S / S max (LinDistFlow)")
@@ -84,6 +84,6 @@ def _loading(ax, lines: pd.DataFrame) -> None:
     ax.legend(fontsize=7, loc="upper left", ncol=2, frameon=False)
 
 
-def _step(n: int, labels: int) -> int:
+def label_step(n: int, labels: int) -> int:
     """Every how many ticks to label so that at most ``labels`` labels show."""
     return max(1, -(-n // labels))

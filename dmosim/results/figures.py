@@ -3,15 +3,18 @@
 Left column, on one time axis: the hourly clearing price (congested hours marked, as the awards say), then for each agent its award P_sch against its metered
 import P_M per sub-period. Right column: the day's bill per agent (several days: each agent's daily total), then
 beside each agent its deviation penalty and credit per hour. Islanded hours are shaded on every time axis, hours
-with no accepted meter report hatched, process restarts dashed. A recording of several market days lays them end
-to end on an axis of hours, each day's start labelled with its date. On a feeder a last row shows its prices by bus
-and hour, its voltages and its line loading at the peak hour (feeder.py). ``figure_of`` titles it by the run and its
-settlement rule.
+with no accepted meter report hatched, process restarts dashed. With more than ``COMPACT_AGENTS`` agents the
+figure is compact instead (compact.py): below the price, agents x hours heat maps of the deviation and of the
+penalty, and beside the price the bills ranked, so that its size stays bounded at hundreds of agents. A recording
+of several market days lays them end to end on an axis of hours, each day's start labelled with its date. On a
+feeder a last row shows its prices by bus and hour, its voltages and its line loading at the peak hour
+(feeder.py). ``figure_of`` titles it by the run and its settlement rule.
 """
 
 from __future__ import annotations
 
 import json
+import re
 
 import matplotlib
 
@@ -28,13 +31,17 @@ from dmo.replay.resettle import day_messages, rule_named  # noqa: E402
 from messages.recording import Recording  # noqa: E402
 
 from . import feeder  # noqa: E402
+from .compact import (COMPACT_AGENTS, agent_axis, colour_bar, deviation_map,  # noqa: E402
+                      frame_islanded, maps_height, mark_missing, mark_restarts, penalty_hours, penalty_map,
+                      ranked_bills, stacked)
+from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, short_dates  # noqa: E402
 
-_AWARD, _IMPORT, _ENERGY = "black", "#1f77b4", "#8c9fc4"
-_PENALTY, _CREDIT, _ISLANDED = "#d62728", "#2ca02c", "0.85"
-_MISSING, _RESTART = "#ff7f0e", "#9467bd"
+_AWARD, _IMPORT = "black", "#1f77b4"
 WIDTH_IN, ROW_IN, DPI = 10.5, 1.75, 120  # 1,260 px wide at DPI; each agent adds a row of ROW_IN inches
+TOP_IN = 2.4  # the price's row with many agents: the ranked bills beside it need the room
 FEEDER_IN = 3.2  # the feeder's row (prices by bus, voltages, loading), on a feeder only
-_DOLLARS = FuncFormatter(lambda y, _: f"{y:,.0f}")
+_MISSING_LABEL = "hour with no accepted meter report (missing-data rule)"
+_DMO_RESTARTED = "process restarted (the DMO)"
 
 
 def figure_of(rec: Recording, frames: dict[str, pd.DataFrame], head: str) -> Figure:
@@ -73,86 +80,140 @@ def restarts(rec: Recording) -> pd.DataFrame:
 def recording_figure(frames: dict[str, pd.DataFrame], title: str = "",
                      restarted: pd.DataFrame | None = None) -> Figure:
     """The figure of the tables ``frames`` (``dmosim.results.tables.tables``); needs at least one statement.
-    ``restarted`` (``restarts``) marks where a process was restarted."""
+    ``restarted`` (``restarts``) marks where a process was restarted. Up to ``COMPACT_AGENTS`` agents each has its
+    row of panels; more share heat maps (compact.py), so the figure's size does not grow with them."""
     hours, meter, days = frames["hours"], frames["meter"], frames["days"]
     if hours.empty:
         raise ValueError("no settlement statement recorded: nothing to plot")
     market_days = sorted(hours["market_day"].unique())
-    agents = sorted(hours["agent"].unique())
+    agents = sorted(hours["agent"].unique(), key=_natural)
     start = {day: 24 * i for i, day in enumerate(market_days)}  # x: hours from the start of the first day
-    hours = hours.assign(t=hours["market_day"].map(start) + hours["hour"] - 1).sort_values(["agent", "t"])
+    hours = hours.assign(t=hours["market_day"].map(start) + hours["hour"] - 1, missing=_missing(hours, meter))
+    hours = hours.sort_values(["agent", "t"])
+    places = pd.DataFrame(columns=["sender", "t"]) if restarted is None else restarted.assign(
+        t=restarted["market_day"].map(start) + (restarted["hour"] - 1).clip(lower=0)).dropna(subset="t")
+    compact = len(agents) > COMPACT_AGENTS
 
     on_feeder = not frames.get("network", pd.DataFrame()).empty
-    fig = plt.figure(figsize=(WIDTH_IN, ROW_IN * (1 + len(agents)) + 1.2 + FEEDER_IN * on_feeder), dpi=DPI,
-                     layout="constrained")
-    rows = fig.add_gridspec(2 if on_feeder else 1, 1, height_ratios=(ROW_IN * (1 + len(agents)), FEEDER_IN)
-                            if on_feeder else None)
-    grid = rows[0].subgridspec(1 + len(agents), 2, width_ratios=(3, 2))
+    market_in = TOP_IN + maps_height(len(agents)) if compact else ROW_IN * (1 + len(agents))
+    fig = plt.figure(figsize=(WIDTH_IN, market_in + 1.2 + FEEDER_IN * on_feeder), dpi=DPI, layout="constrained")
+    rows = fig.add_gridspec(2 if on_feeder else 1, 1, height_ratios=(market_in, FEEDER_IN) if on_feeder else None)
     if on_feeder:
         feeder.draw(fig, rows[1].subgridspec(1, 3, width_ratios=(3, 2, 2)), frames, start)
+    draw = _compact if compact else _per_agent
+    price_ax, time_axes = draw(fig, rows[0], hours, meter, days, agents, start, places)
+    _price(price_ax, hours, on_feeder)
+    for t in places.loc[~places["sender"].isin(agents), "t"]:
+        price_ax.axvline(t, color=RESTART, lw=1.5, ls="--", zorder=4, label=_DMO_RESTARTED)
+
+    islanded = hours.loc[hours["islanded"], "t"].drop_duplicates().to_numpy()
+    xlabel = "time of day, h" if len(market_days) == 1 else "hour of the market day (each day's start: its date)"
+    for ax in time_axes:
+        if not compact or ax is price_ax:
+            ax.broken_barh([(t, 1) for t in islanded], (0, 1), transform=ax.get_xaxis_transform(), color=ISLANDED,
+                           zorder=0, lw=0)
+            ax.grid(axis="y", alpha=0.3)
+        else:
+            frame_islanded(ax, islanded, len(agents), 24 * len(market_days))
+        _time_axis(ax, market_days)
+        if ax is price_ax or not compact and ax not in time_axes[-2:]:
+            ax.tick_params(which="both", labelbottom=False)
+        else:
+            ax.set_xlabel(xlabel)
+
+    handles = {}  # one entry per label, whichever axis drew it
+    for ax in fig.axes:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            if ax.get_legend() is None:  # a panel's own legend (the bills') says its own
+                handles.setdefault(label, handle)
+    islanded_label = "islanded hour (grid state" + ("; framed on the maps)" if compact else ")")
+    handles = [*handles.values(), Patch(facecolor=ISLANDED, edgecolor="0.2" if compact else ISLANDED,
+                                        label=islanded_label)]
+    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
+    fig.suptitle(title or days_label(market_days), fontsize=12)
+    return fig
+
+
+def _per_agent(fig, cell, hours, meter, days, agents, start, places):
+    """Up to ``COMPACT_AGENTS`` agents: the price, then each agent's award against its metered import and, beside,
+    its penalties per hour; the bills beside the price. Returns the price's axes and every axes on the time axis,
+    the two lowest last."""
+    grid = cell.subgridspec(1 + len(agents), 2, width_ratios=(3, 2))
     price_ax = fig.add_subplot(grid[0, 0])
     power_axes = [fig.add_subplot(grid[1 + i, 0], sharex=price_ax) for i in range(len(agents))]
     money_axes = [fig.add_subplot(grid[1 + i, 1], sharex=price_ax) for i in range(len(agents))]
-
-    per_hour = hours.drop_duplicates(["market_day", "hour"])
-    # on a feeder every bus has its price (the heat map below): the one common to all is the substation's
-    price = "energy_price_per_mwh" if on_feeder else "clearing_price_per_mwh"
-    _hourly_stairs(price_ax, per_hour, price, color=_AWARD)
-    for where, marker in (("import", "^"), ("export", "v"), ("line", "s"), ("voltage", "D")):
-        congested = per_hour[(per_hour["congestion"] == where).fillna(False)]  # <NA>: not stated, not marked
-        if not congested.empty:
-            price_ax.plot(congested["t"] + 0.5, congested[price], marker, color=_PENALTY, ms=5,
-                          ls="none", label=f"{where} {'limit binds' if where in ('line', 'voltage') else 'congestion'}"
-                                           " (as the clearing decided)")
-    price_ax.set_ylabel("$/MWh")
-    price_ax.set_title("the substation's price per hour" if on_feeder else "clearing price per hour", loc="left",
-                       fontsize=10)
     credit = bool((hours["deviation_credit"] != 0).any())  # a credit of 0 throughout: nothing to draw or name
     for agent, power, money in zip(agents, power_axes, money_axes):
         own = hours[hours["agent"] == agent]
         _power(power, agent, own, meter[meter["agent"] == agent], start)
         _penalties(money, agent, own, credit)
-        reported = meter.loc[meter["agent"] == agent, ["market_day", "hour"]].drop_duplicates().assign(reported=True)
-        missing = own.merge(reported, on=["market_day", "hour"], how="left")
-        missing = missing.loc[missing["reported"].isna().to_numpy() | (missing["missing_subperiods"] > 0).to_numpy(),
-                              "t"].to_numpy()
+        missing = own.loc[own["missing"], "t"].to_numpy()
         power.broken_barh([(t, 1) for t in missing], (0, 1), transform=power.get_xaxis_transform(), zorder=0.5,
-                          facecolor="none", edgecolor=_MISSING, hatch="///", lw=0,
-                          label="hour with no accepted meter report (missing-data rule)" if len(missing) else None)
-    if restarted is not None:
-        places = restarted.assign(t=restarted["market_day"].map(start) + (restarted["hour"] - 1).clip(lower=0))
-        places = places.dropna(subset="t")  # the start of the hour it happened in
-        for sender, t in zip(places["sender"], places["t"]):
-            axes = [price_ax] if sender not in agents else [power_axes[agents.index(sender)]]
-            for ax in axes:
-                ax.axvline(t, color=_RESTART, lw=1.5, ls="--", zorder=4,
-                           label=f"process restarted ({'the DMO' if ax is price_ax else 'the agent'})")
-
-    islanded = hours.loc[hours["islanded"], "t"].drop_duplicates().to_numpy()
-    xlabel = "time of day, h" if len(market_days) == 1 else "hour of the market day (each day's start: its date)"
-    for ax in [price_ax, *power_axes, *money_axes]:
-        ax.broken_barh([(t, 1) for t in islanded], (0, 1), transform=ax.get_xaxis_transform(), color=_ISLANDED,
-                       zorder=0, lw=0)
-        _time_axis(ax, market_days)
-        ax.grid(axis="y", alpha=0.3)
-        if ax not in (power_axes[-1], money_axes[-1]):
-            ax.tick_params(which="both", labelbottom=False)
-        else:
-            ax.set_xlabel(xlabel)
-
+                          facecolor="none", edgecolor=MISSING, hatch="///", lw=0,
+                          label=_MISSING_LABEL if len(missing) else None)
+    for sender, t in zip(places["sender"], places["t"]):
+        if sender in agents:
+            power_axes[agents.index(sender)].axvline(t, color=RESTART, lw=1.5, ls="--", zorder=4,
+                                                     label="process restarted (the agent)")
     totals_ax = fig.add_subplot(grid[0, 1])
-    if len(market_days) == 1:
+    if len(start) == 1:
         _bill(totals_ax, days, agents)
     else:
-        _daily_totals(totals_ax, days, market_days, agents)
-    handles = {}  # one entry per label, whichever axis drew it
-    for ax in [price_ax, *power_axes, *money_axes]:
-        for handle, label in zip(*ax.get_legend_handles_labels()):
-            handles.setdefault(label, handle)
-    handles = [*handles.values(), Patch(color=_ISLANDED, label="islanded hour (grid state)")]
-    fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
-    fig.suptitle(title or days_label(market_days), fontsize=12)
-    return fig
+        _daily_totals(totals_ax, days, list(start), agents)
+    return price_ax, [price_ax, *power_axes, *money_axes[:-1], power_axes[-1], money_axes[-1]]
+
+
+def _compact(fig, cell, hours, meter, days, agents, start, places):
+    """More agents: the price and, beside it, the bills ranked; below, agents x hours heat maps of the deviation and,
+    beside it on the same rows, of the penalty (compact.py). Returns the price's axes and every axes on the time
+    axis."""
+    height, span = maps_height(len(agents)), 24 * len(start)
+    grid = cell.subgridspec(2, 2, width_ratios=(3, 2), height_ratios=(TOP_IN, height))
+    price_ax = fig.add_subplot(grid[0, 0])
+    deviation_ax = fig.add_subplot(grid[1, 0], sharex=price_ax)
+    penalty_ax = fig.add_subplot(grid[1, 1], sharey=deviation_ax)
+    colour_bar(fig, deviation_map(deviation_ax, hours, agents, span), deviation_ax, "MWh")
+    credit = bool((hours["deviation_credit"] != 0).any())
+    colour_bar(fig, penalty_map(penalty_ax, hours, agents, span, credit), penalty_ax, "$", dollars=True)
+    agent_axis(deviation_ax, agents, height)
+    penalty_ax.tick_params(axis="y", labelleft=False)
+    per = penalty_hours(len(start))
+    for ax in (deviation_ax, penalty_ax):
+        mark_missing(ax, hours, agents, _MISSING_LABEL, per=per if ax is penalty_ax else 1)
+    mark_restarts(deviation_ax, places, agents, "process restarted (the agent)")
+    for t in places.loc[~places["sender"].isin(agents), "t"]:  # the DMO's: every agent's row
+        deviation_ax.axvline(t, color=RESTART, lw=1.5, ls="--", zorder=4, label=_DMO_RESTARTED)
+    ranked_bills(fig.add_subplot(grid[0, 1]), days, agents, len(start))
+    return price_ax, [price_ax, deviation_ax, *([penalty_ax] if per == 1 else [])]
+
+
+def _price(ax, hours: pd.DataFrame, on_feeder: bool) -> None:
+    """The clearing price per hour, congested hours marked as the clearing decided."""
+    per_hour = hours.drop_duplicates(["market_day", "hour"]).sort_values("t")
+    # on a feeder every bus has its price (the heat map below): the one common to all is the substation's
+    price = "energy_price_per_mwh" if on_feeder else "clearing_price_per_mwh"
+    _hourly_stairs(ax, per_hour, price, color=_AWARD)
+    for where, marker in (("import", "^"), ("export", "v"), ("line", "s"), ("voltage", "D")):
+        congested = per_hour[(per_hour["congestion"] == where).fillna(False)]  # <NA>: not stated, not marked
+        if not congested.empty:
+            ax.plot(congested["t"] + 0.5, congested[price], marker, color=PENALTY, ms=5,
+                    ls="none", label=f"{where} {'limit binds' if where in ('line', 'voltage') else 'congestion'}"
+                                     " (as the clearing decided)")
+    ax.set_ylabel("$/MWh")
+    ax.set_title("the substation's price per hour" if on_feeder else "clearing price per hour", loc="left",
+                 fontsize=10)
+
+
+def _missing(hours: pd.DataFrame, meter: pd.DataFrame) -> np.ndarray:
+    """Per line of ``hours``: no accepted meter report for the hour, or a sub-period of it settled as missing."""
+    reported = meter[["agent", "market_day", "hour"]].drop_duplicates().assign(reported=True)
+    merged = hours[["agent", "market_day", "hour"]].merge(reported, on=["agent", "market_day", "hour"], how="left")
+    return merged["reported"].isna().to_numpy() | (hours["missing_subperiods"] > 0).to_numpy()
+
+
+def _natural(name: str) -> tuple:
+    """mg2 before mg10: names ordered by their text with their numbers read as numbers."""
+    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name))
 
 
 def days_label(market_days: list[str]) -> str:
@@ -182,12 +243,12 @@ def _penalties(ax, agent: str, hours: pd.DataFrame, credit: bool) -> None:
     """The agent's deviation penalty per hour, $, and its credit drawn below 0 (it lowers the bill), if any agent
     has one."""
     middle = hours["t"].to_numpy() + 0.5
-    ax.bar(middle, hours["deviation_penalty"], width=0.8, color=_PENALTY, label="deviation penalty")
+    ax.bar(middle, hours["deviation_penalty"], width=0.8, color=PENALTY, label="deviation penalty")
     if credit:
-        ax.bar(middle, -hours["deviation_credit"], width=0.8, color=_CREDIT, label="deviation credit (drawn below 0)")
+        ax.bar(middle, -hours["deviation_credit"], width=0.8, color=CREDIT, label="deviation credit (drawn below 0)")
     ax.axhline(0, color="0.5", lw=0.6)
     ax.set_ylabel("$")
-    ax.yaxis.set_major_formatter(_DOLLARS)
+    ax.yaxis.set_major_formatter(DOLLARS)
     ax.set_title(f"{agent}: deviation penalty" + (" and credit" if credit else "") + " per hour", loc="left",
                  fontsize=10)
 
@@ -208,7 +269,7 @@ def _time_axis(ax, market_days: list[str]) -> None:
         ax.xaxis.set_minor_locator(MultipleLocator(1))
         return
     every = max(1, -(-len(market_days) // 8))  # at most eight dates along the axis
-    ax.set_xticks(range(0, span, 24 * every), [f"0\n{d}" for d in _short(market_days)[::every]])
+    ax.set_xticks(range(0, span, 24 * every), [f"0\n{d}" for d in short_dates(market_days)[::every]])
     ax.xaxis.set_minor_locator(MultipleLocator(6 if len(market_days) <= 4 else 12))
     ax.xaxis.set_minor_formatter(FuncFormatter(lambda x, _: f"{x % 24:.0f}" if x % 24 else ""))
     ax.tick_params(axis="x", which="minor", labelsize=7)
@@ -216,24 +277,14 @@ def _time_axis(ax, market_days: list[str]) -> None:
         ax.axvline(boundary, color="0.4", lw=0.8, ls=":")
 
 
-def _short(market_days: list[str]) -> list[str]:
-    """Dates as MM-DD when they share a year (the title says which), else as they are."""
-    return [d[5:] for d in market_days] if len({d[:4] for d in market_days}) == 1 else list(market_days)
-
-
 def _bill(ax, days: pd.DataFrame, agents: list[str]) -> None:
     """One day's bill per agent, $: energy charge and deviation penalty stacked (a negative energy charge, an
     export paid for, below 0), the credit below 0, the total marked and written above."""
     bill = days.set_index("agent").reindex(agents)
     x = np.arange(len(agents))
-    up, down = np.zeros(len(agents)), np.zeros(len(agents))
-    parts = (("energy charge", bill["energy_charge"], _ENERGY),
-             ("deviation penalty", bill["deviation_penalty"], _PENALTY),
-             ("deviation credit", -bill["deviation_credit"], _CREDIT))
-    for label, values, color in [p for p in parts if p[0] != "deviation credit" or (p[1] != 0).any()]:
-        values = values.to_numpy(dtype=float)
-        ax.bar(x, values, bottom=np.where(values >= 0, up, down), width=0.6, color=color, label=label)
-        up, down = up + np.clip(values, 0, None), down + np.clip(values, None, 0)
+    parts, up, down = stacked(bill)
+    for label, values, base, color in parts:
+        ax.bar(x, values, bottom=base, width=0.6, color=color, label=label)
     total = bill["total"].to_numpy(dtype=float)
     ax.hlines(total, x - 0.36, x + 0.36, color="black", lw=2, zorder=3, label="total")
     crowded = len(agents) > 5  # past five bars the amounts stand upright, or they run into each other
@@ -248,7 +299,7 @@ def _bill(ax, days: pd.DataFrame, agents: list[str]) -> None:
     ax.set_xlim(-0.6, len(agents) - 0.4)
     ax.axhline(0, color="0.5", lw=0.6)
     ax.set_ylabel("$")
-    ax.yaxis.set_major_formatter(_DOLLARS)
+    ax.yaxis.set_major_formatter(DOLLARS)
     ax.grid(axis="y", alpha=0.3)
     ax.set_title("the day's bill per agent: energy charge + penalty - credit", loc="left", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside: covers no label
@@ -262,12 +313,12 @@ def _daily_totals(ax, days: pd.DataFrame, market_days: list[str], agents: list[s
     for agent in agents:
         ax.plot(x, totals[agent].to_numpy(dtype=float), "o-", label=agent)
     every = max(1, -(-len(market_days) // 8))
-    ax.set_xticks(x[::every], _short(market_days)[::every])
+    ax.set_xticks(x[::every], short_dates(market_days)[::every])
     ax.set_xlim(-0.5, len(market_days) - 0.5)
     ax.axhline(0, color="0.5", lw=0.6)
     ax.set_xlabel("market day")
     ax.set_ylabel("$")
-    ax.yaxis.set_major_formatter(_DOLLARS)
+    ax.yaxis.set_major_formatter(DOLLARS)
     ax.grid(alpha=0.3)
     ax.set_title("daily total per agent (what it owes)", loc="left", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False)  # beside: covers no point
