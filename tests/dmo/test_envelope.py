@@ -10,6 +10,10 @@ import pytest
 from dmo.market.clearing import BidCurve, Step
 from dmo.market.distflow import FACETS, Feeder, clear_network
 from dmo.market.envelope import operating_envelope
+from dmo.operator import feeder as dmo_feeder
+from dmo.operator import outbox
+from dmo.operator.config import DayConfig
+from messages import decode, encode
 from scenarios.horizon import HOURS
 from scenarios.network import load_network
 from test_distflow import chain, one_hour
@@ -180,3 +184,23 @@ def test_bad_inputs_are_refused_in_one_line():
         operating_envelope(clearing, network, {"a": "0"}, 10, 10)
     with pytest.raises(ValueError, match="import_limit"):
         operating_envelope(clearing, network, {"a": "1"}, -1, 10)
+
+
+def test_the_dmos_grid_states_carry_each_hours_rooms_at_every_bus_and_none_on_the_copper_plate():
+    network = load_network("feeder5")
+    settings = dict(market_day="2026-07-01", agents=2, iso_price=(40.0,) * HOURS, import_limit=100.0,
+                    export_limit=100.0, penalty=150.0, subperiods=2, islanded_hours=(5,), credit=0.0,
+                    registration_s=1.0, bids_s=1.0, schedule_s=1.0, hour_s=1.0)
+    buses = {"far": "3", "near": "1"}
+    clearing = clear_network([one_hour("far", [(90, 5)]), one_hour("near", [(60, 0.5)])], network, buses, 40, 100,
+                             100)
+    config = DayConfig(**settings, network=network, placement=buses, voltage_margin=0.01)
+    room = dmo_feeder.envelope(config, clearing, buses)
+    np.testing.assert_array_equal(room, operating_envelope(clearing, network, buses, 100.0, 100.0, 0.01))
+    for hour in (1, 2, 5):
+        grid = decode(encode(outbox.grid_state(config, 1, hour, room)))
+        assert grid.buses == network.buses and grid.room_mw == tuple(room[hour - 1])
+        assert grid.connected == ((False,) * 2 if hour == 5 else (True,) * 2)  # islanded: the rooms come anyway
+    assert grid.room_mw[network.index["1"]] > 0 and grid.room_mw[network.index["2"]] == 0  # no microgrid at 2
+    plate = outbox.grid_state(DayConfig(**settings), 1, 1)
+    assert (plate.buses, plate.room_mw) == ((), ())
