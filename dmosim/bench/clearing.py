@@ -89,7 +89,8 @@ def run(args) -> dict:
         row["over_copper_plate"] = row["median_s"] / rows[0]["median_s"]
     goal = {row["case"]: {"goal_s": GOAL_S[row["case"]], "met": row["median_s"] <= GOAL_S[row["case"]],
                           "ac_goal_s": AC_GOAL_S[row["case"]], "ac_met": row["ac_median_s"] <= AC_GOAL_S[row["case"]],
-                          "envelope_goal_s": ENVELOPE_GOAL_S, "envelope_met": row["envelope_median_s"] <= ENVELOPE_GOAL_S}
+                          "envelope_goal_s": ENVELOPE_GOAL_S,
+                          "envelope_met": row["envelope_median_s"] <= ENVELOPE_GOAL_S}
             for row in rows if row["case"] in GOAL_S and args.agents == 100}
     return {"agents": args.agents, "steps": args.agents * HOURS * STEPS_PER_HOUR, "repeats": args.repeats,
             "rows": rows, "goal": goal}
