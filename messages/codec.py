@@ -65,7 +65,8 @@ ADDED = ((2, "clock", {"day": 1, "days": 1}),
          (6, "registration", {"strategy": None}),
          (7, "registration", {"bus": None}),
          (7, "award", {"bus": None, "energy_price_per_mwh": None, "congestion_price_per_mwh": None,
-                       "voltage_price_per_mwh": None}))
+                       "voltage_price_per_mwh": None}),
+         (8, "grid_state", {"buses": [], "room_mw": []}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -75,8 +76,9 @@ def _upgrade(payload: bytes) -> bytes | None:
     bound to no run token and no incarnation (empty, 0), which a live DMO refuses and a recording reader accepts.
     Version 4 -> 5: an award states no congestion (null), which the tables show as unknown. Version 5 -> 6: a
     registration names no bidding strategy (null). Version 6 -> 7: a registration and an award name no bus and
-    the award no price components (null): the copper plate. An older message that already has a field of a later version is
-    left as it is, for validation to refuse."""
+    the award no price components (null): the copper plate. Version 7 -> 8: a grid state carries no operating
+    envelope (no buses, no rooms), as on the copper plate. An older message that already has a field of a later
+    version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):

@@ -24,8 +24,10 @@ from scenarios.network import MAX_BUSES
 # settlement rule, and awards carry its price of a deviation; 4: every message is bound to its run (``run``) and
 # its sender's process (``incarnation``), and the DMO answers every agent message with a receipt; 5: awards carry the
 # clearing's congestion per hour, and an agent may report its realised day (``agent_day``); 6: a registration
-# names the agent's bidding strategy
-SCHEMA_VERSION = 7
+# names the agent's bidding strategy; 7: on a feeder, registrations and awards name the agent's bus, awards carry
+# their price's components, and ``network_hour`` publishes the feeder's hours; 8: on a feeder, a grid state carries
+# the hour's operating envelope (``buses``, ``room_mw``)
+SCHEMA_VERSION = 8
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -417,17 +419,30 @@ class Clock(_FromDmo):
 
 
 class GridState(_FromDmo):
-    """Phase 5, DMO -> all, once per hour: the grid's realised state; connected False = islanded (U = 0)."""
+    """Phase 5, DMO -> all, once per hour: the grid's realised state; connected False = islanded (U = 0). On a
+    feeder, also the hour's operating envelope: how far each microgrid may stray from its award."""
 
     kind: Annotated[Literal["grid_state"], Field(description=KIND)] = "grid_state"
     hour: Annotated[Hour, Field(description="the hour this state holds for, 1..24")]
     subperiods: Annotated[Subperiods, Field(description="K: sub-periods per hour")]
     connected: Annotated[tuple[Bool, ...], Field(min_length=1, max_length=MAX_SUBPERIODS), Field(description=(
         "K booleans, one per sub-period: true grid-connected, false islanded (U = 0: P_M must be 0)"))]
+    buses: Annotated[tuple[BusName, ...], Field(max_length=MAX_BUSES), Field(description=(
+        "on a feeder, every bus of the DMO's feeder, in its order, each once: room_mw follows it; empty on the "
+        "copper plate (and before version 8)"))] = ()
+    room_mw: Annotated[tuple[NonNeg, ...], Field(max_length=MAX_BUSES), Field(description=(
+        "the hour's operating envelope, one room per bus of buses (docs/network.md, \"Operating envelopes\"): in "
+        "the hour's grid-connected sub-periods each microgrid at the bus keeps its P_M within its award plus or "
+        "minus this many MW, and the feeder's limits then hold whatever the others do within theirs; 0 at a bus "
+        "without a microgrid. Empty on the copper plate"))] = ()
 
     @model_validator(mode="after")
     def _lengths(self):
         _check_length(self.connected, self.subperiods, "connected")
+        if len(self.room_mw) != len(self.buses):
+            raise ValueError(f"room_mw has {len(self.room_mw)} values for {len(self.buses)} buses")
+        if len(set(self.buses)) != len(self.buses):
+            raise ValueError("buses names a bus more than once")
         return self
 
 

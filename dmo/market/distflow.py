@@ -147,11 +147,27 @@ class Feeder:
         base = 8 * network.n_lines
         voltage = base + 2 * np.repeat(self.feeder_buses, 2) + np.tile([0, 1], len(self.feeder_buses))
         self.rows = np.concatenate([np.arange(base), voltage])
+        j = self.feeder_buses  # every limit's right side b (``limits``), in ``rows`` order
+        self.bounds = np.concatenate([np.repeat(self.s_max, 8),
+                                      np.column_stack([self.u0 - self.u_min[j], self.u_max[j] - self.u0]).ravel()])
 
     def state(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Flows P, Q (lines) and U = V^2 (buses) for loads p, q (buses)."""
         flow_p, flow_q = self.D @ p, self.D @ q
-        return flow_p, flow_q, self.u0 - self.DT @ (self.r2 * flow_p + self.x2 * flow_q)
+        return flow_p, flow_q, self.u0 - self.drop(flow_p, flow_q)
+
+    def drop(self, flow_p: np.ndarray, flow_q: np.ndarray) -> np.ndarray:
+        """U0 - U at every bus for the line flows P, Q: R p + X q."""
+        return self.DT @ (self.r2 * flow_p + self.x2 * flow_q)
+
+    def left_sides(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """Every limit's left side G_P p + G_Q q (``limits``) for loads p, q, in ``rows`` order: each line's eight
+        facets n_P P + n_Q Q, then each bus's U0 - U (its lower voltage limit) and U - U0 (its upper one).
+        ``bounds - left_sides(p, q)`` is every limit's slack."""
+        flow_p, flow_q = self.D @ p, self.D @ q
+        drop = self.drop(flow_p, flow_q)[self.feeder_buses]
+        facets = FACETS[:, :1] * flow_p + FACETS[:, 1:] * flow_q  # 8 x lines
+        return np.concatenate([facets.T.ravel(), np.column_stack([drop, -drop]).ravel()])
 
     def violated(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The ids of the limits the loads p, q break by more than LIMIT_TOLERANCE, sorted, and by how much as a
@@ -180,6 +196,19 @@ class Feeder:
             picked.append(ids[mine[np.lexsort((ids[mine], -share[mine]))[:most]]])
         return np.sort(np.concatenate(picked))
 
+    def behind(self, rows: np.ndarray) -> np.ndarray:
+        """Per bus, whether a microgrid's exchange there (P, with tan(phi) P of Q) moves any of the limits ``rows``:
+        a line's facet n moves with the buses below the line (unless n_P + tan(phi) n_Q = 0), a bus's voltage with
+        the buses below each line of its path whose r + tan(phi) x is not 0 (their R + tan(phi) X is not 0)."""
+        base = 8 * self.network.n_lines
+        line, facet = divmod(rows[rows < base], 8)
+        moved = np.zeros(self.network.n_lines)
+        moved[line[FACETS[facet] @ (1.0, self.tan_phi) != 0]] = 1.0
+        paths = np.zeros(self.network.n_buses)
+        paths[(rows[rows >= base] - base) // 2] = 1.0
+        moved[(self.D @ paths > 0) & (self.r2 + self.tan_phi * self.x2 > 0)] = 1.0
+        return self.DT @ moved > 0
+
     def limits(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The limits ``rows`` as G_P p + G_Q q <= b over the buses' loads (dense rows x buses: a voltage limit's
         row is dense anyway): a facet n of line l is n_P D_l, n_Q D_l <= s_l; a lower voltage limit R_j, X_j <= U0 -
@@ -192,9 +221,8 @@ class Feeder:
         path = self.DT[bus]  # the lines from the substation to each bus
         g_p = np.vstack([FACETS[facet, :1] * d, sign * (path @ self.D_r).toarray()])
         g_q = np.vstack([FACETS[facet, 1:] * d, sign * (path @ self.D_x).toarray()])
-        room = np.where(upper == 1, self.u_max[bus] - self.u0, self.u0 - self.u_min[bus])
-        b = np.concatenate([self.s_max[line], room])
-        return g_p, g_q, b
+        grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # the lines' rows first, as g_p and g_q
+        return g_p, g_q, self.bounds[np.searchsorted(self.rows, grouped)]
 
     def row_names(self, rows: np.ndarray) -> tuple[str, ...]:
         net, base = self.network, 8 * self.network.n_lines

@@ -284,9 +284,12 @@ class MarketDay:
     def _realtime(self) -> None:
         s, c = self.state, self.config
         first = self._resumed[1] if self._resumed and self._resumed[0] == "realtime" else 1
+        room = None  # on a feeder, the day's operating envelope: once a day, from its clearing (a resumed day's too)
+        if isinstance(self.clearing, NetworkClearing):
+            room = feeder.envelope(c, self.clearing, feeder.sites(c, s))
         for hour in range(first, HOURS + 1):
             self._clock("realtime", c.hour_s, hour)
-            self._grid = outbox.grid_state(c, s.day, hour)
+            self._grid = outbox.grid_state(c, s.day, hour, room)
             self._publish(self._grid)
 
             accept = intake.meter_report(s, hour, c.subperiods, self._grid)

@@ -1,5 +1,6 @@
-"""The DMO's feeder, hour by hour: where each agent sits, and the network_hour messages of a day as planned (after
-clearing) and as realised (after real time), each with the AC power-flow check of that hour (docs/network.md)."""
+"""The DMO's feeder, hour by hour: where each agent sits, the network_hour messages of a day as planned (after
+clearing) and as realised (after real time), each with the AC power-flow check of that hour, and the day's operating
+envelope, which the hours' grid states carry (docs/network.md)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from scenarios.network import Network
 
 from ..market.acflow import check_hours
 from ..market.distflow import NetworkClearing
+from ..market.envelope import operating_envelope
 from .config import DayConfig
 from .state import DayState
 
@@ -70,3 +72,10 @@ def realised(config: DayConfig, day: int, state: DayState, at: Mapping[str, str]
     mean = {a: np.array([np.mean([r or 0.0 for r in state.meter.get(a, {}).get(h, (0.0,))]) for h in range(HOURS)])
             for a in state.registered}
     return _hours(config, day, "realised", per_bus(config.network, at, mean))
+
+
+def envelope(config: DayConfig, clearing: NetworkClearing, at: Mapping[str, str]) -> np.ndarray:
+    """The day's operating envelope as cleared, (24 x buses): the room each microgrid at a bus may stray from its
+    award, within the run's voltage margin and substation limits (docs/network.md, "Operating envelopes")."""
+    return operating_envelope(clearing, config.network, at, config.import_limit, config.export_limit,
+                              config.voltage_margin)

@@ -1,4 +1,5 @@
-"""The day-ahead clearing: the copper plate against the network clearing on the IEEE 33-bus and a 1000-bus feeder.
+"""The day-ahead clearing: the copper plate against the network clearing on the IEEE 33-bus and a 1000-bus feeder,
+with the operating envelopes and the AC check of each feeder's day.
 
 One market day of N agents with three bid steps per agent-hour (a book built from a seed, the same for every case),
 cleared by ``dmo.market.clearing.clear`` (the copper plate) and ``dmo.market.distflow.clear_network`` on each
@@ -19,6 +20,7 @@ import numpy as np
 from dmo.market.clearing import BidCurve, Step, clear
 from dmo.market.acflow import check_hours
 from dmo.market.distflow import clear_network
+from dmo.market.envelope import operating_envelope
 from dmo.operator.feeder import per_bus
 from scenarios.horizon import HOURS
 from scenarios.network import Network, load_network, synthetic
@@ -28,6 +30,7 @@ from ..arguments import positive_int
 STEPS_PER_HOUR = 3
 GOAL_S = {"ieee33": 0.2, "synthetic1000": 1.0}  # a day of 100 agents (docs/benchmarks.md)
 AC_GOAL_S = {"ieee33": 1.5, "synthetic1000": 6.0}  # the AC check of that day's 24 hours
+ENVELOPE_GOAL_S = 0.5  # the operating envelopes of that day, on either feeder
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -74,14 +77,20 @@ def run(args) -> dict:
         figures, cleared = _timed(lambda: clear_network(bids, network, buses, iso, limit, limit), args.repeats)
         injection = per_bus(network, buses, cleared.awards) - cleared.shed_mw
         ac, checks = _timed(lambda: check_hours(network, injection), args.repeats)
+        envelope, room = _timed(lambda: operating_envelope(cleared, network, buses, limit, limit), args.repeats)
+        at = [network.index[b] for b in set(buses.values())]
         rows.append({"case": network.name, "buses": network.n_buses, **figures, **_labels(cleared.congested),
                      "shed_mw": float(cleared.shed_mw.sum()), "ac_median_s": ac["median_s"],
                      "ac_max_s": ac["max_s"], "ac_converged": sum(c.converged for c in checks),
-                     "ac_voltage_error_pu": max(c.voltage_error_pu for c in checks)})
+                     "ac_voltage_error_pu": max(c.voltage_error_pu for c in checks),
+                     "envelope_median_s": envelope["median_s"], "envelope_max_s": envelope["max_s"],
+                     "room_mean_mw": float(room[:, at].mean()), "room_zero_share": float((room[:, at] == 0).mean())})
     for row in rows:
         row["over_copper_plate"] = row["median_s"] / rows[0]["median_s"]
     goal = {row["case"]: {"goal_s": GOAL_S[row["case"]], "met": row["median_s"] <= GOAL_S[row["case"]],
-                          "ac_goal_s": AC_GOAL_S[row["case"]], "ac_met": row["ac_median_s"] <= AC_GOAL_S[row["case"]]}
+                          "ac_goal_s": AC_GOAL_S[row["case"]], "ac_met": row["ac_median_s"] <= AC_GOAL_S[row["case"]],
+                          "envelope_goal_s": ENVELOPE_GOAL_S,
+                          "envelope_met": row["envelope_median_s"] <= ENVELOPE_GOAL_S}
             for row in rows if row["case"] in GOAL_S and args.agents == 100}
     return {"agents": args.agents, "steps": args.agents * HOURS * STEPS_PER_HOUR, "repeats": args.repeats,
             "rows": rows, "goal": goal}

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from messages import (DMO, Award, Bid, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
+from messages import (Award, Bid, CallForBids, Clock, DaySummary, GridState, MessageError, MeterReport,
                       Receipt, Registration, Schedule, SettlementStatement, check_route, decode)
 from messages.keys import parse_key
 from messages.schemas import MAX_HANDLED, AgentDay, HandlingTime, MessageCounts, MidnightUnit
@@ -107,7 +107,7 @@ class MicrogridAgent:
         self.summary: DaySummary | None = None
         self._bid_sent = False
         self._bid_hours = NO_BID  # what the bid sent offered, for the strategy's observe
-        self._grid_seen: dict[int, tuple[bool, ...]] = {}  # hour -> connection, of grid states not operated
+        self._grid_seen: dict[int, GridState] = {}  # hour -> its grid state, of grid states not operated
         self.compute: list[HandlingTime] = []  # the day's messages handled, each with its computation
         self._realised_due = False  # the day has been operated to its end: its agent_day goes after its compute
 
@@ -398,10 +398,7 @@ class MicrogridAgent:
             scenarios=schedule.scenarios, mip_gap=float(schedule.mip_gap)))
         log.info("%s scheduled: expected cost $%.2f, gap %.3f%%", self.id, schedule.objective, 100 * schedule.mip_gap)
         if self._grid_seen:  # grid states came first (the agent rejoined mid-day): operate up to the latest, report it
-            hour = max(self._grid_seen)
-            connected = self._grid_seen[hour]
-            self._operate(GridState(sender=DMO, market_day=self.market_day, hour=hour, subperiods=len(connected),
-                                    connected=connected))
+            self._operate(self._grid_seen[max(self._grid_seen)])
 
     def _clock(self, clock: Clock) -> None:
         """The clock says how many days the run has. (An answer the DMO lost, restarting, needs nothing here: it
@@ -421,7 +418,7 @@ class MicrogridAgent:
                         self.award.subperiods)
             return
         if self.operator is None:
-            self._grid_seen[grid.hour] = grid.connected
+            self._grid_seen[grid.hour] = grid
             log.warning("%s: grid state for hour %d before any award; no report", self.id, grid.hour)
             return
         if grid.hour < self.operator.next_hour:
@@ -430,15 +427,29 @@ class MicrogridAgent:
             return
         if grid.hour > self.operator.next_hour:
             first = self.operator.next_hour
-            self.operator.catch_up(grid.hour, self._grid_seen)
+            self.operator.catch_up(grid.hour, {h: seen.connected for h, seen in self._grid_seen.items()})
             log.warning("%s: no grid state for hour(s) %d..%d: operated them unreported (the DMO settles them as "
                         "missing)", self.id, first, grid.hour - 1)
-        result = self.operator.operate_hour(grid.hour, grid.connected)
+        room = self._room(grid)
+        result = self.operator.operate_hour(grid.hour, grid.connected, room)
+        if result.envelope_infeasible:
+            self.ignored["envelope_infeasible"] += 1
+            log.warning("%s: hour %d cannot be operated within its operating envelope (%g MW either side of the "
+                        "award): operated without it", self.id, grid.hour, room)
         self._answer(MeterReport(sender=self.id, market_day=self.market_day, hour=grid.hour,
                                  subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
                                  deviation_mw=tuple(float(x) for x in result.deviation)))
         if self.operator.next_hour > HOURS:
             self._realised_due = True
+
+    def _room(self, grid: GridState) -> float | None:
+        """The room the grid state's operating envelope gives this microgrid's bus (docs/network.md, "Operating
+        envelopes"): the bus its award names, else the one it registered at. None: the grid state carries no envelope
+        (the copper plate), or none for that bus."""
+        bus = self.award.bus if self.award.bus is not None else self.config.bus
+        if bus is None or bus not in grid.buses:
+            return None
+        return grid.room_mw[grid.buses.index(bus)]
 
     def _send_realised(self) -> None:
         """The operated day as the agent alone knows it (docs/protocol.md, ``agent_day``): its own cost by term ($),

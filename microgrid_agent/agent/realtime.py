@@ -6,6 +6,10 @@ connection the DMO announced, and whose future is the forecast, grid-connected. 
 pinned to what was done, so the state of charge, ramps and load energy carry through the day; the current hour's
 values are then committed. Each LP extends the previous one's plan, which stays feasible for it (renewable spill
 and load curtailment absorb any surprise), so a day that started feasible stays feasible.
+
+On a feeder the DMO's grid state also gives the hour's operating envelope, a room either side of the award: P_M is
+then held within it in the hour's grid-connected sub-periods, unless the hour cannot be operated so, in which case
+it is operated without the envelope and its result says so (docs/network.md, "Operating envelopes").
 """
 
 from __future__ import annotations
@@ -23,13 +27,16 @@ from scenarios.horizon import HOURS, per_subperiod
 
 from ..model import DeviationCost, Params
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings, energy_weight, start_indicators
-from ..solvers.extensive import solve
+from ..solvers.extensive import SolveError, solve
 
 @dataclass(frozen=True)
 class HourResult:
     """What one operated hour did, per sub-period (K values): P_M (+ import), its deviation P_M - P^sch, load shed,
     unit outputs (G, K), renewables used (R, K), storage power (+ discharge) and state of charge, adjustable loads
-    (D, K), and the hour's realised cost. ``plan`` is the rolling LP's whole-day solution on ``plan_scenario``."""
+    (D, K), and the hour's realised cost. ``plan`` is the rolling LP's whole-day solution on ``plan_scenario``.
+    ``room``: the operating envelope P_M was held within (MW either side of the award where connected), None if the
+    hour had none; ``envelope_infeasible``: the hour had one but could not be operated within it, and was operated
+    without."""
 
     hour: int
     connected: np.ndarray
@@ -45,6 +52,8 @@ class HourResult:
     cost: CostBreakdown
     plan: StochasticSchedule
     plan_scenario: ScenarioSet
+    room: float | None = None
+    envelope_infeasible: bool = False
 
 
 @dataclass(frozen=True)
@@ -134,12 +143,16 @@ class Operator:
         connected[0, :n1] = self._connected[:n1]
         return ScenarioSet(self.K, np.ones(1), load, renewable, connected)
 
-    def operate_hour(self, hour: int, connected: Sequence[bool]) -> HourResult:
-        """Operate hour ``hour`` (1..24, in order) with the grid connection of its K sub-periods."""
+    def operate_hour(self, hour: int, connected: Sequence[bool], room: float | None = None) -> HourResult:
+        """Operate hour ``hour`` (1..24, in order) with the grid connection of its K sub-periods. ``room`` (MW, >= 0):
+        the hour's operating envelope at the microgrid's bus, P_M within P^sch +- room (and its own limits) in the
+        connected sub-periods; if the hour's LP is infeasible so, it is operated without (``envelope_infeasible``)."""
         if hour != self.next_hour or not 1 <= hour <= HOURS:
             expected = "none: the day is over" if self.next_hour > HOURS else f"hour {self.next_hour}"
             raise ValueError(f"hours must be operated in order 1..{HOURS}: got hour {hour}, expected {expected}")
-        return self._operate(hour, hour, [connected])[0]
+        if room is not None and not (isinstance(room, (int, float)) and math.isfinite(room) and room >= 0):
+            raise ValueError(f"room must be a finite number of MW >= 0, got {room!r}")
+        return self._operate(hour, hour, [connected], room)[0]
 
     def catch_up(self, hour: int, connected: Mapping[int, Sequence[bool]] | None = None) -> tuple[HourResult, ...]:
         """Operate, in one LP, every hour before ``hour`` not operated yet, so that ``hour`` can be operated next.
@@ -157,8 +170,10 @@ class Operator:
         known = connected or {}
         return self._operate(first, last, [known.get(h, [True] * self.K) for h in range(first, last + 1)])
 
-    def _operate(self, first: int, last: int, connected: list[Sequence[bool]]) -> list[HourResult]:
-        """Hours first..last (each with its K connection values) in one rolling LP; past sub-periods pinned."""
+    def _operate(self, first: int, last: int, connected: list[Sequence[bool]],
+                 room: float | None = None) -> list[HourResult]:
+        """Hours first..last (each with its K connection values) in one rolling LP; past sub-periods pinned; P_M
+        within ``room`` of the award (one hour only), unless the LP is infeasible so."""
         n0, n1 = (first - 1) * self.K, last * self.K
         conns = [np.asarray(c) for c in connected]
         for conn, c in zip(conns, connected):
@@ -166,16 +181,42 @@ class Operator:
                 raise ValueError(f"connected must be {self.K} booleans (one per sub-period), got {c!r}")
         self._connected[n0:n1] = np.concatenate(conns).astype(float)
         scen = self._scenario(n1)
-        plan = solve(self.case, scen, Params(self.p_sch, self.penalty, deviation_cost=self.deviation_cost), gap=1e-9,
-                     time_limit=self.time_limit,
-                     fixed=self._fixed, pinned=(n0, self._done))
-        self._commit(plan.dispatch, n0, n1)
-        results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen) for h in range(first, last + 1)]
+        params = Params(self.p_sch, self.penalty, deviation_cost=self.deviation_cost)
+        bounds = None if room is None else self._envelope(n0, n1, room)
+
+        def solved(pm_bounds):
+            return solve(self.case, scen, params, gap=1e-9, time_limit=self.time_limit, fixed=self._fixed,
+                         pinned=(n0, self._done), pm_bounds=pm_bounds)
+
+        infeasible = False
+        try:
+            plan = solved(bounds)
+        except SolveError:
+            if bounds is None:
+                raise
+            plan, bounds, infeasible = solved(None), None, True  # a day never fails for an envelope
+        self._commit(plan.dispatch, n0, n1, bounds)
+        kept = None if room is None or infeasible else float(room)
+        results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen, kept, infeasible)
+                   for h in range(first, last + 1)]
         self._hours.extend(results)
         return results
 
-    def _commit(self, d: Dispatch, n0: int, n1: int) -> None:
-        """Copy the current hour out of the plan, clipped to the bounds the next LP pins it within."""
+    def _envelope(self, n0: int, n1: int, room: float) -> tuple[int, np.ndarray, np.ndarray] | None:
+        """P_M's bounds in the sub-periods n0..n1 of one hour: within ``room`` of the award and the registered
+        limits where connected, 0 where islanded; None where that is no tighter than the limits (nothing to add)."""
+        limit = self.case.grid.p_m_max * self._connected[n0:n1]
+        award = per_subperiod(self.p_sch, self.K)[n0:n1]
+        connected = self._connected[n0:n1] > 0.5
+        lower = np.where(connected, np.maximum(award - room, -limit), -limit)
+        upper = np.where(connected, np.minimum(award + room, limit), limit)
+        if (lower <= -limit).all() and (upper >= limit).all():
+            return None
+        return n0, lower, upper
+
+    def _commit(self, d: Dispatch, n0: int, n1: int, bounds: tuple[int, np.ndarray, np.ndarray] | None) -> None:
+        """Copy the current hour out of the plan, clipped to the bounds the next LP pins it within (and to the
+        envelope's, ``bounds``, if the LP held P_M within it)."""
         st = self.case.storage
         now = slice(n0, n1)
         self._done["P"][:, now] = d.p_unit[:, 0, now]
@@ -185,6 +226,8 @@ class Operator:
         self._done["D"][:, now] = d.d_load[:, 0, now]
         limit = self.case.grid.p_m_max * self._connected[now]
         self._done["PM"][:, now] = np.clip(d.p_m[:, now], -limit, limit)
+        if bounds is not None:
+            self._done["PM"][:, now] = np.clip(self._done["PM"][:, now], bounds[1], bounds[2])
         self._done["LS"][:, now] = np.maximum(d.load_shed[:, now], 0.0)
 
     def _cost(self, n0: int, n1: int, hours: slice) -> CostBreakdown:
@@ -205,7 +248,8 @@ class Operator:
             penalty=penalty,
         )
 
-    def _hour_result(self, hour: int, n0: int, n1: int, plan: StochasticSchedule, scen: ScenarioSet) -> HourResult:
+    def _hour_result(self, hour: int, n0: int, n1: int, plan: StochasticSchedule, scen: ScenarioSet,
+                     room: float | None, envelope_infeasible: bool) -> HourResult:
         now, done = slice(n0, n1), self._done
         p_m = done["PM"][0, now].copy()
         return HourResult(
@@ -223,6 +267,8 @@ class Operator:
             cost=self._cost(n0, n1, slice(hour - 1, hour)),
             plan=plan,
             plan_scenario=scen,
+            room=room,
+            envelope_infeasible=envelope_infeasible,
         )
 
     def midnight(self) -> Midnight:

@@ -60,12 +60,15 @@ def second_stage_constraints(case: Case, scen, params: Params, ix: Index, v: dic
 
 
 def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.ndarray] | None = None,
-          pinned: tuple[int, dict[str, np.ndarray]] | None = None) -> Model:
+          pinned: tuple[int, dict[str, np.ndarray]] | None = None,
+          pm_bounds: tuple[int, np.ndarray, np.ndarray] | None = None) -> Model:
     """Build objective (1) s.t. (2)-(21) for the scenario set.
 
     ``fixed`` pins first-stage variables by name (``I``, ``u``, ``v``, ``z``), e.g. to evaluate a given commitment
     (VSS, brute force). ``pinned = (n0, values)`` pins second-stage variables (``P``, ``Pst``, ``D``...) in the
     sub-periods before n0 to values of their full shape: the past of a day being operated (agent/realtime.py).
+    ``pm_bounds = (n0, lower, upper)`` holds P_M within [lower, upper] in the sub-periods n0, n0 + 1, ... (one per
+    value): the feeder's operating envelope of the hour being operated (agent/realtime.py; docs/network.md).
     """
     ix = Index(scen.S, scen.subperiods)
     v = variables(case, scen.S, ix.N, params=params)
@@ -77,6 +80,10 @@ def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.nda
         n0, values = pinned
         cons += [v[name][:, :n0] == np.asarray(value, float).reshape(v[name].shape)[:, :n0]
                  for name, value in values.items() if name in v]
+    if pm_bounds is not None:
+        n0, lower, upper = pm_bounds
+        now = v["PM"][:, n0:n0 + len(lower)]
+        cons += [now >= np.asarray(lower, float)[None, :], now <= np.asarray(upper, float)[None, :]]
     terms = objective(case, scen, params, ix, v)
     problem = cp.Problem(cp.Minimize(sum(terms.values())), cons)
     return Model(problem, v, case, scen, params, terms)

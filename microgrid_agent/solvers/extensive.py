@@ -29,12 +29,13 @@ def solve(
     time_limit: float | None = None,
     fixed: dict[str, np.ndarray] | None = None,
     pinned: tuple[int, dict[str, np.ndarray]] | None = None,
+    pm_bounds: tuple[int, np.ndarray, np.ndarray] | None = None,
     verbose: bool = False,
 ) -> StochasticSchedule:
     """Solve the extensive form to relative gap ``gap``; the bound is HiGHS's MIP dual bound (valid).
-    ``fixed`` and ``pinned`` are as in ``model.build``."""
+    ``fixed``, ``pinned`` and ``pm_bounds`` are as in ``model.build``."""
     start = time.perf_counter()
-    model = build(case, scen, params, fixed, pinned)
+    model = build(case, scen, params, fixed, pinned, pm_bounds)
     options = {"mip_rel_gap": gap}
     if time_limit is not None:
         options["time_limit"] = float(time_limit)

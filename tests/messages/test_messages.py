@@ -15,7 +15,8 @@ from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, 
                       SettlementStatement, StatementLine, check_route, decode, encode, json_schema, make_receipt,
                       make_rejection, new_run_id, parse_key, sender_matches_key)
 from messages.transport import BusConfig
-from messages.schemas import ACCheck, AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit, NetworkHour
+from messages.schemas import (MAX_BUSES, ACCheck, AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit,
+                              NetworkHour)
 
 DAY = "2024-07-01"
 K = 6
@@ -54,7 +55,8 @@ SAMPLES = {
                          commitment={"G1": [1] * HOURS, "G2": [0] * HOURS},
                          expected_cost=39566.0, p_m_expected_mw=[1.4] * HOURS, scenarios=10, mip_gap=0.004),
     "clock": Clock(sender="dmo", market_day=DAY, phase="realtime", hour=3, deadline_s=2.0, day=1, days=1),
-    "grid_state": GridState(sender="dmo", market_day=DAY, hour=3, subperiods=K, connected=[True] * 4 + [False] * 2),
+    "grid_state": GridState(sender="dmo", market_day=DAY, hour=3, subperiods=K, connected=[True] * 4 + [False] * 2,
+                            buses=["0", "1", "2"], room_mw=[0.0, 0.25, 0.0]),
     "meter_report": MeterReport(sender="mg1", market_day=DAY, hour=3, subperiods=K, p_m_mw=[1.5] * K,
                                 deviation_mw=[0.0] * K),
     "agent_day": AgentDay(sender="mg1", market_day=DAY, generation=30000.0, startup=120.0, curtailment=0.0,
@@ -160,7 +162,7 @@ FEEDER = ("bus", "energy_price_per_mwh", "congestion_price_per_mwh", "voltage_pr
 def test_older_messages_read_as_they_were_meant():
     """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates; a
     version-3 message is bound to no run and no process; a version-4 award states no congestion; a version-6 award
-    or registration names no bus (the copper plate)."""
+    or registration names no bus (the copper plate); a version-7 grid state carries no operating envelope."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
     award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER))
@@ -172,12 +174,16 @@ def test_older_messages_read_as_they_were_meant():
     award = decode(_older("award", 6, *FEEDER))
     assert award.bus is None and award.energy_price_per_mwh is None and award.congestion == SAMPLES["award"].congestion
     assert decode(_older("registration", 6, "bus")).bus is None
+    grid = decode(_older("grid_state", 7, "buses", "room_mw"))
+    assert (grid.buses, grid.room_mw) == ((), ()) and grid.connected == SAMPLES["grid_state"].connected
     bid = decode(_older("bid", 3, *BOUND))
     assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
     # a message of an older version that has a later version's field is not upgraded, and a current one that
     # leaves a field out is refused
     _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
     _rejects(_older("award", 6, "bus"), "invalid", "bus")
+    _rejects(_older("grid_state", 7, "room_mw"), "invalid", "room_mw")
+    _rejects(_older("grid_state", SCHEMA_VERSION, "buses", "room_mw"), "invalid", "buses")
     _rejects(_older("bid", 3, "run"), "invalid", "run")
     _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
     _rejects(_older("award", SCHEMA_VERSION, "congestion"), "invalid", "congestion")
@@ -210,6 +216,19 @@ def test_rejects_wrong_lengths():
     _rejects(_with("bid", hours=[[]] * (HOURS + 1)), "invalid", "hours")
     _rejects(_with("meter_report", p_m_mw=[1.0] * (K + 1)), "invalid", "p_m_mw", f"subperiods={K}")
     _rejects(_with("grid_state", connected=[True]), "invalid", "connected")
+
+
+def test_a_grid_states_envelope_gives_one_finite_room_of_at_least_0_per_bus():
+    _rejects(_with("grid_state", room_mw=[0.0, 0.25]), "invalid", "room_mw has 2 values for 3 buses")
+    _rejects(_with("grid_state", buses=["0", "1"]), "invalid", "room_mw has 3 values for 2 buses")
+    _rejects(_with("grid_state", room_mw=[0.0, -0.25, 0.0]), "invalid", "room_mw[1]", "greater than or equal to 0")
+    _rejects(_with("grid_state", buses=["0", "1", "1"]), "invalid", "more than once")
+    text = _with("grid_state").decode()
+    _rejects(text.replace('"room_mw":[0.0,0.25', '"room_mw":[0.0,Infinity').encode(), "invalid", "room_mw[1]")
+    many = [str(b) for b in range(MAX_BUSES + 1)]
+    _rejects(_with("grid_state", buses=many, room_mw=[0.0] * len(many)), "invalid", "buses")
+    copper = decode(encode(GridState(sender="dmo", market_day=DAY, hour=1, subperiods=1, connected=[True])))
+    assert (copper.buses, copper.room_mw) == ((), ())
     lines = _wire("settlement_statement")["lines"]
     _rejects(_with("settlement_statement", lines=lines[:-1]), "invalid", "lines")
     _rejects(_with("settlement_statement", total=1.0), "invalid", "total", "add up")

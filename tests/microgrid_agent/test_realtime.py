@@ -182,3 +182,52 @@ def test_the_next_day_starts_where_the_operated_day_ended(case, p_sch, day):
     assert schedule.dispatch.soc[:, -1].min() >= tomorrow.storage.c_initial - 1e-6
     with pytest.raises(ValueError, match="not over"):
         operator(case, first_stage_of(schedule), p_sch, seed=3).midnight()
+
+
+# --- the operating envelope of a feeder (docs/network.md, "Operating envelopes") ---------------------------------
+
+SWING = np.where(np.arange(24) % 2, 0.0, 12.0)  # nothing on odd hours, more than the microgrid can take on even ones
+
+
+def swinging(case, first_stage, subperiods=K):
+    """An operator whose award it cannot follow: each hour's P_M strays from it."""
+    return Operator(case, first_stage, SWING, PENALTY, subperiods, sample(case, 1, subperiods, island_hours=0, seed=5))
+
+
+def test_a_small_room_holds_p_m_within_it_of_the_award(case, first_stage):
+    free, held = swinging(case, first_stage, 2), swinging(case, first_stage, 2)
+    for op in (free, held):
+        for h in range(1, 8):
+            op.operate_hour(h, [True, True])
+    wanted = free.operate_hour(8, [True, False])
+    got = held.operate_hour(8, [True, False], room=0.5)
+    assert wanted.p_m[0] - SWING[7] > 1.0  # without the envelope the hour imports well above its award of 0
+    assert got.p_m[0] == pytest.approx(SWING[7] + 0.5, abs=1e-9)  # held at the envelope's edge
+    assert got.p_m[1] == 0 and not got.connected[1]  # islanded: 0 whatever the room
+    assert got.room == 0.5 and not got.envelope_infeasible and wanted.room is None
+    result = held.operate_hour(9, [True, True])  # the next hour, without an envelope, goes on from there
+    check_schedule(case, result.plan_scenario, result.plan, p_sch=SWING, penalty=PENALTY).raise_if_failed()
+
+
+def test_a_room_wider_than_the_microgrids_limits_changes_nothing_and_a_room_that_does_not_bind_costs_nothing(
+        case, first_stage):
+    ops = [swinging(case, first_stage) for _ in range(3)]
+    for op in ops:
+        op.operate_hour(1, [True])
+    free, wide, loose = (op.operate_hour(2, [True], room) for op, room in zip(ops, (None, 40.0, 1.0)))
+    for field in ("p_m", "p_unit", "p_renewable", "p_storage", "soc", "d_load", "load_shed"):
+        np.testing.assert_array_equal(getattr(wide, field), getattr(free, field))
+    assert wide.room == 40.0 and not wide.envelope_infeasible
+    assert abs(loose.p_m[0] - SWING[1]) < 1.0  # within the room: it did not bind
+    assert loose.cost.total == pytest.approx(free.cost.total, rel=1e-9)
+
+
+def test_an_hour_that_cannot_keep_its_envelope_is_operated_without_it(case, first_stage):
+    free, held = swinging(case, first_stage), swinging(case, first_stage)
+    wanted = free.operate_hour(1, [True])
+    assert SWING[0] - wanted.p_m[0] > 1.0  # 12 MW is more than the committed microgrid can take in hour 1
+    got = held.operate_hour(1, [True], room=0.5)
+    assert got.envelope_infeasible and got.room is None
+    np.testing.assert_array_equal(got.p_m, wanted.p_m)
+    with pytest.raises(ValueError, match="room"):
+        held.operate_hour(2, [True], room=-0.1)

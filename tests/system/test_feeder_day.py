@@ -1,5 +1,6 @@
 """A market day on a feeder, end to end: two agents at their buses of a five-bus feeder whose far line is rated low,
-cleared with prices per bus, settled at each agent's own price and again, to the cent, from the recording."""
+cleared with prices per bus, operated within the feeder's operating envelope, settled at each agent's own price and
+again, to the cent, from the recording."""
 
 from __future__ import annotations
 
@@ -45,6 +46,23 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     settled_far = hours[hours["agent"] == "far"].set_index("hour")
     assert (settled_far["bus"] == "3").all()
     assert list(settled_far["clearing_price_per_mwh"]) == pytest.approx(far.clearing_price_per_mwh, abs=1e-9)  # its own
+
+    # each hour's grid state carries the room of every bus, and each agent meters within its award +- its bus's room
+    # in every connected sub-period, but in the hours it said it could not (counted in its agent_day)
+    grids = {msg.hour: msg for _, msg in rec.decoded("grid_state")}
+    assert sorted(grids) == list(range(1, 25))
+    assert all(g.buses == ("0", "1", "2", "3", "4") and len(g.room_mw) == 5 for g in grids.values())
+    assert any(g.room_mw[3] == 0 for g in grids.values()) and any(g.room_mw[1] > 0 for g in grids.values())
+    fallbacks = {msg.sender: msg.messages.ignored.get("envelope_infeasible", 0) for _, msg in rec.decoded("agent_day")}
+    assert set(fallbacks) == {"near", "far"}
+    for _, report in rec.decoded("meter_report"):
+        award, grid = awards[report.sender], grids[report.hour]
+        room = grid.room_mw[grid.buses.index(award.bus)]
+        outside = [abs(p - award.p_sch_mw[report.hour - 1]) > room + 1e-9
+                   for p, connected in zip(report.p_m_mw, grid.connected) if connected]
+        if any(outside):
+            fallbacks[report.sender] -= 1
+    assert min(fallbacks.values()) >= 0, fallbacks  # no agent strayed from its envelope more often than it said
 
     # the feeder as planned and as realised, each hour with its AC check, in the recording and the tables
     stages = [(msg.stage, msg.hour) for _, msg in rec.decoded("network_hour")]
