@@ -147,9 +147,10 @@ class Feeder:
         base = 8 * network.n_lines
         voltage = base + 2 * np.repeat(self.feeder_buses, 2) + np.tile([0, 1], len(self.feeder_buses))
         self.rows = np.concatenate([np.arange(base), voltage])
-        j = self.feeder_buses  # every limit's right side b (``limits``), in ``rows`` order
+        j = self.feeder_buses  # every limit's right side b (``limits``), in ``rows`` order, and what it is of
         self.bounds = np.concatenate([np.repeat(self.s_max, 8),
                                       np.column_stack([self.u0 - self.u_min[j], self.u_max[j] - self.u0]).ravel()])
+        self.scale = np.concatenate([np.repeat(self.s_max, 8), np.column_stack([self.u_min[j], self.u_max[j]]).ravel()])
 
     def state(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Flows P, Q (lines) and U = V^2 (buses) for loads p, q (buses)."""
@@ -172,16 +173,9 @@ class Feeder:
     def violated(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The ids of the limits the loads p, q break by more than LIMIT_TOLERANCE, sorted, and by how much as a
         share of the limit (of s_max for a line facet, of U_min or U_max for a bus)."""
-        flow_p, flow_q, u = self.state(p, q)
-        over = FACETS[:, :1] * flow_p + FACETS[:, 1:] * flow_q - self.s_max  # 8 x lines
-        j = self.feeder_buses
-        low, high = self.u_min[j] - u[j], u[j] - self.u_max[j]
-        base = 8 * self.network.n_lines
-        ids = np.concatenate([np.arange(base), base + 2 * j, base + 2 * j + 1])
-        excess = np.concatenate([over.T.ravel(), low, high])
-        share = excess / np.concatenate([np.repeat(self.s_max, 8), self.u_min[j], self.u_max[j]])
+        excess = self.left_sides(p, q) - self.bounds
         broken = excess > LIMIT_TOLERANCE
-        return ids[broken], share[broken]
+        return self.rows[broken], excess[broken] / self.scale[broken]
 
     def worst(self, ids: np.ndarray, share: np.ndarray, most: int) -> np.ndarray:
         """Of the broken limits ``ids``, the worst facet of each line, then the ``most`` lines and the ``most``
@@ -472,7 +466,9 @@ def _on_feeder(hour: _Hour) -> _Cleared:
 
 # --- the day ------------------------------------------------------------------------------------------------------
 
-def _agent_buses(network: Network, buses: Mapping[str, object], names: Sequence[str]) -> np.ndarray:
+def agent_buses(network: Network, buses: Mapping[str, object], names: Sequence[str]) -> np.ndarray:
+    """The bus index of each agent of ``names``, from ``buses`` (agent -> bus name or index); ValueError (a
+    ``NetworkError`` for a bus) with a one-line reason."""
     if not isinstance(buses, Mapping):
         raise ValueError("buses must map each agent id to its bus")
     missing = [a for a in names if a not in buses]
@@ -491,7 +487,7 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
     if voll <= 0:
         raise ValueError(f"voll must be > 0, got {voll}")
     feeder = Feeder(network, margin)  # a margin that leaves a bus no band is refused here
-    at = _agent_buses(network, buses, names)
+    at = agent_buses(network, buses, names)
 
     def hour(h: int) -> _Hour:
         book = hour_book(bids, names, h)

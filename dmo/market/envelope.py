@@ -30,7 +30,7 @@ import numpy as np
 from scenarios.horizon import HOURS, hourly
 from scenarios.network import Network
 
-from .distflow import Feeder, NetworkClearing
+from .distflow import Feeder, NetworkClearing, agent_buses
 
 # A limit whose slack runs out within this share of the round's rise binds with the first (floating-point ties).
 TIE = 1e-12
@@ -44,10 +44,7 @@ def operating_envelope(clearing: NetworkClearing, network: Network, buses: Mappi
     substation limit (``import_limit``, ``export_limit``: MW, scalar or 24) breaks under LinDistFlow. 0 at buses with
     no microgrid. ``buses`` maps every agent of ``clearing.awards`` to its bus. ValueError, one line, on bad input."""
     names = sorted(clearing.awards)
-    if not isinstance(buses, Mapping) or any(a not in buses for a in names):
-        missing = next((a for a in names if not isinstance(buses, Mapping) or a not in buses), None)
-        raise ValueError(f"agent {missing} has no bus on network {network.name}")
-    at = np.array([network.bus_of(buses[a], f"bus of agent {a}") for a in names], dtype=int)
+    at = agent_buses(network, buses, names)
     imp = hourly(import_limit, "import_limit", non_negative=True)
     exp = hourly(export_limit, "export_limit", non_negative=True)
     feeder = Feeder(network, margin)
@@ -57,7 +54,7 @@ def operating_envelope(clearing: NetworkClearing, network: Network, buses: Mappi
     np.add.at(injection, at, np.array([clearing.awards[a] for a in names], float).reshape(len(names), HOURS))
     p = network.fixed_p + injection.T
     q = network.fixed_q + feeder.tan_phi * injection.T
-    room = np.array([_fill(feeder, count, p[h], q[h], imp[h], exp[h]) for h in range(HOURS)]).reshape(HOURS, n)
+    room = np.array([_fill(feeder, count, p[h], q[h], imp[h], exp[h]) for h in range(HOURS)])
     room.setflags(write=False)
     return room
 

@@ -225,9 +225,8 @@ class Operator:
         self._done["C"][:, now] = np.clip(d.soc[:, now], 0.0, st.c_max if st is not None else 0.0)
         self._done["D"][:, now] = d.d_load[:, 0, now]
         limit = self.case.grid.p_m_max * self._connected[now]
-        self._done["PM"][:, now] = np.clip(d.p_m[:, now], -limit, limit)
-        if bounds is not None:
-            self._done["PM"][:, now] = np.clip(self._done["PM"][:, now], bounds[1], bounds[2])
+        lower, upper = (-limit, limit) if bounds is None else bounds[1:]  # the envelope's lie within the limits
+        self._done["PM"][:, now] = np.clip(d.p_m[:, now], lower, upper)
         self._done["LS"][:, now] = np.maximum(d.load_shed[:, now], 0.0)
 
     def _cost(self, n0: int, n1: int, hours: slice) -> CostBreakdown:
