@@ -18,7 +18,8 @@ from scenarios.network import NETWORKS
 
 from ..console import UsageError
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
-from ..experiment.spec import FLAGS, MAX_VOLTAGE_MARGIN, MAX_WORKERS, Experiment, ExperimentError, load_experiment, with_settings
+from ..experiment.spec import (FLAGS, HOSTINGS, MAX_VOLTAGE_MARGIN, MAX_WORKERS, Experiment, ExperimentError,
+                               load_experiment, with_settings)
 from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT, fleet_of, resolved
 from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 
@@ -43,6 +44,10 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
                                               "--agents)")),
         "agents.strategy": ("--strategy", dict(metavar="SPEC", help=STRATEGY_HELP.replace(
             "default: price-response", f"default: {default.agents.strategy}; a fleet entry's own overrides it"))),
+        "agents.hosting": ("--hosting", dict(choices=HOSTINGS, help=(
+            "how the agents' processes start: process, each a Python of its own; fork, forked from one process that "
+            "has loaded their code, which they share (less memory for large fleets: docs/benchmarks.md, \"Hosting "
+            f"agents\"); the results are the same (default: {default.agents.hosting})"))),
         "days": ("--days", dict(type=integer(1, MAX_DAYS),
                                 help="consecutive market days; agents register once and carry their state across "
                                      f"midnight (at most {MAX_DAYS}; default: {default.days})")),

@@ -40,6 +40,9 @@ MAX_RULE = 500             # a settlement rule as named: what an award's settlem
 MAX_FAULT_SPEC = 200       # one fault as written
 MAX_NAME = 100             # an experiment's name: part of a sweep's directory name
 MAX_VOLTAGE_MARGIN = 0.1   # p.u. kept inside a bus's voltage limits: a tenth of nominal, twice ANSI's whole band
+# How the agents run (dmosim/launch/local.py): each a Python process of its own, or forked from one process that has
+# imported their code, sharing its memory. The market's results are the same either way.
+HOSTINGS = ("process", "fork")
 
 
 class ExperimentError(ValueError):
@@ -63,11 +66,13 @@ Blocks = Annotated[list[Annotated[list[Annotated[float, Field(ge=0, le=MAX_MW, a
 
 class Agents(_Section):
     """Who takes part: ``count`` agents mg1..mgN drawn around the market's case, or the members of a fleet file;
-    ``strategy`` how each bids (docs/strategies.md), unless its fleet entry names its own."""
+    ``strategy`` how each bids (docs/strategies.md), unless its fleet entry names its own; ``hosting`` how
+    ``dmosim run`` starts their processes (``HOSTINGS``)."""
 
     count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
     fleet: PathText | None = None  # a fleet file, relative to the experiment file
     strategy: Annotated[str, Field(min_length=1, max_length=MAX_STRATEGY)] = DEFAULT_STRATEGY
+    hosting: Literal[HOSTINGS] = "process"  # type: ignore[valid-type]
 
     @field_validator("strategy")
     @classmethod
@@ -225,7 +230,7 @@ class Experiment(_Section):
 # (dmosim/cli/settings.py).
 FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
-    "agents.strategy": "strategy",
+    "agents.strategy": "strategy", "agents.hosting": "hosting",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
     "market.settlement": "settlement",
     "market.import_limit": "import_limit", "market.export_limit": "export_limit",

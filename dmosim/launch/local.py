@@ -1,5 +1,7 @@
 """A run on this machine: the DMO, one process per agent and the recorder, started from an experiment over Zenoh on
 loopback with credentials made for the run, watched (process faults fire on the DMO's clock) and always stopped.
+With ``agents.hosting = "fork"`` each agent's process is forked from one host that has imported the agent's code
+(host.py), instead of starting a Python of its own; the agents run the same command either way.
 
 ``run_locally`` returns the DMO's result (``RunResult.report``: what the agents realised is in it, from their
 ``agent_day`` messages, never from their logs) with where the recording went and the run's verdict
@@ -40,6 +42,11 @@ OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
 RECORDER_STOP_S = 60.0  # how long the recorder may take to finish its file once the run is over
 AWAIT_RECORDER = ("--await-recorder", "60")  # the DMO's first message waits for the recorder (seconds)
+# What the host of forked agents imports before it forks them: what `dmosim agent` imports to run a day
+# (docs/benchmarks.md, "Hosting agents"), by name: the launcher itself does not load the solver stack.
+AGENT_MODULES = ("dmosim.cli.main", "dmosim.cli.agent", "microgrid_agent.agent.process",
+                 "microgrid_agent.agent.bidding")
+HOST = "_host"  # the host of forked agents: its log, its line of memory_mib (no agent id starts with "_")
 
 
 class RoleFailed(RuntimeError):
@@ -86,6 +93,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         roles.start("dmo", dmosim_command(
             "dmo", *common, "--listen", endpoint, "--result", str(rundir.result),
             "--journal", str(logs / "dmo.journal"), *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
+        host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if e.agents.hosting == "fork" else None
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
@@ -101,7 +109,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
             for member in fleet:
                 roles.start(member.id, dmosim_command("agent", *common, "--id", member.id, "--connect", endpoint,
-                                                      "--lease", "1"), log=logs / f"{member.id}.log")
+                                                      "--lease", "1"), log=logs / f"{member.id}.log", host=host)
             failed = wait_for_run(roles, watch)
         if failed:
             raise RoleFailed(failed, roles)
@@ -306,8 +314,9 @@ class _Watch:
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
             if msg.phase == "settlement":
-                self.memory[msg.day] = {name: m for name, role in self.roles.roles.items()
-                                        if (m := memory_mib(role.process.pid)) is not None}
+                pids = {**{name: role.process.pid for name, role in self.roles.roles.items()},
+                        **{HOST: host.process.pid for host in self.roles.hosts}}
+                self.memory[msg.day] = {name: m for name, pid in pids.items() if (m := memory_mib(pid)) is not None}
             done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
             self.hours = (done, 24 * msg.days)
             self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))

@@ -1,4 +1,5 @@
-"""Start, watch and always stop the OS processes of one run: every role in its own process group."""
+"""Start, watch and always stop the OS processes of one run: every role in its own process group, started as a
+process of its own or forked from a pre-loaded host (host.py)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from .host import ForkHost, Forked
 
 # The directory that holds the dmo package: a role started with role_env() imports this very dmosim.
 SOURCE_ROOT = Path(__file__).resolve().parents[2]
@@ -65,8 +68,11 @@ def wait_for_line(path: Path, pattern: str, timeout_s: float, alive) -> re.Match
 
 
 def memory_mib(pid: int) -> dict[str, float] | None:
-    """A live process's resident memory now and its peak so far (VmRSS, VmHWM of /proc/PID/status), MiB; None
-    where there is no /proc or the process is gone. Its own children (Benders workers) are not counted."""
+    """A live process's resident memory now and its peak so far (VmRSS, VmHWM of /proc/PID/status), and its
+    proportional share now (Pss of /proc/PID/smaps_rollup: each page shared with other processes counted as its
+    share, so that the roles' PSS add up to what the run holds), MiB; None where there is no /proc or the process
+    is gone (``pss_mib`` None where the kernel has no smaps_rollup). Its own children (Benders workers) are not
+    counted."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
     except OSError:
@@ -75,44 +81,68 @@ def memory_mib(pid: int) -> dict[str, float] | None:
     if len(fields) < 2:
         return None
     return {"rss_mib": round(int(fields["VmRSS"].split()[0]) / 1024, 1),
-            "peak_mib": round(int(fields["VmHWM"].split()[0]) / 1024, 1)}
+            "peak_mib": round(int(fields["VmHWM"].split()[0]) / 1024, 1), "pss_mib": _pss_mib(pid)}
+
+
+def _pss_mib(pid: int) -> float | None:
+    try:
+        rollup = Path(f"/proc/{pid}/smaps_rollup").read_text()
+    except OSError:
+        return None
+    kib = next((line.split()[1] for line in rollup.splitlines() if line.startswith("Pss:")), None)
+    return None if kib is None else round(int(kib) / 1024, 1)
 
 
 @dataclass
 class Role:
     name: str
-    process: subprocess.Popen
+    process: subprocess.Popen | Forked
     log: Path | None
     killed_on_purpose: bool = False
     argv: tuple[str, ...] = ()
     env: dict | None = None
     cwd: Path | None = None
     restarts: int = 0
+    host: ForkHost | None = None  # the host it is forked from (restarted from it too); None: a process of its own
 
 
 class Roles:
     """The processes of one run. As a context manager it stops every process it started, whatever happens.
 
     ``exits`` is a queue of (name, returncode) filled by one waiter thread per process, so the caller can block
-    on the next exit instead of polling.
+    on the next exit instead of polling. A role started with ``host`` (``fork_host``) is forked from that host
+    instead of started as a process: the same command, watched, restarted, killed and stopped the same way; the
+    hosts are stopped after every role.
     """
 
     def __init__(self):
         self.roles: dict[str, Role] = {}
         self.exits: queue.Queue = queue.Queue()
+        self.hosts: list[ForkHost] = []
         self._replaced: set[int] = set()  # pids of processes restarted on purpose: their exits are not reported
 
+    def fork_host(self, modules: tuple[str, ...], log: Path | None = None) -> ForkHost:
+        """Start a host that imports ``modules`` (host.py), for roles to be forked from (``start(..., host=)``);
+        its own errors go to ``log``. It imports this very dmosim, as ``role_env`` makes sure."""
+        host = ForkHost(modules, log, role_env())
+        self.hosts.append(host)
+        return host
+
     def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None,
-              cwd: Path | None = None) -> Role:
-        role = Role(name, self._spawn(name, argv, log, env, cwd, "w"), log, argv=tuple(argv), env=env, cwd=cwd)
+              cwd: Path | None = None, host: ForkHost | None = None) -> Role:
+        role = Role(name, self._spawn(name, argv, log, env, cwd, "w", host), log, argv=tuple(argv), env=env, cwd=cwd,
+                    host=host)
         self.roles[name] = role
         return role
 
     def _spawn(self, name: str, argv, log: Path | None, env: dict | None, cwd: Path | None,
-               mode: str) -> subprocess.Popen:
-        out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
-        process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
-                                   stderr=out or None, start_new_session=True, env=env, cwd=cwd)
+               mode: str, host: ForkHost | None) -> subprocess.Popen | Forked:
+        if host is not None:
+            out, process = None, host.start(list(argv), log, mode, env, cwd)
+        else:
+            out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
+            process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
+                                       stderr=out or None, start_new_session=True, env=env, cwd=cwd)
 
         def waiter():
             code = process.wait()
@@ -132,7 +162,7 @@ class Roles:
         _signal_group(old, signal.SIGKILL)
         old.wait()
         role.restarts += 1
-        role.process = self._spawn(name, role.argv, role.log, role.env, role.cwd, "a")
+        role.process = self._spawn(name, role.argv, role.log, role.env, role.cwd, "a", role.host)
 
     def kill(self, name: str) -> None:
         """SIGKILL one role (fault injection)."""
@@ -151,6 +181,8 @@ class Roles:
             except subprocess.TimeoutExpired:
                 _signal_group(p, signal.SIGKILL)
                 p.wait()
+        for host in self.hosts:
+            host.stop(grace_s)
 
     def __enter__(self) -> Roles:
         return self
@@ -159,7 +191,7 @@ class Roles:
         self.stop_all()
 
 
-def _signal_group(process: subprocess.Popen, sig: int) -> None:
+def _signal_group(process: subprocess.Popen | Forked, sig: int) -> None:
     try:
         os.killpg(process.pid, sig)
     except (ProcessLookupError, PermissionError):
