@@ -19,6 +19,7 @@ The protocol, one JSON object a line: the launcher writes each command to the ho
 
 from __future__ import annotations
 
+import atexit
 import gc
 import importlib
 import json
@@ -31,7 +32,9 @@ import subprocess
 import sys
 import threading
 import time
+import traceback
 from pathlib import Path
+from typing import NoReturn
 
 READY_TIMEOUT_S = 300.0  # how long the host may take over its imports (about 3 s alone, more on a busy machine)
 STOP_GRACE_S = 5.0  # how long children still running when the host is stopped have to exit on SIGTERM
@@ -301,9 +304,9 @@ def _stop(children: set[int], replies) -> None:
         _say(replies, exited=pid, code=os.waitstatus_to_exitcode(status))
 
 
-def _run(command: dict, cwd_first: bool) -> None:
-    """In the child: the command's environment and directory, then its module as ``python -m`` runs it; its exit
-    (SystemExit, an uncaught exception) is this process's, as that interpreter's would be."""
+def _run(command: dict, cwd_first: bool) -> NoReturn:
+    """In the child: the command's environment and directory, then its module as ``python -m`` runs it, and its
+    exit status as that interpreter's would be (SystemExit's code; 1 and the traceback for an uncaught exception)."""
     gc.enable()
     os.environ.clear()
     os.environ.update(command["env"])
@@ -312,7 +315,36 @@ def _run(command: dict, cwd_first: bool) -> None:
         sys.path[0] = os.getcwd()  # python -m puts the directory it starts in first on sys.path
     _, _, module, *args = command["argv"]
     sys.argv = ["-m", *args]
-    runpy.run_module(module, run_name="__main__", alter_sys=True)
+    code = 0
+    try:
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
+    except SystemExit as exc:
+        code = exit_code(exc.code)
+    except BaseException:  # noqa: BLE001  (as the interpreter does with an exception nothing caught)
+        traceback.print_exc()
+        code = 1
+    # It ends as multiprocessing's children do: its threads waited for, the exit handlers run, the streams flushed,
+    # then os._exit. The interpreter's finalization would touch every object the host made, copying every page the
+    # child shares with it: measured, 20 agents ending at once added 700 MiB for a moment.
+    threading._shutdown()  # noqa: SLF001
+    atexit._run_exitfuncs()  # noqa: SLF001
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
+
+
+def exit_code(value) -> int:
+    """The exit status of ``SystemExit(value)``, as Python gives it: None is 0, an integer itself, anything else
+    printed on stderr and 1."""
+    if value is None:
+        return 0
+    if isinstance(value, int):
+        return value & 0xFF
+    print(value, file=sys.stderr)
+    return 1
 
 
 if __name__ == "__main__":

@@ -1,12 +1,19 @@
-"""What the launcher makes of its roles' exits (dmosim/launch/local.py): a role still there once the DMO is done."""
+"""What the launcher makes of its roles' exits (dmosim/launch/local.py): a role still there once the DMO is done; and
+roles forked from a pre-loaded host (dmosim/launch/host.py), started, restarted, killed and stopped as processes are."""
 
 from __future__ import annotations
 
+import os
+import select
+import signal
 import sys
+from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
+
 from dmosim.launch.local import wait_for_run
-from dmosim.launch.processes import Roles
+from dmosim.launch.processes import Roles, memory_mib, wait_for_line
 
 DONE = [sys.executable, "-c", "pass"]
 STAYS = [sys.executable, "-c", "import time; time.sleep(120)"]
@@ -31,3 +38,103 @@ def test_an_agent_that_does_not_leave_after_the_run_has_failed():
         roles.start("mg1", STAYS)
         roles.start("dmo", DONE)
         assert wait(roles) == (["mg1"], [])
+
+
+# --- roles forked from a pre-loaded host (dmosim run --hosting fork) ------------------------------------------
+
+PROBE = """
+import atexit, os, sys, time
+print("argv", sys.argv[1:], "cwd", os.getcwd(), "env", os.environ.get("PROBE"), "ppid", os.getppid(),
+      "pgid", os.getpgid(0), flush=True)
+print("on stderr", file=sys.stderr, flush=True)
+atexit.register(print, "exit handlers ran")
+if sys.argv[1] == "stay":
+    time.sleep(120)
+if sys.argv[1] == "boom":
+    raise RuntimeError("boom")
+sys.exit(int(sys.argv[1]) if sys.argv[1].isdigit() else sys.argv[1])
+"""
+
+
+def probe(tmp_path: Path, *args: str) -> list[str]:
+    """``python -m probe ARGS`` in ``tmp_path``: found there only if the child runs in that directory, as python -m
+    puts it first on sys.path."""
+    (tmp_path / "probe.py").write_text(PROBE)
+    return [sys.executable, "-m", "probe", *args]
+
+
+def gone(pid: int) -> bool:
+    """Wait for a process that is not this one's child to end (its pidfd turns readable); True once it has."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return True
+    try:
+        return bool(select.select([fd], [], [], 30)[0])
+    finally:
+        os.close(fd)
+
+
+def test_a_forked_role_runs_its_command_in_its_directory_environment_and_log_as_a_process_would(tmp_path):
+    with Roles() as roles:
+        host = roles.fork_host(("json",), tmp_path / "host.log")
+        role = roles.start("mg1", probe(tmp_path, "3"), log=tmp_path / "mg1.log", env={**os.environ, "PROBE": "yes"},
+                           cwd=tmp_path, host=host)
+        assert roles.exits.get(timeout=60) == ("mg1", 3)
+        assert role.process.returncode == 3
+        for name, arg in (("mg2", "boom"), ("mg3", "bye")):
+            roles.start(name, probe(tmp_path, arg), log=tmp_path / f"{name}.log", cwd=tmp_path, host=host)
+            assert roles.exits.get(timeout=60) == (name, 1)  # an uncaught exception, SystemExit of a text
+    log = (tmp_path / "mg1.log").read_text()
+    assert f"argv ['3'] cwd {tmp_path.resolve()} env yes ppid {host.process.pid} pgid {role.process.pid}\n" in log
+    assert "on stderr" in log and "exit handlers ran" in log
+    assert "RuntimeError: boom" in (tmp_path / "mg2.log").read_text()
+    assert "bye" in (tmp_path / "mg3.log").read_text()
+    assert host.process.returncode == 0  # stopped with the roles
+
+
+def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path):
+    with Roles() as roles:
+        host = roles.fork_host(("json",), tmp_path / "host.log")
+        log = tmp_path / "mg1.log"
+        first = roles.start("mg1", probe(tmp_path, "stay"), log=log, cwd=tmp_path, host=host).process
+        wait_for_line(log, "argv", 60, lambda: first.poll() is None)
+        roles.restart("mg1")  # SIGKILL, then forked again with the same command, its log continued
+        second = roles.roles["mg1"].process
+        assert second.pid != first.pid and first.returncode == -signal.SIGKILL
+        wait_for_line(log, "(?s)argv.*argv", 60, lambda: second.poll() is None)
+        roles.kill("mg1")
+        assert roles.exits.get(timeout=60) == ("mg1", -signal.SIGKILL)  # the restart's exit was not reported
+        stays = roles.start("mg2", probe(tmp_path, "stay"), log=tmp_path / "mg2.log", cwd=tmp_path, host=host).process
+    assert stays.returncode == -signal.SIGTERM and gone(stays.pid)
+    assert host.process.returncode == 0
+
+
+def test_a_host_that_dies_takes_its_roles_with_it_and_they_fail(tmp_path):
+    with Roles() as roles:
+        host = roles.fork_host(("json",), tmp_path / "host.log")
+        child = roles.start("mg1", probe(tmp_path, "stay"), log=tmp_path / "mg1.log", cwd=tmp_path, host=host).process
+        os.killpg(host.process.pid, signal.SIGKILL)
+        assert roles.exits.get(timeout=60) == ("mg1", -signal.SIGKILL)
+        assert gone(child.pid)  # killed, not left running where nothing watches it
+        with pytest.raises(RuntimeError, match="the agent host exited"):
+            roles.start("mg2", probe(tmp_path, "0"), log=tmp_path / "mg2.log", cwd=tmp_path, host=host)
+
+
+def test_a_host_that_cannot_start_or_a_log_that_cannot_be_opened_is_an_error_at_start(tmp_path):
+    with Roles() as roles:
+        host = roles.fork_host(("no_such_module_here",), tmp_path / "host.log")
+        with pytest.raises(RuntimeError, match="ModuleNotFoundError"):
+            roles.start("mg1", probe(tmp_path, "0"), log=tmp_path / "mg1.log", cwd=tmp_path, host=host)
+        host = roles.fork_host(("json",), tmp_path / "host2.log")
+        with pytest.raises(OSError, match="cannot open"):
+            roles.start("mg1", probe(tmp_path, "0"), log=tmp_path / "none" / "mg1.log", cwd=tmp_path, host=host)
+        with pytest.raises(ValueError):
+            roles.start("mg1", ["/bin/true"], host=host)
+        roles.start("mg1", probe(tmp_path, "0"), log=tmp_path / "mg1.log", cwd=tmp_path, host=host)  # still serves
+        assert roles.exits.get(timeout=60) == ("mg1", 0)
+
+
+def test_memory_is_resident_peak_and_proportional_share():
+    mine = memory_mib(os.getpid())
+    assert 0 < mine["pss_mib"] <= mine["rss_mib"] <= mine["peak_mib"]
