@@ -3,7 +3,7 @@ and the last day, and the recording's size per agent-day.
 
 One ``dmosim run --days D --agents N --json`` of small agents. Per day, the DMO's phase times and the agents'
 ``compute`` entries of that day split the day into the agents' critical-path computation and overhead
-(``dmosim.bench.day.split_day``); the run samples each role's resident and peak memory as each day's settlement starts
+(``dmosim.bench.day.split_day``); the run samples each role's resident and peak memory as each day's last hour starts
 (``memory_mib`` of the result). What must not grow with the days is checked as ratios of the last day to the first.
 """
 

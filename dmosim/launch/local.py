@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 from dmo.replay.reproduce import differences, statements_of
-from messages import Clock, Schedule
+from messages import HOURS, Clock, Schedule
 from messages.keys import new_run_id
 from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import Bus, BusConfig
@@ -301,7 +301,9 @@ class _Watch:
         self.day = ""
         self.clock = "the start"  # where the DMO's clock stands, as the run's messages say it
         self.recorder_exit: str | None = None  # where it stood when the recorder exited
-        self.memory: dict[int, dict[str, dict]] = {}  # day -> role -> its memory as the day is settled
+        # day -> role -> its memory as the day's last hour starts, when every agent is still there (at settlement,
+        # forked agents that have their statements are gone within milliseconds)
+        self.memory: dict[int, dict[str, dict]] = {}
 
     def when(self) -> str:
         with self.lock:
@@ -313,7 +315,7 @@ class _Watch:
             self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
-            if msg.phase == "settlement":
+            if msg.phase == "realtime" and msg.hour == HOURS:  # the day's last hour: see self.memory
                 pids = {**{name: role.process.pid for name, role in self.roles.roles.items()},
                         **{HOST: host.process.pid for host in self.roles.hosts}}
                 self.memory[msg.day] = {name: m for name, pid in pids.items() if (m := memory_mib(pid)) is not None}

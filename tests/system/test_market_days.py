@@ -31,7 +31,7 @@ def test_two_days_carry_over_midnight_survive_a_dmo_restart_and_settle_from_the_
     assert [d["market_day"] for d in result["days"]] == [FIRST, SECOND] and result["restarts"] == {"dmo": 1}
     (resumed,) = [i for i in result["incidents"] if "resumed" in i["reason"]]
     assert resumed["market_day"] == SECOND and resumed["hour"] == 5
-    memory = result["memory_mib"]  # each role's memory as each day's settlement starts
+    memory = result["memory_mib"]  # each role's memory as each day's last hour starts
     assert set(memory) == {"1", "2"} and {"dmo", "mg1", "mg2", "recorder"} <= set(memory["2"])
     assert all(0 < m["rss_mib"] <= m["peak_mib"] for m in memory["2"].values())
     for agent, s in result["settlement"].items():  # the run's totals are its days' sums
