@@ -3,7 +3,7 @@ dmosim.launch.host MODULE...``, imports the modules once and forks a child for e
 that command, ``python -m dmosim agent ...``, as its own interpreter would. ``ForkHost`` is the host's handle in the
 launcher and ``Forked`` a child as ``Roles`` watches it, like a ``subprocess.Popen``.
 
-Why: an agent process spends about 160 of its 200 MiB on the code it imports (cvxpy, scipy, numpy, HiGHS, Zenoh),
+Why: an agent process spends about 165 of its 200 MiB on the code it imports (cvxpy, scipy, numpy, HiGHS, Zenoh),
 the same in every agent; children forked after the import share those pages (docs/benchmarks.md, "Hosting agents").
 The host opens no Zenoh session and solves nothing, so no library has started a thread of its own when it forks (the
 BLAS thread pools numpy and scipy start at import are shut down by OpenBLAS's fork handler and started again in the
@@ -20,6 +20,7 @@ The protocol, one JSON object a line: the launcher writes each command to the ho
 from __future__ import annotations
 
 import atexit
+import contextlib
 import gc
 import importlib
 import json
@@ -209,8 +210,9 @@ def _serve(replies) -> dict | None:
         while True:
             for key, _ in selector.select():
                 if key.fd == wake_r:
-                    while os.read(wake_r, 4096) == 4096:
-                        pass
+                    with contextlib.suppress(BlockingIOError):  # one byte a signal: read them all
+                        while os.read(wake_r, 4096):
+                            pass
                     _reap(children, replies)
                     continue
                 data = os.read(0, 65536)
@@ -236,7 +238,8 @@ def _serve(replies) -> dict | None:
 
 
 def _fork(command: dict, replies) -> int:
-    """Fork the child of ``command``; in the host, say so and return its pid (-1 if its log cannot be opened)."""
+    """Fork the child of ``command``; in the host, say so and return its pid (-1, and the reason said, if its log
+    cannot be opened or no process can be made)."""
     try:
         log = _open_log(command["log"], command["mode"])
     except OSError as exc:
@@ -245,7 +248,13 @@ def _fork(command: dict, replies) -> int:
     sys.stdout.flush()
     sys.stderr.flush()
     gc.freeze()  # what the host made since the last fork joins the frozen objects no collection visits
-    pid = os.fork()
+    try:
+        pid = os.fork()
+    except OSError as exc:  # out of processes or memory: this child fails to start, as a Popen would
+        if log is not None:
+            os.close(log)
+        _say(replies, error=f"cannot fork: {exc.strerror}")
+        return -1
     if pid == 0:
         os.setpgid(0, 0)  # its own process group, as every role has (the parent sets it too: whichever runs first)
         devnull = os.open(os.devnull, os.O_RDWR)
