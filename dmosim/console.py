@@ -17,6 +17,10 @@ class UsageError(Exception):
     """Bad input from the user: printed as one line, exit 2."""
 
 
+# A role's log line: its time, who says it, the level and the message. Each process names itself (``role``); agents
+# sharing a process (``dmosim run --per-process``) are named by their threads.
+LOG_FORMAT = "%(asctime)s {role} %(levelname)s %(message)s"
+LOG_DATEFMT = "%H:%M:%S"
 SIBLINGS = ("scenarios", "messages", "microgrid_agent", "dmo")  # the packages installed beside dmosim
 _HOME = Path(__file__).resolve().parents[1]  # where they are: the directory that holds dmosim/
 

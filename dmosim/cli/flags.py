@@ -21,7 +21,7 @@ from scenarios.days import MAX_SEED
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
 from ..arguments import seed
-from ..console import UsageError
+from ..console import LOG_DATEFMT, LOG_FORMAT, UsageError
 from ..experiment.rundir import RunDir, RunDirError, check_directory
 from ..experiment.spec import MAX_FAULTS, Experiment
 from ..launch.roles import message_faults as experiment_message_faults
@@ -173,7 +173,7 @@ def check_out(args) -> None:
 
 def setup_logging(role: str, quiet: bool = False) -> None:
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, stream=sys.stderr,
-                        format=f"%(asctime)s {role} %(levelname)s %(message)s", datefmt="%H:%M:%S")
+                        format=LOG_FORMAT.format(role=role), datefmt=LOG_DATEFMT)
 
 
 def recording_path(path: str, overwrite: bool) -> Path:

@@ -48,6 +48,10 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
             "how the agents' processes start: process, each a Python of its own; fork, forked from one process that "
             "has loaded their code, which they share (less memory for large fleets: docs/benchmarks.md, \"Hosting "
             f"agents\"); the results are the same (default: {default.agents.hosting})"))),
+        "agents.per_process": ("--per-process", dict(type=integer(1, MAX_AGENTS), metavar="K", help=(
+            "with --hosting fork, K agents in each forked process, a thread each: the pages a process copies from "
+            "the host are paid once per K agents; an agent a kill or restart fault names runs alone "
+            f"(default: {default.agents.per_process})"))),
         "days": ("--days", dict(type=integer(1, MAX_DAYS),
                                 help="consecutive market days; agents register once and carry their state across "
                                      f"midnight (at most {MAX_DAYS}; default: {default.days})")),

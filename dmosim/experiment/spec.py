@@ -67,12 +67,14 @@ Blocks = Annotated[list[Annotated[list[Annotated[float, Field(ge=0, le=MAX_MW, a
 class Agents(_Section):
     """Who takes part: ``count`` agents mg1..mgN drawn around the market's case, or the members of a fleet file;
     ``strategy`` how each bids (docs/strategies.md), unless its fleet entry names its own; ``hosting`` how
-    ``dmosim run`` starts their processes (``HOSTINGS``)."""
+    ``dmosim run`` starts their processes (``HOSTINGS``), and with ``fork`` how many agents each runs
+    (``per_process``)."""
 
     count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
     fleet: PathText | None = None  # a fleet file, relative to the experiment file
     strategy: Annotated[str, Field(min_length=1, max_length=MAX_STRATEGY)] = DEFAULT_STRATEGY
     hosting: Literal[HOSTINGS] = "process"  # type: ignore[valid-type]
+    per_process: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 1  # agents a forked process runs, one thread each
 
     @field_validator("strategy")
     @classmethod
@@ -87,6 +89,9 @@ class Agents(_Section):
     def _one_way(self):
         if self.fleet is not None and self.count != Agents.model_fields["count"].default:
             raise ValueError("count and fleet exclude each other: a fleet file names its agents")
+        if self.per_process > 1 and self.hosting != "fork":
+            raise ValueError(f"per_process = {self.per_process} needs hosting = \"fork\": agents share a process "
+                             "forked from their host")
         return self
 
 
@@ -230,7 +235,7 @@ class Experiment(_Section):
 # (dmosim/cli/settings.py).
 FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
-    "agents.strategy": "strategy", "agents.hosting": "hosting",
+    "agents.strategy": "strategy", "agents.hosting": "hosting", "agents.per_process": "per_process",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
     "market.settlement": "settlement",
     "market.import_limit": "import_limit", "market.export_limit": "export_limit",

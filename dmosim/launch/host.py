@@ -10,11 +10,19 @@ BLAS thread pools numpy and scipy start at import are shut down by OpenBLAS's fo
 child on first use); each child opens its own session. The garbage collector stays off in the host and its objects are
 frozen before each fork (``gc.freeze``), so no collection in a child writes to the pages it shares.
 
-The protocol, one JSON object a line: the launcher writes each command to the host's stdin ({"argv", "log", "mode",
-"env", "cwd"}); the host answers on its stdout {"ready": pid} once its imports are done, then {"started": pid} or
-{"error": text} to each command in turn, and {"exited": pid, "code": code} when a child ends (``code`` as
-``Popen.returncode``: -N for signal N). Closing its stdin stops the host: it stops the children still running
-(SIGTERM, then SIGKILL after ``STOP_GRACE_S``), then exits.
+A child may also run several agents, each in a thread of its own (``ForkHost.start_group``; ``dmosim run
+--per-process``): they share the pages the child copies from the host, which a child of its own copies for each agent.
+Each agent's thread calls the command line's entry point (``dmosim.cli.main:main``) with its arguments, writes what it
+logs and prints to its own log, and its exit code is reported as it ends; what the native libraries write to file
+descriptors 1 and 2, and what threads other than the agents' log, go to the host's log.
+
+The protocol, one JSON object a line: the launcher writes each command to the host's stdin, {"argv", "log", "mode",
+"env", "cwd"} for one command run as its own interpreter would, or {"entry", "agents": [{"name", "args", "log"}],
+"mode", "env", "cwd"} for a group; the host answers on its stdout {"ready": pid} once its imports are done, then
+{"started": pid} or {"error": text} to each command in turn, and {"exited": pid, "code": code} when a child ends
+(``code`` as ``Popen.returncode``: -N for signal N). A group's child says {"ended": pid, "agent": i, "code": code} as
+its agent i ends. Closing its stdin stops the host: it stops the children still running (SIGTERM, then SIGKILL after
+``STOP_GRACE_S``), then exits.
 """
 
 from __future__ import annotations
@@ -23,7 +31,9 @@ import atexit
 import contextlib
 import gc
 import importlib
+import io
 import json
+import logging
 import os
 import queue
 import runpy
@@ -36,6 +46,8 @@ import time
 import traceback
 from pathlib import Path
 from typing import NoReturn
+
+from ..console import LOG_DATEFMT, LOG_FORMAT
 
 READY_TIMEOUT_S = 300.0  # how long the host may take over its imports (about 3 s alone, more on a busy machine)
 STOP_GRACE_S = 5.0  # how long children still running when the host is stopped have to exit on SIGTERM
@@ -92,9 +104,11 @@ class ForkHost:
             if log:
                 err.close()
         self._replies: queue.Queue = queue.Queue()
-        self._children: dict[int, Forked] = {}
+        self._children: dict[int, list[Forked]] = {}  # per child, its agents (one, unless it runs a group)
+        self._ended: dict[int, dict[int, int]] = {}  # a group's agents that ended before the host said it started
         self._lock = threading.Lock()  # one command and its reply at a time
         self._ready = False
+        self._agents = 1
         threading.Thread(target=self._read, name="fork-host", daemon=True).start()
 
     def start(self, argv: list[str], log: Path | None, mode: str = "w", env: dict | None = None,
@@ -103,20 +117,37 @@ class ForkHost:
         discarded, stderr the host's), in environment ``env`` and directory ``cwd`` (default: the launcher's now)."""
         if argv[:2] != [sys.executable, "-m"] or len(argv) < 3:
             raise ValueError(f"a forked child runs `{sys.executable} -m MODULE ...`, not {argv}")
-        command = {"argv": list(argv), "log": str(log) if log else None, "mode": mode,
-                   "env": dict(os.environ if env is None else env), "cwd": str(cwd or os.getcwd())}
+        command = {"argv": list(argv), "log": str(log) if log else None}
+        [child] = self._command(command, 1, mode, env, cwd)
+        child.args = list(argv)
+        return child
+
+    def start_group(self, entry: str, agents: list[tuple[str, list[str], Path]], mode: str = "w",
+                    env: dict | None = None, cwd: Path | None = None) -> list[Forked]:
+        """Fork one child that runs ``agents`` (name, arguments, log), each in a thread named after it calling
+        ``entry`` ("module:function", e.g. "dmosim.cli.main:main") with its arguments; one ``Forked`` per agent,
+        all with the child's pid (a signal reaches them all), each ending with its own exit code."""
+        command = {"entry": entry, "agents": [{"name": name, "args": list(args), "log": str(log)}
+                                              for name, args, log in agents]}
+        children = self._command(command, len(agents), mode, env, cwd)
+        for child, (_, args, _) in zip(children, agents):
+            child.args = list(args)
+        return children
+
+    def _command(self, command: dict, agents: int, mode: str, env: dict | None, cwd: Path | None) -> list[Forked]:
+        command.update(mode=mode, env=dict(os.environ if env is None else env), cwd=str(cwd or os.getcwd()))
         with self._lock:
             if not self._ready:
                 self._reply(READY_TIMEOUT_S, "ready")
                 self._ready = True
+            self._agents = agents  # how many agents the child the host starts next runs
             try:
                 self.process.stdin.write(json.dumps(command).encode() + b"\n")
                 self.process.stdin.flush()
             except (BrokenPipeError, ValueError):
                 raise RuntimeError(self._gone()) from None
             reply = self._reply(READY_TIMEOUT_S, "started")
-        if isinstance(reply, Forked):
-            reply.args = list(argv)
+        if isinstance(reply, list):
             return reply
         raise OSError(reply["error"])
 
@@ -136,18 +167,29 @@ class ForkHost:
     def _read(self) -> None:
         for line in self.process.stdout:
             reply = json.loads(line)
-            if "exited" in reply:
-                child = self._children.pop(reply["exited"], None)
-                if child is not None:
-                    child.ended(reply["code"])
+            if "exited" in reply:  # every agent of the child not ended yet ends with the child's code
+                for child in self._children.pop(reply["exited"], []):
+                    if child.returncode is None:
+                        child.ended(reply["code"])
+            elif "ended" in reply:  # written by a group's child: it may come before the host's "started"
+                pid, agent, code = reply["ended"], reply["agent"], reply["code"]
+                if pid in self._children:
+                    self._children[pid][agent].ended(code)
+                else:
+                    self._ended.setdefault(pid, {})[agent] = code
             elif "started" in reply:  # registered here, before the host can say it exited
-                child = self._children[reply["started"]] = Forked(reply["started"], [])
-                self._replies.put(child)
+                pid = reply["started"]
+                children = self._children[pid] = [Forked(pid, []) for _ in range(self._agents)]
+                for agent, code in self._ended.pop(pid, {}).items():
+                    children[agent].ended(code)
+                self._replies.put(children)
             else:
                 self._replies.put(reply)
-        for pid, child in list(self._children.items()):  # the host is gone: nothing can watch them any more
+        for pid, children in list(self._children.items()):  # the host is gone: nothing can watch them any more
             _kill_group(pid, signal.SIGKILL)
-            child.ended(-signal.SIGKILL)
+            for child in children:
+                if child.returncode is None:
+                    child.ended(-signal.SIGKILL)
         self._replies.put(None)
 
     def stop(self, grace_s: float = STOP_GRACE_S) -> None:
@@ -182,8 +224,8 @@ def main(modules: list[str]) -> None:
         importlib.import_module(name)
     cwd_first = bool(sys.path) and sys.path[0] == os.getcwd()  # as python -m put it (not with PYTHONSAFEPATH)
     command = _serve(replies)
-    if command is not None:  # a forked child: from here on, it is `python -m MODULE ARGS` of its own
-        _run(command, cwd_first)
+    if command is not None:  # a forked child: from here on, it is `python -m MODULE ARGS` of its own, or a group
+        (_run_group if "agents" in command else _run)(command, cwd_first)
 
 
 def _say(replies, **reply) -> None:
@@ -231,6 +273,8 @@ def _serve(replies) -> dict | None:
                         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
                         for fd in (wake_r, wake_w):
                             os.close(fd)
+                        if "agents" in command:  # a group's child says as each of its agents ends
+                            command["replies"] = os.dup(replies.fileno())
                         replies.close()
                         return command
                     if pid > 0:
@@ -241,7 +285,7 @@ def _fork(command: dict, replies) -> int:
     """Fork the child of ``command``; in the host, say so and return its pid (-1, and the reason said, if its log
     cannot be opened or no process can be made)."""
     try:
-        log = _open_log(command["log"], command["mode"])
+        log = _open_log(command.get("log"), command["mode"])  # a group's child opens its agents' logs itself
     except OSError as exc:
         _say(replies, error=f"cannot open {command['log']}: {exc.strerror}")
         return -1
@@ -316,12 +360,7 @@ def _stop(children: set[int], replies) -> None:
 def _run(command: dict, cwd_first: bool) -> NoReturn:
     """In the child: the command's environment and directory, then its module as ``python -m`` runs it, and its
     exit status as that interpreter's would be (SystemExit's code; 1 and the traceback for an uncaught exception)."""
-    gc.enable()
-    os.environ.clear()
-    os.environ.update(command["env"])
-    os.chdir(command["cwd"])
-    if cwd_first:
-        sys.path[0] = os.getcwd()  # python -m puts the directory it starts in first on sys.path
+    _enter(command, cwd_first)
     _, _, module, *args = command["argv"]
     sys.argv = ["-m", *args]
     code = 0
@@ -332,9 +371,86 @@ def _run(command: dict, cwd_first: bool) -> NoReturn:
     except BaseException:  # noqa: BLE001  (as the interpreter does with an exception nothing caught)
         traceback.print_exc()
         code = 1
-    # It ends as multiprocessing's children do: its threads waited for, the exit handlers run, the streams flushed,
-    # then os._exit. The interpreter's finalization would touch every object the host made, copying every page the
-    # child shares with it: measured, 20 agents ending at once added 700 MiB for a moment.
+    _exit(code)
+
+
+def _run_group(command: dict, cwd_first: bool) -> NoReturn:
+    """In a group's child: each agent in a thread named after it, calling the entry point with its arguments, its
+    log lines and prints written to its own log; each agent's exit code said as it ends. The child exits once all
+    have ended, with the first agent's code that is not 0 (0 if none)."""
+    _enter(command, cwd_first)
+    module, function = command["entry"].split(":")
+    entry = getattr(importlib.import_module(module), function)
+    os.dup2(2, 1)  # what native libraries print (HiGHS's banner) goes to the host's log, as its own errors do
+    logs = [open(agent["log"], command["mode"], buffering=1) for agent in command["agents"]]  # noqa: SIM115
+    streams = _ByThread(sys.stderr)
+    sys.stdout = sys.stderr = streams
+    handler = logging.StreamHandler(streams)  # what `setup_logging` would configure, named by thread
+    handler.setFormatter(logging.Formatter(LOG_FORMAT.format(role="%(threadName)s"), LOG_DATEFMT))
+    logging.basicConfig(level=logging.WARNING if "--quiet" in command["agents"][0]["args"] else logging.INFO,
+                        handlers=[handler])
+    codes = [None] * len(logs)
+
+    def agent(i: int, args: list[str]) -> None:
+        streams.own(logs[i])
+        try:
+            codes[i] = entry(args)
+        except SystemExit as exc:
+            codes[i] = exit_code(exc.code)
+        except BaseException:  # noqa: BLE001  (the thread's end, as an uncaught exception ends a process)
+            traceback.print_exc()
+            codes[i] = 1
+        codes[i] = exit_code(codes[i])
+        logs[i].flush()
+        os.write(command["replies"], (json.dumps({"ended": os.getpid(), "agent": i, "code": codes[i]}) + "\n").encode())
+
+    threads = [threading.Thread(target=agent, args=(i, a["args"]), name=a["name"])
+               for i, a in enumerate(command["agents"])]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    _exit(next((code for code in codes if code), 0))
+
+
+class _ByThread(io.TextIOBase):
+    """sys.stdout and sys.stderr of a group's child: what a thread writes goes to the stream it ``own``s, what
+    other threads write to ``fallback``."""
+
+    def __init__(self, fallback):
+        self.fallback = fallback
+        self.streams: dict[int, io.TextIOBase] = {}
+
+    def own(self, stream) -> None:
+        self.streams[threading.get_ident()] = stream
+
+    def _stream(self):
+        return self.streams.get(threading.get_ident(), self.fallback)
+
+    def write(self, text: str) -> int:
+        return self._stream().write(text)
+
+    def flush(self) -> None:
+        self._stream().flush()
+
+    def writable(self) -> bool:
+        return True
+
+
+def _enter(command: dict, cwd_first: bool) -> None:
+    """The child's environment and directory, and its collector on again."""
+    gc.enable()
+    os.environ.clear()
+    os.environ.update(command["env"])
+    os.chdir(command["cwd"])
+    if cwd_first:
+        sys.path[0] = os.getcwd()  # python -m puts the directory it starts in first on sys.path
+
+
+def _exit(code: int) -> NoReturn:
+    """End as multiprocessing's children do: the threads waited for, the exit handlers run, the streams flushed,
+    then os._exit. The interpreter's finalization would touch every object the host made, copying every page the
+    child shares with it: measured, 20 agents ending at once added 700 MiB for a moment."""
     threading._shutdown()  # noqa: SLF001
     atexit._run_exitfuncs()  # noqa: SLF001
     for stream in (sys.stdout, sys.stderr):

@@ -49,6 +49,32 @@ AGENT_MODULES = ("dmosim.cli.main", "dmosim.cli.agent", "microgrid_agent.agent.p
 HOST = "_host"  # the host of forked agents: its log, its line of memory_mib (no agent id starts with "_")
 
 
+def groups(agents: list[tuple], per_process: int, alone: set[str]) -> list[list[tuple]]:
+    """The agents (name, ...) in the run's order, ``per_process`` to a process, except those named in ``alone``,
+    each in a process of its own."""
+    out, group = [], []
+    for agent in agents:
+        if agent[0] in alone:
+            out.append([agent])
+            continue
+        group.append(agent)
+        if len(group) == per_process:
+            out.append(group)
+            group = []
+    return out + ([group] if group else [])
+
+
+def roles_memory(roles: Roles) -> dict[str, dict]:
+    """Each role's ``memory_mib`` now, and the agents' host's as ``HOST``. Roles sharing a process (``per_process``)
+    each take their share of its PSS, so that the roles' PSS add up to what the run holds; its RSS and peak are the
+    process's."""
+    pids = {**{name: (role.process.pid, role.shared_by) for name, role in roles.roles.items()},
+            **{HOST: (host.process.pid, 1) for host in roles.hosts}}
+    sampled = {pid: memory_mib(pid) for pid, _ in set(pids.values())}  # once a process, however many roles it runs
+    return {name: {**m, "pss_mib": m["pss_mib"] if m["pss_mib"] is None else round(m["pss_mib"] / shared_by, 1)}
+            for name, (pid, shared_by) in pids.items() if (m := sampled[pid]) is not None}
+
+
 class RoleFailed(RuntimeError):
     """A role of the run failed; ``names`` are the roles, and the message says where their logs are."""
 
@@ -107,9 +133,14 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                     "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", endpoint,
                     "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
-            for member in fleet:
-                roles.start(member.id, dmosim_command("agent", *common, "--id", member.id, "--connect", endpoint,
-                                                      "--lease", "1"), log=logs / f"{member.id}.log", host=host)
+            agents = [(m.id, dmosim_command("agent", *common, "--id", m.id, "--connect", endpoint, "--lease", "1"),
+                       logs / f"{m.id}.log") for m in fleet]
+            alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
+            for group in groups(agents, e.agents.per_process if host is not None else 1, alone):
+                if len(group) > 1:
+                    roles.start_group(host, group)
+                else:
+                    roles.start(group[0][0], group[0][1], log=group[0][2], host=host)
             failed = wait_for_run(roles, watch)
         if failed:
             raise RoleFailed(failed, roles)
@@ -316,9 +347,7 @@ class _Watch:
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
             if msg.phase == "realtime" and msg.hour == HOURS:  # the day's last hour: see self.memory
-                pids = {**{name: role.process.pid for name, role in self.roles.roles.items()},
-                        **{HOST: host.process.pid for host in self.roles.hosts}}
-                self.memory[msg.day] = {name: m for name, pid in pids.items() if (m := memory_mib(pid)) is not None}
+                self.memory[msg.day] = roles_memory(self.roles)
             done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
             self.hours = (done, 24 * msg.days)
             self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))

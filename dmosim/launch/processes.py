@@ -21,6 +21,9 @@ from .host import ForkHost, Forked
 SOURCE_ROOT = Path(__file__).resolve().parents[2]
 
 
+CLI_ENTRY = "dmosim.cli.main:main"  # what ``dmosim ARGS`` calls with ARGS: a group's thread calls it (host.py)
+
+
 def dmosim_command(*args: str) -> list[str]:
     """The command line of ``dmosim ARGS`` in a new process of this interpreter."""
     return [sys.executable, "-m", "dmosim", *args]
@@ -104,6 +107,7 @@ class Role:
     cwd: Path | None = None
     restarts: int = 0
     host: ForkHost | None = None  # the host it is forked from (restarted from it too); None: a process of its own
+    shared_by: int = 1  # how many roles its process runs (``Roles.start_group``)
 
 
 class Roles:
@@ -135,6 +139,21 @@ class Roles:
         self.roles[name] = role
         return role
 
+    def start_group(self, host: ForkHost, roles: list[tuple[str, list[str], Path]]) -> list[Role]:
+        """Start ``roles`` (name, ``dmosim_command(...)``, log) in one child of ``host``, each in a thread of its own
+        calling the command line's entry point with its arguments (host.py). They are watched and stopped as roles
+        are, but share one process: a signal to one reaches them all, so none is killed or restarted alone."""
+        for _, argv, _ in roles:
+            if list(argv[:3]) != dmosim_command():
+                raise ValueError(f"a group runs dmosim commands, not {argv}")
+        forked = host.start_group(CLI_ENTRY, [(name, list(argv[3:]), log) for name, argv, log in roles])
+        started = []
+        for (name, argv, log), process in zip(roles, forked):
+            self._watch(name, process, None)
+            role = self.roles[name] = Role(name, process, log, argv=tuple(argv), host=host, shared_by=len(roles))
+            started.append(role)
+        return started
+
     def _spawn(self, name: str, argv, log: Path | None, env: dict | None, cwd: Path | None,
                mode: str, host: ForkHost | None) -> subprocess.Popen | Forked:
         if host is not None:
@@ -143,6 +162,11 @@ class Roles:
             out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
             process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
                                        stderr=out or None, start_new_session=True, env=env, cwd=cwd)
+        self._watch(name, process, out)
+        return process
+
+    def _watch(self, name: str, process: subprocess.Popen | Forked, out) -> None:
+        """Put (name, returncode) on ``exits`` when ``process`` ends (unless restarted on purpose); close ``out``."""
 
         def waiter():
             code = process.wait()
@@ -152,11 +176,10 @@ class Roles:
                 self.exits.put((name, code))
 
         threading.Thread(target=waiter, name=f"wait-{name}", daemon=True).start()
-        return process
 
     def restart(self, name: str) -> None:
         """SIGKILL one role and start it again with the same command line, its log continued (fault injection)."""
-        role = self.roles[name]
+        role = self._alone(name)
         old = role.process
         self._replaced.add(old.pid)
         _signal_group(old, signal.SIGKILL)
@@ -166,9 +189,16 @@ class Roles:
 
     def kill(self, name: str) -> None:
         """SIGKILL one role (fault injection)."""
-        role = self.roles[name]
+        role = self._alone(name)
         role.killed_on_purpose = True
         _signal_group(role.process, signal.SIGKILL)
+
+    def _alone(self, name: str) -> Role:
+        role = self.roles[name]
+        if role.shared_by > 1:
+            raise ValueError(f"{name} shares its process with {role.shared_by - 1} other role(s): it cannot be "
+                             "killed or restarted alone")
+        return role
 
     def stop_all(self, grace_s: float = 5.0) -> None:
         running = [r.process for r in self.roles.values() if r.process.poll() is None]

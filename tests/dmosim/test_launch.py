@@ -12,8 +12,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from dmosim.launch.local import wait_for_run
-from dmosim.launch.processes import Roles, memory_mib, wait_for_line
+from dmosim.launch.local import groups, wait_for_run
+from dmosim.launch.processes import Roles, dmosim_command, free_port, memory_mib, wait_for_line
 
 DONE = [sys.executable, "-c", "pass"]
 STAYS = [sys.executable, "-c", "import time; time.sleep(120)"]
@@ -133,6 +133,40 @@ def test_a_host_that_cannot_start_or_a_log_that_cannot_be_opened_is_an_error_at_
             roles.start("mg1", ["/bin/true"], host=host)
         roles.start("mg1", probe(tmp_path, "0"), log=tmp_path / "mg1.log", cwd=tmp_path, host=host)  # still serves
         assert roles.exits.get(timeout=60) == ("mg1", 0)
+
+
+def test_agents_sharing_a_forked_process_each_write_their_own_log_end_with_their_own_code_and_stop_together(
+        tmp_path):
+    run_id = "20260101T000000-abcdef"
+    stay = ["agent", "--run-id", run_id, "--agents", "4", "--connect", f"tcp/127.0.0.1:{free_port()}",
+            "--connect-timeout", "120"]  # nothing listens there: it keeps trying, and logs that it does
+    with Roles() as roles:
+        host = roles.fork_host(("dmosim.cli.main",), tmp_path / "host.log")
+        ended = roles.start_group(host, [("mg1", dmosim_command("--version"), tmp_path / "mg1.log"),
+                                         ("mg2", dmosim_command("agent", "--id", "mg2"), tmp_path / "mg2.log")])
+        assert {roles.exits.get(timeout=60) for _ in ended} == {("mg1", 0), ("mg2", 2)}
+        assert ended[0].process.pid == ended[1].process.pid
+        staying = roles.start_group(host, [(name, dmosim_command(*stay, "--id", name), tmp_path / f"{name}.log")
+                                           for name in ("mg3", "mg4")])
+        for role in staying:
+            wait_for_line(role.log, f" {role.name} INFO connecting to", 60, lambda: role.process.poll() is None)
+        with pytest.raises(ValueError, match="mg3 shares its process with 1 other"):
+            roles.kill("mg3")
+        with pytest.raises(ValueError, match="shares its process"):
+            roles.restart("mg4")
+    assert [r.process.returncode for r in staying] == [-signal.SIGTERM] * 2 and gone(staying[0].process.pid)
+    assert (tmp_path / "mg1.log").read_text().startswith("dmosim ")  # its stdout, and nothing of mg2's
+    assert (tmp_path / "mg2.log").read_text() == "error: --run-id is required: the id of the run to join, as its DMO " \
+                                                 "(or router) printed it\n"
+    assert "mg4" not in (tmp_path / "mg3.log").read_text() and "mg3" not in (tmp_path / "mg4.log").read_text()
+
+
+def test_agents_are_grouped_in_the_run_s_order_and_those_a_fault_names_run_alone():
+    agents = [(f"mg{i}", i) for i in range(1, 8)]
+    assert groups(agents, 1, set()) == [[a] for a in agents]
+    assert groups(agents, 3, {"mg2", "mg7"}) == [[("mg2", 2)], [("mg1", 1), ("mg3", 3), ("mg4", 4)], [("mg7", 7)],
+                                                 [("mg5", 5), ("mg6", 6)]]
+    assert groups(agents, 10, set()) == [agents]
 
 
 def test_memory_is_resident_peak_and_proportional_share():

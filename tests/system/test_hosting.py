@@ -1,6 +1,7 @@
-"""How agents are hosted changes nothing the market sees: the same tiny day run with each agent a process of its own
-and with the agents forked from one pre-loaded host (``dmosim run --hosting``, docs/benchmarks.md "Hosting agents"),
-both with the same kill fault, settles every agent to the cent alike."""
+"""How agents are hosted changes nothing the market sees: the same tiny day run with each agent a process of its own,
+with the agents forked from one pre-loaded host, and with two of them sharing one forked process (``dmosim run
+--hosting``, ``--per-process``, docs/benchmarks.md "Hosting agents"), all with the same kill fault, settles every agent
+to the cent alike."""
 
 from __future__ import annotations
 
@@ -20,12 +21,13 @@ FAULTS = ["kill:mg2:2", "delay:agent/mg2/meter:3"]
 
 
 def test_forked_agents_settle_to_the_cent_as_agent_processes_and_a_killed_one_is_settled_as_missing(tmp_path):
-    common = ["run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--json", "--quiet", "--seed", "4",
+    common = ["run", "--agents", "3", "--subperiods", "1", *TINY, *DEADLINES, "--json", "--quiet", "--seed", "4",
               *[flag for f in FAULTS for flag in ("--fault", f)]]
-    runs = {hosting: subprocess.Popen(dmosim(*common, "--hosting", hosting, "--out", str(tmp_path / hosting)),
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
-                                      start_new_session=True)
-            for hosting in ("process", "fork")}
+    hostings = {"process": ["--hosting", "process"], "fork": ["--hosting", "fork"],
+                "shared": ["--hosting", "fork", "--per-process", "2"]}  # mg2, killed, alone; mg1 and mg3 together
+    runs = {name: subprocess.Popen(dmosim(*common, *flags, "--out", str(tmp_path / name)), stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV, start_new_session=True)
+            for name, flags in hostings.items()}
     try:
         out = {hosting: p.communicate(timeout=600) for hosting, p in runs.items()}
     finally:
@@ -35,10 +37,11 @@ def test_forked_agents_settle_to_the_cent_as_agent_processes_and_a_killed_one_is
                 p.wait()
     for hosting, p in runs.items():
         assert p.returncode == 0, f"{hosting}: {out[hosting][1][-3000:]}"
-    process, fork = (json.loads(out[hosting][0]) for hosting in ("process", "fork"))
+    process, fork, shared = (json.loads(out[hosting][0]) for hosting in hostings)
 
-    assert differences(read_recording(process["recording"]), read_recording(fork["recording"])) == []
-    assert process["settlement"] == fork["settlement"] and process["awards"] == fork["awards"]
+    for other in (fork, shared):
+        assert differences(read_recording(process["recording"]), read_recording(other["recording"])) == []
+        assert process["settlement"] == other["settlement"] and process["awards"] == other["awards"]
     # the kill fault fired in the forked run as in the other: mg2 reported hour 1 only, and vanished
     assert fork["settlement"]["mg2"]["missing_subperiods"] == 23 and fork["settlement"]["mg1"]["missing_subperiods"] == 0
     assert any(i["agent"] == "mg2" and "vanished" in i["reason"] for i in fork["incidents"])
@@ -46,3 +49,9 @@ def test_forked_agents_settle_to_the_cent_as_agent_processes_and_a_killed_one_is
     assert "_host" in fork["memory_mib"]["1"] and "_host" not in process["memory_mib"]["1"]
     assert (tmp_path / "fork" / "logs" / "_host.log").is_file() and "mg1 registered" in (
         tmp_path / "fork" / "logs" / "mg1.log").read_text()
+    # mg1 and mg3 shared one process, each writing its own log and counting half of its PSS
+    memory = shared["memory_mib"]["1"]
+    assert memory["mg1"] == memory["mg3"]  # one process sampled once (mg2, killed, is gone by then)
+    for agent, other in (("mg1", "mg3"), ("mg3", "mg1")):
+        log = (tmp_path / "shared" / "logs" / f"{agent}.log").read_text()
+        assert f" {agent} INFO {agent} registered" in log and other not in log
