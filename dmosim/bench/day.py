@@ -11,6 +11,7 @@ docs/benchmarks.md).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -140,10 +141,11 @@ def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict
     return compute, {agent: realised[agent][-1]["messages"] for agent in result["agents"]}
 
 
-def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None) -> dict:
+def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, watch=None) -> dict:
     """One ``dmosim run FLAGS --json`` into a run directory: ``keep``, or a scratch one removed unless the run
     fails. Its result, each agent's ``compute`` entries and ``messages`` counts (``agents_reported``), and the
-    command's wall time."""
+    command's wall time. ``watch(pid)``, a context manager, is held while the command runs (e.g. to sample its
+    memory)."""
     rundir = keep or Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
     argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",
                           "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
@@ -153,7 +155,8 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None) -
     process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True, env=role_env())
     try:
-        out, err = process.communicate(timeout=timeout_s)
+        with watch(process.pid) if watch else contextlib.nullcontext():
+            out, err = process.communicate(timeout=timeout_s)
     except BaseException:
         process.terminate()
         try:

@@ -57,6 +57,18 @@ def test_day_runs_end_to_end(capsys):
     assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0
 
 
+def test_fleet_sums_every_process_of_the_run_and_resettles_its_recording(capsys):
+    out = bench_json(capsys, "fleet", "--agents", "2", "--per-process", "2", "--timeout", "600")
+    (row,) = out["fleets"]
+    roles = ("agents_mib", "run", "dmo", "recorder", "host")  # both agents in one process forked from the host
+    assert all(row[role] > 0 for role in roles) and row["agents"] == 2 and row["incidents"] == 0
+    assert math.isclose(sum(row[role] for role in roles), row["total_gib"] * 1024, abs_tol=6)
+    assert math.isclose(row["per_agent_mib"], row["total_gib"] * 1024 / 2, abs_tol=3)
+    assert row["resettled_identically"] and 0 < row["solving_pct"] <= 100
+    assert 0 < row["registration_s"] and 0 < row["clearing_s"] and row["day_s"] < row["wall_s"]
+    assert out["goal"]["agents"] == 2 and not out["goal"]["met"]  # the goal is a fleet of 200
+
+
 @pytest.mark.slow
 def test_recovery_loses_messages_everywhere_and_settles_every_statement_the_same(capsys, tmp_path):
     out = bench_json(capsys, "recovery", "--agents", "2", "--days", "1", "--scenarios", "1", "--subperiods", "1",
