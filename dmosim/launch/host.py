@@ -13,8 +13,8 @@ frozen before each fork (``gc.freeze``), so no collection in a child writes to t
 A child may also run several agents, each in a thread of its own (``ForkHost.start_group``; ``dmosim run
 --per-process``): they share the pages the child copies from the host, which a child of its own copies for each agent.
 Each agent's thread calls the command line's entry point (``dmosim.cli.main:main``) with its arguments, writes what it
-logs and prints to its own log, and its exit code is reported as it ends; what the native libraries write to file
-descriptors 1 and 2, and what threads other than the agents' log, go to the host's log.
+logs and prints to its own log (and so does every thread it starts), and its exit code is reported as it ends; what
+the native libraries write to file descriptors 1 and 2, and what other threads (Zenoh's) log, go to the host's log.
 
 The protocol, one JSON object a line: the launcher writes each command to the host's stdin, {"argv", "log", "mode",
 "env", "cwd"} for one command run as its own interpreter would, or {"entry", "agents": [{"name", "args", "log"}],
@@ -383,16 +383,18 @@ def _run_group(command: dict, cwd_first: bool) -> NoReturn:
     entry = getattr(importlib.import_module(module), function)
     os.dup2(2, 1)  # what native libraries print (HiGHS's banner) goes to the host's log, as its own errors do
     logs = [open(agent["log"], command["mode"], buffering=1) for agent in command["agents"]]  # noqa: SIM115
-    streams = _ByThread(sys.stderr)
+    streams = AgentStreams(sys.stderr)
+    streams.inherit()
     sys.stdout = sys.stderr = streams
-    handler = logging.StreamHandler(streams)  # what `setup_logging` would configure, named by thread
-    handler.setFormatter(logging.Formatter(LOG_FORMAT.format(role="%(threadName)s"), LOG_DATEFMT))
+    handler = logging.StreamHandler(streams)  # what `setup_logging` would configure, named by agent
+    handler.addFilter(streams)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT.format(role="%(agent)s"), LOG_DATEFMT))
     logging.basicConfig(level=logging.WARNING if "--quiet" in command["agents"][0]["args"] else logging.INFO,
                         handlers=[handler])
     codes = [None] * len(logs)
 
     def agent(i: int, args: list[str]) -> None:
-        streams.own(logs[i])
+        streams.own(command["agents"][i]["name"], logs[i])
         try:
             codes[i] = entry(args)
         except SystemExit as exc:
@@ -401,6 +403,7 @@ def _run_group(command: dict, cwd_first: bool) -> NoReturn:
             traceback.print_exc()
             codes[i] = 1
         codes[i] = exit_code(codes[i])
+        streams.disown()
         logs[i].flush()
         os.write(command["replies"], (json.dumps({"ended": os.getpid(), "agent": i, "code": codes[i]}) + "\n").encode())
 
@@ -413,19 +416,46 @@ def _run_group(command: dict, cwd_first: bool) -> NoReturn:
     _exit(next((code for code in codes if code), 0))
 
 
-class _ByThread(io.TextIOBase):
-    """sys.stdout and sys.stderr of a group's child: what a thread writes goes to the stream it ``own``s, what
-    other threads write to ``fallback``."""
+class AgentStreams(io.TextIOBase):
+    """sys.stdout and sys.stderr of a group's child: what an agent's thread writes goes to that agent's stream, and
+    so does what a thread it started writes (``inherit``); other threads write to ``fallback``. As a logging
+    filter, it names each record's agent (``record.agent``: the thread's name for a thread of no agent)."""
 
     def __init__(self, fallback):
         self.fallback = fallback
-        self.streams: dict[int, io.TextIOBase] = {}
+        self.agents: dict[int, tuple[str, io.TextIOBase]] = {}  # thread ident -> its agent's name and stream
 
-    def own(self, stream) -> None:
-        self.streams[threading.get_ident()] = stream
+    def own(self, name: str, stream) -> None:
+        self.agents[threading.get_ident()] = (name, stream)
+
+    def disown(self) -> None:
+        """This thread ends: its ident may be another thread's next."""
+        self.agents.pop(threading.get_ident(), None)
+
+    def inherit(self) -> None:
+        """Threads started from now on write where the thread that started them does."""
+        start, router = threading.Thread.start, self
+
+        def started(thread: threading.Thread) -> None:
+            owner, run = router.agents.get(threading.get_ident()), thread.run
+            if owner is not None:
+                def owned() -> None:
+                    router.own(*owner)
+                    try:
+                        run()
+                    finally:
+                        router.disown()
+                thread.run = owned
+            start(thread)
+
+        threading.Thread.start = started
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        record.agent = self.agents.get(record.thread, (record.threadName,))[0]
+        return True
 
     def _stream(self):
-        return self.streams.get(threading.get_ident(), self.fallback)
+        return self.agents.get(threading.get_ident(), (None, self.fallback))[1]
 
     def write(self, text: str) -> int:
         return self._stream().write(text)

@@ -46,6 +46,10 @@ AWAIT_RECORDER = ("--await-recorder", "60")  # the DMO's first message waits for
 # (docs/benchmarks.md, "Hosting agents"), by name: the launcher itself does not load the solver stack.
 AGENT_MODULES = ("dmosim.cli.main", "dmosim.cli.agent", "microgrid_agent.agent.process",
                  "microgrid_agent.agent.bidding")
+# The lease each agent announces: how long the DMO waits, after an agent's last sign of life, to call a silent one
+# vanished. A killed agent's link closes at once, whatever the lease; a live one that is starved of a core for a
+# moment must not be called gone: with 1 s, 200 agents bidding at once on 2 cores all vanished within 10 s.
+AGENT_LEASE_S = 10.0
 HOST = "_host"  # the host of forked agents: its log, its line of memory_mib (no agent id starts with "_")
 
 
@@ -133,8 +137,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                     "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", endpoint,
                     "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
-            agents = [(m.id, dmosim_command("agent", *common, "--id", m.id, "--connect", endpoint, "--lease", "1"),
-                       logs / f"{m.id}.log") for m in fleet]
+            agents = [(m.id, dmosim_command("agent", *common, "--id", m.id, "--connect", endpoint, "--lease",
+                                            repr(AGENT_LEASE_S)), logs / f"{m.id}.log") for m in fleet]
             alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
             for group in groups(agents, e.agents.per_process if host is not None else 1, alone):
                 if len(group) > 1:

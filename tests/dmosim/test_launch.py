@@ -3,15 +3,19 @@ roles forked from a pre-loaded host (dmosim/launch/host.py), started, restarted,
 
 from __future__ import annotations
 
+import io
+import logging
 import os
 import select
 import signal
 import sys
+import threading
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
+from dmosim.launch.host import AgentStreams
 from dmosim.launch.local import groups, wait_for_run
 from dmosim.launch.processes import Roles, dmosim_command, free_port, memory_mib, wait_for_line
 
@@ -159,6 +163,38 @@ def test_agents_sharing_a_forked_process_each_write_their_own_log_end_with_their
     assert (tmp_path / "mg2.log").read_text() == "error: --run-id is required: the id of the run to join, as its DMO " \
                                                  "(or router) printed it\n"
     assert "mg4" not in (tmp_path / "mg3.log").read_text() and "mg3" not in (tmp_path / "mg4.log").read_text()
+
+
+def test_what_an_agent_s_threads_print_and_log_goes_to_its_own_stream_named_after_it(monkeypatch):
+    monkeypatch.setattr(threading.Thread, "start", threading.Thread.start)  # inherit() patches it: undone after
+    fallback, mine = io.StringIO(), io.StringIO()
+    streams = AgentStreams(fallback)
+    streams.inherit()
+    handler = logging.StreamHandler(streams)
+    handler.addFilter(streams)
+    handler.setFormatter(logging.Formatter("%(agent)s %(message)s"))
+    log = logging.getLogger("test-agent-streams")
+    log.addHandler(handler)
+    monkeypatch.setattr(log, "propagate", False)
+
+    def helper():  # a thread the agent starts, as its bid's delivery does
+        log.warning("from its helper")
+        print("printed by its helper", file=streams)
+
+    def agent():
+        streams.own("mg7", mine)
+        log.warning("from the agent")
+        started = threading.Thread(target=helper, name="delivery")
+        started.start()
+        started.join()
+        streams.disown()  # as an agent's thread does as it ends
+
+    for target, name in ((agent, "mg7-main"), (lambda: log.warning("from elsewhere"), "zenoh")):
+        thread = threading.Thread(target=target, name=name)
+        thread.start()
+        thread.join()
+    assert mine.getvalue() == "mg7 from the agent\nmg7 from its helper\nprinted by its helper\n"
+    assert fallback.getvalue() == "zenoh from elsewhere\n"
 
 
 def test_agents_are_grouped_in_the_run_s_order_and_those_a_fault_names_run_alone():
