@@ -5,7 +5,6 @@ from __future__ import annotations
 import stat
 import sys
 import tomllib
-from functools import cached_property
 from pathlib import Path
 from typing import Annotated
 
@@ -222,7 +221,7 @@ class Case(_CaseModel):
         """One field of every adjustable load, as an array over D."""
         return np.array([getattr(d, field) for d in self.loads], dtype=float)
 
-    @cached_property
+    @property  # not cached: an array kept in the model's __dict__ would make two cases uncomparable (==)
     def load_windows(self) -> np.ndarray:
         """(D, 24) 0/1: hour t lies in [alpha_d, beta_d] of (16)."""
         hours = np.arange(1, HOURS + 1)
