@@ -111,9 +111,10 @@ def drawn_cases(base: Case, d: Draws, names: list[str], seed: int) -> list[Case]
     tie = _rounded(d.tie * peak)
     award_share = np.asarray(base.grid.p_sch, float) / np.asarray(base.fixed_load.forecast, float)
     p_sch = np.clip(_rounded(award_share * loads), -tie[:, None], tie[:, None])
-    wind = np.array([r.name == "wind" for r in base.renewables])
-    share = np.where(wind, d.wind[:, None], 1.0 - d.wind[:, None]) * np.ones(len(base.renewables))
-    share = share / np.maximum(share.sum(axis=1, keepdims=True), 1e-12) if len(base.renewables) else share
+    # each renewable's share of the member's renewable capacity: wind's drawn, the others' the rest, in equal parts
+    wind = np.array([r.name == "wind" for r in base.renewables], dtype=bool)
+    share = np.where(wind, d.wind[:, None], 1.0 - d.wind[:, None])
+    share = share / np.maximum(share.sum(axis=1, keepdims=True), 1e-12)
     r_cap = _rounded(d.renewable[:, None] * peak[:, None] * share)
     cases = []
     for k, name in enumerate(names):
