@@ -141,6 +141,10 @@ def experiment_with_flags(base: Experiment, args) -> Experiment:
     fleet = given.get("agents.fleet") or base.agents.fleet
     if "agents.count" in given and fleet:
         raise ExperimentError(f"--agents and a fleet ({fleet}) exclude each other: a fleet file names its agents")
+    if "agents.count" in given and (given.get("agents.generate") or base.agents.generate) is not None:
+        # also --agents 3, which the experiment could not tell from its default
+        raise ExperimentError(f"--agents and {'--generate' if 'agents.generate' in given else 'agents.generate'} "
+                              "exclude each other: generate draws that many agents of its own")
     return with_settings(base, given, "flags") if given else base
 
 

@@ -17,12 +17,15 @@ from scenarios.fleet import load_fleet, member_case
 
 @pytest.mark.parametrize("argv, file, says", [
     (["run", "--generate", "0", "--check"], None, "--generate: expected an integer in 1..1,024"),
-    (["run", "--generate", "3", "--agents", "2", "--check"], None, "count and generate exclude each other"),
+    (["run", "--generate", "3", "--agents", "2", "--check"], None, "--agents and --generate exclude each other"),
+    (["run", "--generate", "5", "--agents", "3", "--check"], None, "--agents and --generate exclude each other"),
+    (["run", "exp.toml", "--agents", "3", "--check"], "[agents]\ngenerate = 2\n", "--agents and agents.generate"),
+    (["run", "exp.toml", "--generate", "3", "--check"], "[agents]\ncount = 2\n", "count and generate exclude"),
     (["run", "exp.toml", "--check"], "[agents]\ngenerate = 3\nfleet = 'f.toml'\n", "fleet and generate exclude"),
     (["run", "exp.toml", "--check"], "[agents]\ngenerate = 'many'\n", "exp.toml: agents.generate: Input should be"),
     (["run", "exp.toml", "--fleet", "f.toml", "--check"], "[agents]\ngenerate = 2\n", "fleet and generate exclude"),
     (["run", "--generate", "3", "--fault", "kill:mg4:2", "--check"], None, "unknown agent mg4"),
-    (["dmo", "--generate", "2", "--agents", "2"], None, "count and generate exclude each other"),
+    (["dmo", "--generate", "2", "--agents", "2"], None, "--agents and --generate exclude each other"),
     (["fleet", "--agents", "0"], None, "--agents: expected an integer in 1..1,024"),
     (["fleet", "--agents", "2", "--feeder", "nowhere"], None, "nowhere': not a built-in"),
     (["fleet", "--agents", "2", "--out", "."], None, "is a directory"),
