@@ -1,11 +1,11 @@
-"""Load and validate a microgrid case file (TOML): the data of the paper's Section IV as typed, immutable objects."""
+"""Load, validate and write a microgrid case file (TOML): the data of the paper's Section IV as typed, immutable
+objects."""
 
 from __future__ import annotations
 
 import stat
 import sys
 import tomllib
-from functools import cached_property
 from pathlib import Path
 from typing import Annotated
 
@@ -13,6 +13,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from scenarios.horizon import HOURS
+from scenarios.tomltext import toml_text
 
 DATA_DIR = Path(__file__).parent / "data"
 # Bounds of every TOML file dmosim reads (case, fleet, experiment, a sweep's --set values). The largest we ship,
@@ -222,7 +223,7 @@ class Case(_CaseModel):
         """One field of every adjustable load, as an array over D."""
         return np.array([getattr(d, field) for d in self.loads], dtype=float)
 
-    @cached_property
+    @property  # not cached: an array kept in the model's __dict__ would make two cases uncomparable (==)
     def load_windows(self) -> np.ndarray:
         """(D, 24) 0/1: hour t lies in [alpha_d, beta_d] of (16)."""
         hours = np.arange(1, HOURS + 1)
@@ -262,6 +263,11 @@ def parse_case(data: dict, source: str = "<case>") -> Case:
             msg = "missing field"
         more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
         raise CaseError(f"{source}: {where or 'case'}: {msg}{more}") from None
+
+
+def case_toml(case: Case, comment: str = "") -> str:
+    """The case as a case file that ``load_case`` reads back to the same case (what is None left out: its default)."""
+    return toml_text(case.model_dump(exclude_none=True), comment)
 
 
 def case_path(name_or_path: str | Path) -> Path:

@@ -1,4 +1,5 @@
-"""Fleets of heterogeneous microgrids: cases derived from a base case by size and time shift, seeded or from a file.
+"""Fleets of heterogeneous microgrids: cases derived from a base case by size and time shift, seeded or from a file,
+and fleet files written back (with a case file per member whose case was drawn: scenarios/diverse.py).
 
 A fleet file (TOML) lists its agents::
 
@@ -17,14 +18,15 @@ A file lists at most ``MAX_MEMBERS`` agents.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from scenarios.case import Case, CaseError, builtin_cases, load_case, parse_case, read_toml
+from scenarios.case import Case, CaseError, builtin_cases, case_toml, load_case, parse_case, read_toml
 from scenarios.days import check_seed
 from scenarios.names import check_agent_id
+from scenarios.tomltext import toml_text
 
 SCALE_RANGE = (0.6, 1.4)
 SHIFTS = (-2, -1, 0, 1, 2)
@@ -36,6 +38,8 @@ MAX_MEMBERS = 1024
 MAX_SCALE = 10.0
 MAX_SHIFT_HOURS = 23  # a shift of 24 h or more is a shift of less: the day is rolled round
 _FIELDS = ("id", "case", "scale", "shift_hours", "seed", "strategy", "bus")
+_DEFAULTS = {"scale": 1.0, "shift_hours": 0}  # what a written entry leaves out (its seed is always written)
+CASES_DIR = "cases"  # beside a written fleet file: the case file of each member whose case was drawn
 MAX_STRATEGY = 500  # a strategy as named: what a registration's strategy may carry
 
 # Quantities in MW or MWh, by part of the case; costs, times, windows and prices are kept.
@@ -59,7 +63,9 @@ class FleetMember:
     """One agent of a fleet: its id, its base case (built-in name or path), size, time shift, realised-day seed and
     bidding strategy as named (None: the experiment's; the name is checked where strategies are known,
     ``microgrid_agent.agent.strategies.strategy_name``), and its bus on the market's feeder (None: the
-    experiment's placement; checked against the feeder where the run knows it)."""
+    experiment's placement; checked against the feeder where the run knows it). ``drawn`` is the member's own case
+    when it was drawn in memory (scenarios/diverse.py; ``case`` then names the base it was drawn from) and no file
+    holds it yet: ``write_fleet`` writes it to one."""
 
     id: str
     case: str
@@ -68,6 +74,7 @@ class FleetMember:
     seed: int = 0
     strategy: str | None = None
     bus: str | None = None
+    drawn: Case | None = field(default=None, hash=False, repr=False)
 
 
 def _transform(data: dict, fields: dict[str, tuple[str, ...]], f) -> None:
@@ -106,8 +113,9 @@ def is_scale(scale: object) -> bool:
 
 
 def member_case(member: FleetMember) -> Case:
-    """The member's case: its base case derived by its scale and shift (the base itself when 1 and 0)."""
-    base = load_case(member.case)
+    """The member's case: its base case (the one drawn for it, else ``case``) derived by its scale and shift (the
+    base itself when 1 and 0)."""
+    base = member.drawn if member.drawn is not None else load_case(member.case)
     if member.scale == 1 and member.shift_hours == 0:
         return base
     return derive_case(base, member.scale, member.shift_hours, f"{base.name}-{member.id}")
@@ -127,6 +135,25 @@ def make_fleet(n: int, seed: int = 0, base: str = "paper") -> list[FleetMember]:
             scale, shift = 1.0, 0
         members.append(FleetMember(f"mg{i}", base, round(float(scale), 4), shift, day_seed))
     return members
+
+
+def write_fleet(members: list[FleetMember], path: str | Path, comment: str = "") -> Path:
+    """Write ``members`` as the fleet file ``path`` that ``load_fleet`` reads back to the same cases, seeds, strategies
+    and buses: a member with a drawn case gets the case file ``cases/<id>.toml`` beside it, the others name their
+    case as they do. Returns ``path``; an existing file is replaced (the caller decides whether it may be)."""
+    path = Path(path)
+    entries = []
+    for m in members:
+        case = m.case
+        if m.drawn is not None:
+            case = f"{CASES_DIR}/{m.id}.toml"
+            (path.parent / CASES_DIR).mkdir(parents=True, exist_ok=True)
+            (path.parent / case).write_text(case_toml(m.drawn, f"{m.id} of the fleet {path.name} (dmosim)"))
+        entry = {"id": m.id, "case": case, "scale": m.scale, "shift_hours": m.shift_hours, "seed": m.seed,
+                 "strategy": m.strategy, "bus": m.bus}
+        entries.append({k: v for k, v in entry.items() if v != _DEFAULTS.get(k)})
+    path.write_text(toml_text({"agents": entries}, comment))
+    return path
 
 
 def _fail(path: Path, where: str, message: str):

@@ -56,6 +56,8 @@ def run(args) -> int:
         raise UsageError(str(exc)) from None
     given = {"case": args.member_case, "scale": args.scale, "shift_hours": args.shift_hours}
     member = dataclasses.replace(member, **{k: v for k, v in given.items() if v is not None})
+    if args.member_case is not None:  # a case given replaces one drawn for a generated fleet's member
+        member = dataclasses.replace(member, drawn=None)
     config = agent_config(experiment, member)
     if args.idle_timeout is not None:
         config = dataclasses.replace(config, idle_s=args.idle_timeout)

@@ -27,7 +27,7 @@ class Checked:
 
     def fleet(self, experiment: Experiment) -> list[FleetMember]:
         a = experiment.agents
-        key = (a.fleet,) if a.fleet else (a.count, experiment.seed)
+        key = (a.fleet,) if a.fleet else (a.count, a.generate, experiment.seed)
         if key not in self.fleets:
             try:
                 self.fleets[key] = fleet_of(experiment)

@@ -13,8 +13,8 @@ import sys
 from scenarios.case import CaseError
 
 from ..console import UsageError
-from . import (agent, bench, cat, credentials, dmo, export, info, plot, record, replay, router, run, schemas, settle,
-               solve, study, sweep)
+from . import (agent, bench, cat, credentials, dmo, export, fleet, info, plot, record, replay, router, run, schemas,
+               settle, solve, study, sweep)
 
 DESCRIPTION = ("A distribution market operator and its microgrid agents as processes over Zenoh: run market days, "
                "solve a microgrid's stochastic schedule, record, replay and re-settle days (README.md).")
@@ -22,7 +22,7 @@ EXIT_USAGE = 2
 EXIT_FAILURE = 1
 
 # In the order `dmosim --help` lists them: the whole day, its roles, the scheduling model, recordings, benchmarks.
-VERBS = {"run": run, "sweep": sweep, "dmo": dmo, "agent": agent, "record": record, "router": router,
+VERBS = {"run": run, "sweep": sweep, "fleet": fleet, "dmo": dmo, "agent": agent, "record": record, "router": router,
          "credentials": credentials, "solve": solve, "study": study, "info": info, "replay": replay, "settle": settle, "cat": cat,
          "export": export, "plot": plot, "schemas": schemas, "bench": bench}
 

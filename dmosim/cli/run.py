@@ -25,7 +25,7 @@ from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experime
                                with_settings)
 from ..launch.faults import Fault, parse_fault
 from ..launch.local import RoleFailed, run_locally
-from ..launch.roles import resolved, strategy_of
+from ..launch.roles import fleet_written, resolved, strategy_of
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
 from .flags import add_trust_flag, check_out, load_recording, recording_path, untrusted
@@ -159,8 +159,10 @@ def run(args) -> int:
     if args.check:
         check_out(args)
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
+        drawn = (f" drawn diverse from seed {experiment.seed} (the run writes them to its directory's fleet.toml)"
+                 if experiment.agents.generate is not None else "")
         print(f"dmosim run: inputs are valid: {experiment.days} day(s) from {experiment.market_day}, {len(fleet)} "
-              f"agents ({agent_list(fleet)}), case {experiment.market.case}, settled by {rule}, bidding with "
+              f"agents ({agent_list(fleet)}){drawn}, case {experiment.market.case}, settled by {rule}, bidding with "
               f"{', '.join(sorted({strategy_of(experiment, m) for m in fleet}))}, "
               + (f"on feeder {experiment.network.feeder} at buses {', '.join(experiment.network.buses)}, "
                  if experiment.network.feeder else "")
@@ -174,6 +176,7 @@ def run(args) -> int:
         rundir = RunDir.make(args.out, run_id, args.overwrite)
     except RunDirError as exc:
         raise UsageError(str(exc)) from None
+    experiment = fleet_written(experiment, rundir.fleet)  # a generated fleet: every role reads the run's own file
     record = None if args.no_record else (record_to or rundir.recording)
     bar = None if args.quiet else Progress("hours")
     say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)

@@ -26,7 +26,7 @@ from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
              ("hour", "each hour's meter reports"))
 # The settings of each role: what it reads of the experiment and may be told on its command line.
-RUN_SETTINGS = ("agents.count", "agents.fleet", "days", "market_day", "seed")
+RUN_SETTINGS = ("agents.count", "agents.fleet", "agents.generate", "days", "market_day", "seed")
 MARKET_SETTINGS = tuple(k for k in FLAGS if k.startswith("market."))
 NETWORK_SETTINGS = tuple(k for k in FLAGS if k.startswith("network."))
 DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + NETWORK_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
@@ -42,6 +42,10 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
                                          help=f"agents mg1..mgN (default: {default.agents.count})")),
         "agents.fleet": ("--fleet", dict(help="fleet TOML file naming the agents and their cases (instead of "
                                               "--agents)")),
+        "agents.generate": ("--generate", dict(type=integer(1, MAX_AGENTS), metavar="N", help=(
+            "N diverse agents mg1..mgN drawn from --seed (sizes, unit mixes, renewables, storage, load shapes: "
+            "docs/agent.md, \"Generated fleets\"), written into the run directory as fleet.toml (instead of "
+            "--agents)"))),
         "agents.strategy": ("--strategy", dict(metavar="SPEC", help=STRATEGY_HELP.replace(
             "default: price-response", f"default: {default.agents.strategy}; a fleet entry's own overrides it"))),
         "agents.hosting": ("--hosting", dict(choices=HOSTINGS, help=(
@@ -141,6 +145,10 @@ def experiment_with_flags(base: Experiment, args) -> Experiment:
     fleet = given.get("agents.fleet") or base.agents.fleet
     if "agents.count" in given and fleet:
         raise ExperimentError(f"--agents and a fleet ({fleet}) exclude each other: a fleet file names its agents")
+    if "agents.count" in given and (given.get("agents.generate") or base.agents.generate) is not None:
+        # also --agents 3, which the experiment could not tell from its default
+        raise ExperimentError(f"--agents and {'--generate' if 'agents.generate' in given else 'agents.generate'} "
+                              "exclude each other: generate draws that many agents of its own")
     return with_settings(base, given, "flags") if given else base
 
 

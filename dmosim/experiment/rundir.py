@@ -1,6 +1,7 @@
 """Where a run leaves what it made: one directory, ``./runs/<run_id>/`` unless the user names another.
 
     experiment.toml   the resolved experiment (every default filled in): `dmosim run experiment.toml` repeats it
+    fleet.toml        the fleet the run generated (agents.generate), which experiment.toml names; its cases in cases/
     recording.mcap    every message of the run
     result.json       the DMO's result, as `dmosim run --json` prints it
     tables/*.csv      the recording as tidy tables (`dmosim export`)
@@ -27,6 +28,10 @@ class RunDir:
     @property
     def experiment(self) -> Path:
         return self.root / "experiment.toml"
+
+    @property
+    def fleet(self) -> Path:
+        return self.root / "fleet.toml"
 
     @property
     def recording(self) -> Path:

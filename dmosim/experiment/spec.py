@@ -9,8 +9,6 @@ and into the recording, so any run can be repeated (``dmosim run --from RECORDIN
 from __future__ import annotations
 
 import datetime as dt
-import json
-import math
 import re
 from pathlib import Path
 from typing import Annotated, Literal
@@ -28,6 +26,7 @@ from scenarios.days import MAX_SEED, market_days
 from scenarios.fleet import MAX_SCALE, MAX_STRATEGY
 from scenarios.generation import MAX_SCENARIOS
 from scenarios.horizon import HOURS
+from scenarios.tomltext import toml_text
 
 # Bounds of the settings defined here (the others are where theirs are: docs/experiments.md, "Bounds").
 MAX_WORKERS = 64           # Benders processes per agent: each holds its scenarios' LPs; more than a host's cores
@@ -65,13 +64,15 @@ Blocks = Annotated[list[Annotated[list[Annotated[float, Field(ge=0, le=MAX_MW, a
 
 
 class Agents(_Section):
-    """Who takes part: ``count`` agents mg1..mgN drawn around the market's case, or the members of a fleet file;
-    ``strategy`` how each bids (docs/strategies.md), unless its fleet entry names its own; ``hosting`` how
-    ``dmosim run`` starts their processes (``HOSTINGS``), and with ``fork`` how many agents each runs
-    (``per_process``)."""
+    """Who takes part: ``count`` agents mg1..mgN drawn around the paper's case, or ``generate`` agents mg1..mgN drawn
+    diverse from the experiment's seed (scenarios/diverse.py; a run writes them into its run directory as a fleet
+    file), or the members of a fleet file; ``strategy`` how each bids (docs/strategies.md), unless its fleet entry
+    names its own; ``hosting`` how ``dmosim run`` starts their processes (``HOSTINGS``), and with ``fork`` how many
+    agents each runs (``per_process``)."""
 
     count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
     fleet: PathText | None = None  # a fleet file, relative to the experiment file
+    generate: Annotated[int, Field(ge=1, le=MAX_AGENTS)] | None = None
     strategy: Annotated[str, Field(min_length=1, max_length=MAX_STRATEGY)] = DEFAULT_STRATEGY
     hosting: Literal[HOSTINGS] = "process"  # type: ignore[valid-type]
     per_process: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 1  # agents a forked process runs, one thread each
@@ -87,8 +88,12 @@ class Agents(_Section):
 
     @model_validator(mode="after")
     def _one_way(self):
-        if self.fleet is not None and self.count != Agents.model_fields["count"].default:
+        counted = self.count != Agents.model_fields["count"].default
+        if self.fleet is not None and counted:
             raise ValueError("count and fleet exclude each other: a fleet file names its agents")
+        if self.generate is not None and (counted or self.fleet is not None):
+            other = "count" if counted else "fleet"
+            raise ValueError(f"{other} and generate exclude each other: generate draws that many agents of its own")
         if self.per_process > 1 and self.hosting != "fork":
             raise ValueError(f"per_process = {self.per_process} needs hosting = \"fork\": agents share a process "
                              "forked from their host")
@@ -235,6 +240,7 @@ class Experiment(_Section):
 # (dmosim/cli/settings.py).
 FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
+    "agents.generate": "generate",
     "agents.strategy": "strategy", "agents.hosting": "hosting", "agents.per_process": "per_process",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
     "market.settlement": "settlement",
@@ -319,27 +325,4 @@ def with_settings(experiment: Experiment, settings: dict[str, object], source: s
 
 def to_toml(experiment: Experiment) -> str:
     """The experiment as a TOML file that ``load_experiment`` reads back to the same experiment."""
-    data = experiment.model_dump()
-    lines = [f"# dmosim experiment: {experiment.name}"]
-    tables = {k: v for k, v in data.items() if isinstance(v, dict)}
-    for key, value in data.items():
-        if not isinstance(value, dict) and value is not None:
-            lines.append(f"{key} = {_value(value)}")
-    for name, table in tables.items():
-        lines += ["", f"[{name}]"]
-        lines += [f"{key} = {_value(value)}" for key, value in table.items() if value is not None]
-    return "\n".join(lines) + "\n"
-
-
-def _value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return json.dumps(value)
-    if isinstance(value, str):  # JSON's escapes are TOML's, but for surrogate pairs (kept raw here) and DEL
-        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
-    if isinstance(value, float):
-        return repr(value) if math.isfinite(value) else ("inf" if value > 0 else "-inf")
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {value!r} to TOML")
+    return toml_text(experiment.model_dump(), f"dmosim experiment: {experiment.name}")

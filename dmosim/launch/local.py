@@ -36,7 +36,7 @@ from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
 from .faults import Fault, parse_fault
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
-from .roles import fleet_of, resolved
+from .roles import fleet_of, fleet_written, resolved
 
 OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
@@ -95,6 +95,7 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
     e = resolved(load_experiment(experiment) if isinstance(experiment, (str, Path)) else experiment)
     run_id = new_run_id()
     rundir = RunDir.make(out, run_id, overwrite)
+    e = fleet_written(e, rundir.fleet)
     return run_locally(e, run_id, rundir, record=rundir.recording if record else None, say=say)
 
 

@@ -8,6 +8,7 @@ override it. Every setting's default is the one of spec.py: nothing here has a d
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import functools
 from pathlib import Path
@@ -17,7 +18,8 @@ from dmo.market.rules import MAX_MW
 from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
 from scenarios.case import load_case
-from scenarios.fleet import FleetMember, load_fleet, make_fleet
+from scenarios.diverse import generate_fleet
+from scenarios.fleet import CASES_DIR, FleetMember, load_fleet, make_fleet, write_fleet
 from scenarios.network import NETWORKS, Network, NetworkError, load_network, voltage_band
 
 from ..experiment.spec import Experiment, ExperimentError, with_market_terms
@@ -106,9 +108,32 @@ def placement_of(experiment: Experiment, network: Network | None) -> dict[str, s
 
 
 def fleet_of(experiment: Experiment) -> list[FleetMember]:
-    """The agents of the run: the members of its fleet file, else mg1..mgN drawn from its seed."""
+    """The agents of the run: the members of its fleet file, else the diverse fleet it generates, else mg1..mgN
+    drawn from its seed."""
     a = experiment.agents
-    return load_fleet(a.fleet) if a.fleet else make_fleet(a.count, seed=experiment.seed)
+    if a.fleet:
+        return load_fleet(a.fleet)
+    if a.generate is not None:
+        return generate_fleet(a.generate, seed=experiment.seed)
+    return make_fleet(a.count, seed=experiment.seed)
+
+
+def fleet_written(experiment: Experiment, path: Path) -> Experiment:
+    """A (resolved) experiment that generates its fleet (``agents.generate``), with that fleet written as the fleet
+    file ``path`` and its cases beside it (``scenarios.fleet.write_fleet``), each member at the bus the experiment
+    places it at, and ``agents.fleet`` naming the file instead: the experiment every role of the run then reads,
+    which nothing else need know was generated. Any other experiment as it is."""
+    a = experiment.agents
+    if a.generate is None:
+        return experiment
+    fleet = fleet_of(experiment)
+    if experiment.network.feeder is not None:  # resolved: network.buses holds every agent's bus
+        fleet = [dataclasses.replace(m, bus=bus) for m, bus in zip(fleet, experiment.network.buses)]
+    comment = (f"dmosim fleet: {a.generate} microgrids drawn from {fleet[0].case} with seed {experiment.seed} "
+               f"(docs/agent.md, \"Generated fleets\"); each case file is in {CASES_DIR}/")
+    written = write_fleet(fleet, path, comment)
+    return experiment.model_copy(update={"agents": a.model_copy(update={"generate": None,
+                                                                        "fleet": str(written.resolve())})})
 
 
 def strategy_of(experiment: Experiment, member: FleetMember) -> str:

@@ -73,6 +73,7 @@ RULE = "deadband:rate=" + "0" * (MAX_RULE - len("deadband:rate=") - 3) + "150"  
 
 @pytest.mark.parametrize("at, over", [
     ({"agents": {"count": MAX_AGENTS}}, {"agents": {"count": MAX_AGENTS + 1}}),
+    ({"agents": {"generate": MAX_AGENTS}}, {"agents": {"generate": MAX_AGENTS + 1}}),
     ({"days": MAX_DAYS}, {"days": MAX_DAYS + 1}),
     ({"market_day": "9999-12-30", "days": 2}, {"market_day": "9999-12-31", "days": 2}),
     ({"schedule": {"scenarios": MAX_SCENARIOS}}, {"schedule": {"scenarios": MAX_SCENARIOS + 1}}),
@@ -123,6 +124,8 @@ def test_a_sweep_counts_its_runs_before_making_any():
 @pytest.mark.parametrize("argv, flag", [
     (["run", "--agents", str(MAX_AGENTS + 1), "--check"], "--agents"),
     (["run", "--days", str(MAX_DAYS + 1), "--check"], "--days"),
+    (["run", "--generate", str(MAX_AGENTS + 1), "--check"], "--generate"),
+    (["fleet", "--agents", str(MAX_AGENTS + 1)], "--agents"),
     (["run", "--scenarios", str(MAX_SCENARIOS + 1), "--check"], "--scenarios"),
     (["run", "--workers", str(MAX_WORKERS + 1), "--check"], "--workers"),
     (["run", "--subperiods", str(MAX_SUBPERIODS + 1), "--check"], "--subperiods"),
