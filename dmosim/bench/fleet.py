@@ -74,7 +74,9 @@ def run(args) -> dict:
                  "overhead_pct": largest["overhead_pct"], "overhead_target_pct": GOAL_PCT,
                  "registration_s": largest["registration_s"], "clearing_s": largest["clearing_s"],
                  "phase_target_s": GOAL_PHASE_S, "resettled_identically": largest["resettled_identically"],
+                 "incidents": largest["incidents"],
                  "met": largest["agents"] >= GOAL_AGENTS and largest["total_gib"] < GOAL_GIB
+                 and largest["incidents"] == 0
                  and largest["wall_s"] < GOAL_WALL_S and largest["overhead_pct"] < GOAL_PCT
                  and max(largest["registration_s"], largest["clearing_s"]) < GOAL_PHASE_S
                  and largest["resettled_identically"]},
