@@ -6,8 +6,9 @@ thread only; Zenoh's callback threads just enqueue. Each phase ends when every l
 answered or its deadline passes. What the day accepts is decided by intake.py, on the market's rules
 (market/acceptance.py) and the replay guard (guard.py); what it publishes is built by outbox.py; the journal
 (journal.py) lets a restarted DMO resume the day, and rejoin.py decides what an agent that comes back is sent
-again. A refused message is published on ``dmo/rejected`` with its reason, counted, and never changes an award
-or a settlement.
+again. A settled day goes to disk as its report (finished.py), and so does each realised day an agent reports, so
+that the DMO does not grow with the days of a run. A refused message is published on ``dmo/rejected`` with its
+reason, counted, and never changes an award or a settlement.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from typing import Callable
 
 from messages import PHASES, Bid, GridState, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
-from messages.schemas import AgentDay, Envelope
+from messages.schemas import AgentDay
 from messages.transport import Bus
 from scenarios.horizon import HOURS
 from scenarios.names import check_agent_id
@@ -34,6 +35,7 @@ from ..market.distflow import NetworkClearing, clear_network
 from ..market.settlement import DayTotals, Statement, accepted_day
 from . import feeder, intake, outbox, rejoin
 from .config import DayConfig
+from .finished import FinishedDays
 from .history import DayHistory
 from .journal import Journal, restore
 from .state import DayState
@@ -80,19 +82,23 @@ class DayResult:
 
 @dataclass(frozen=True)
 class RunResult:
-    """Every day of a run, in order."""
+    """Every day of a run, in order, as its report (``DayResult.report``), and the last day's whole result (its
+    state and statements). The DMO keeps the days it has settled, and the realised days, on disk as the run goes
+    (finished.py): they come back here when the run ends."""
 
-    days: list[DayResult]
+    days: list[dict]
     settlement_rule: str  # the rule every day was settled by, with every parameter
-    realised: dict[str, dict[str, AgentDay]] = field(default_factory=dict)  # agent -> market day -> its agent_day
+    agents: list[str]  # the agents registered
+    # agent -> market day -> its agent_day as reported, without the envelope (finished.py)
+    realised: dict[str, dict[str, dict]] = field(default_factory=dict)
+    last: DayResult | None = None  # the last day's whole result
 
     def report(self, run_id: str, transport: dict) -> dict:
         """The DMO's part of the ``dmosim run --json`` object (docs/experiments.md, "The result"). A one-day run
         gives that day's fields at the top; a longer one gives the run's: hourly values concatenated day after day,
         each agent's settlement summed, incidents of every day (each with its market day), and ``islanded_hours``
         per day. ``days`` holds each day's own object either way."""
-        days = [d.report() for d in self.days]
-        agents = sorted(self.days[-1].state.registered)
+        days, agents = self.days, self.agents
         out = {"run_id": run_id, "agents": agents, "days": days, "settlement_rule": self.settlement_rule,
                "transport": transport, "realised": self.realised_days(agents)}
         if len(days) == 1:
@@ -118,10 +124,9 @@ class RunResult:
     def realised_days(self, agents: list[str]) -> dict[str, list[dict]]:
         """Agent -> the realised days it reported (its ``agent_day`` messages, as received), in order of the day,
         each with the run's ``day`` and its ``market_day``; an agent that reported none has an empty list."""
-        day_of = {d.market_day: d.day for d in self.days}
-        envelope = set(Envelope.model_fields)
-        return {a: [{"day": day_of.get(market_day), "market_day": market_day, **msg.model_dump(exclude=envelope)}
-                    for market_day, msg in sorted(self.realised.get(a, {}).items())] for a in agents}
+        day_of = {d["market_day"]: d["day"] for d in self.days}
+        return {a: [{"day": day_of.get(market_day), "market_day": market_day, **reported}
+                    for market_day, reported in sorted(self.realised.get(a, {}).items())] for a in agents}
 
 
 def bid_curve(bid: Bid) -> BidCurve:
@@ -168,6 +173,7 @@ class MarketDay:
         self._bids_due = 0.0
         self.journal: Journal | None = None
         self.history: DayHistory | None = None  # opened by run(), on the journal if there is one
+        self.finished: FinishedDays | None = None  # opened by run()
         self._resumed: tuple[str, int | None] | None = None
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
         bus.tap = self._traffic
@@ -179,10 +185,11 @@ class MarketDay:
         for a recorder, so that the recording misses nothing). A DMO restarted on its journal gives the days it
         had finished from the journal and runs again the phase, or hour, it had reached."""
         s, c = self.state, self.config
-        finished: list[DayState] = []
+        self.finished = FinishedDays()
+        closed: list[DayState] = []
         if c.journal:
             self.journal = Journal(c.journal, self.bus.keys.run_id, c.market_day)
-            self._resumed, finished = restore(s, self.journal.entries)
+            self._resumed, closed = restore(s, self.journal.entries, self.finished.realised)
             if self._resumed is not None:
                 log.warning("resuming the run from %s: day %d %s, %d accepted messages", self.journal.path, s.day,
                             _when(*self._resumed), sum(s.accepted.values()))
@@ -195,15 +202,20 @@ class MarketDay:
         self._listen()
         if before_start is not None:
             before_start()
-        results = [self._settled_again(closed) for closed in finished]
+        while closed:  # the days a resumed DMO had finished: each goes to disk as its report, like any other
+            self.finished.day(self._settled_again(closed.pop(0)).report())
+        last = None
         for day in range(s.day, c.days + 1):
             if day > s.day:
+                last = None  # the day before is on disk as its report: its messages go before the next day's come
                 s.start_day(day, c.market_day_of(day))
-            results.append(self._run_day(day))
+            last = self._run_day(day)
+            self.finished.day(last.report())
         self._linger()
         if self.journal is not None:
             self.journal.close()
-        return RunResult(results, c.rule.label, s.realised)
+        days, realised = self.finished.read()
+        return RunResult(days, c.rule.label, sorted(s.registered), realised, last)
 
     def _run_day(self, day: int) -> DayResult:
         s, c = self.state, self.config
@@ -460,6 +472,8 @@ class MarketDay:
             return self._reject(key, payload, MessageError(reason, code), msg.sender)
         if outcome.taken and self.journal is not None:
             self.journal.accepted(key, payload)
+        if outcome.taken and isinstance(msg, AgentDay):
+            self.finished.realised(msg)
         self._publish(make_receipt(msg.sender, payload, None, market_day=self.state.market_day))
         if outcome.what == intake.REJOINED:
             self._incident(msg.sender, f"rejoined: a restarted process of it registered again; sent "

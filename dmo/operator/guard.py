@@ -20,8 +20,10 @@ from collections import OrderedDict
 from ..market.acceptance import Refusal
 
 # Accepted payloads remembered per agent to recognise one sent again: a sender stops sending a message once its
-# receipt comes, which is long before this many later messages of it are accepted; an older copy is ``late``.
-REMEMBERED = 256
+# receipt comes, at most seconds later, long before this many later messages of it are accepted (an agent sends
+# about 28 a day); an older copy is ``late``. Kept small: the DMO holds this many hashes of every agent, and until
+# they are all there its memory grows with the days (about 0.2 KiB per message).
+REMEMBERED = 64
 
 
 class SequenceGuard:

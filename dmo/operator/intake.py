@@ -73,11 +73,12 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
 
 
 def realised_day(state: DayState, msg: AgentDay) -> Refusal | None:
-    """An agent's realised day goes into ``state.realised`` (``acceptance.check_agent_day``), whatever the phase."""
-    taken = state.realised.setdefault(msg.sender, {})
+    """An agent's realised day is taken whatever the phase (``acceptance.check_agent_day``): its market day goes into
+    ``state.realised``; the DMO keeps the day itself for the run's result (finished.py)."""
+    taken = state.realised.setdefault(msg.sender, set())
     refusal = acceptance.check_agent_day(msg, state.market_day, state.first_market_day, state.phase, state.hour, taken)
     if refusal is None:
-        taken[msg.market_day] = msg
+        taken.add(msg.market_day)
     return refusal
 
 

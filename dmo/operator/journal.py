@@ -12,7 +12,7 @@ from __future__ import annotations
 import base64
 import json
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from messages import Bid, Incident, MeterReport, Registration, Schedule, decode, sha256
@@ -82,10 +82,12 @@ class Journal:
             self._file.close()
 
 
-def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None] | None, list[DayState]]:
-    """Rebuild ``state`` from journal entries: what the DMO accepted, its incidents and rejections, day by day.
-    Returns the last clock step, (phase, hour) of ``state.day``, which the DMO then runs again from its start (None
-    if it had not started), and the states of the days it had finished, to give their results again."""
+def restore(state: DayState, entries: list[dict], realised: Callable[[AgentDay], None] | None = None
+            ) -> tuple[tuple[str, int | None] | None, list[DayState]]:
+    """Rebuild ``state`` from journal entries: what the DMO accepted, its incidents and rejections, day by day; each
+    realised day accepted also goes to ``realised`` (the run's result: finished.py). Returns the last clock step,
+    (phase, hour) of ``state.day``, which the DMO then runs again from its start (None if it had not started), and
+    the states of the days it had finished, to give their results again."""
     clock, finished = None, []
     for entry in entries:
         if "run_token" in entry:
@@ -116,7 +118,9 @@ def restore(state: DayState, entries: list[dict]) -> tuple[tuple[str, int | None
             elif isinstance(msg, MeterReport):
                 state.meter[msg.sender][msg.hour - 1] = msg.p_m_mw
             elif isinstance(msg, AgentDay):
-                state.realised.setdefault(msg.sender, {})[msg.market_day] = msg
+                state.realised.setdefault(msg.sender, set()).add(msg.market_day)
+                if realised is not None:
+                    realised(msg)
             state.count_accepted(msg, sha256(payload))
     return clock, finished
 

@@ -8,7 +8,6 @@ import datetime as dt
 from dataclasses import dataclass, field
 
 from messages import Bid, Incident, Registration, Schedule
-from messages.schemas import AgentDay
 
 from .guard import SequenceGuard
 from .incidents import IncidentLog
@@ -20,8 +19,9 @@ class DayState:
 
     ``run_token`` is the run's token, drawn when the run starts (kept in the journal for a resumed DMO): every
     message of the run carries it.
-    ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``realised`` an agent to {market day: the
-    realised day it reported} (of the run: one may come after the next day began, and none changes a settlement);
+    ``meter`` maps an agent to {hour index 0..23: P_M per sub-period}; ``realised`` an agent to the market days of
+    the realised days it reported (of the run: one may come after the next day began, and none changes a settlement;
+    the days themselves go to the run's result, on disk: finished.py);
     ``vanished`` maps an agent whose liveliness was lost to the (phase, hour) it vanished in (it may come back);
     ``gone`` holds the agents not live now. Registrations, presence, realised days and the replay guard belong to
     the run; the answers, incidents and counts to the day ``day`` (1-based), whose date is ``market_day``: ``start_day`` closes one day and opens the next.
@@ -32,7 +32,7 @@ class DayState:
     bids: dict[str, Bid] = field(default_factory=dict)
     schedules: dict[str, Schedule] = field(default_factory=dict)
     meter: dict[str, dict[int, tuple[float, ...]]] = field(default_factory=dict)
-    realised: dict[str, dict[str, AgentDay]] = field(default_factory=dict)
+    realised: dict[str, set[str]] = field(default_factory=dict)
     log: IncidentLog = field(default_factory=IncidentLog)
     accepted: collections.Counter = field(default_factory=collections.Counter)  # by kind
     guard: SequenceGuard = field(default_factory=SequenceGuard)

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
+from ..experiment.spec import HOSTINGS, Agents
 from ..launch.processes import dmosim_command, role_env
 
 GOAL_PCT = 5.0
@@ -120,12 +121,15 @@ def add_run_flags(parser: argparse.ArgumentParser, *, agents: int, days: int, sc
     parser.add_argument("--subperiods", type=positive_int, default=subperiods,
                         help=f"sub-periods per hour (default: {subperiods})")
     parser.add_argument("--gap", type=gap, default=gap_, help=f"relative MIP gap of the schedules (default: {gap_})")
+    hosting = Agents().hosting
+    parser.add_argument("--hosting", choices=HOSTINGS, default=hosting,
+                        help=f"how the agents are hosted, as dmosim run --hosting (default: {hosting})")
 
 
 def run_flags(args) -> list[str]:
     """The ``dmosim run`` flags of ``add_run_flags``."""
     return ["--agents", str(args.agents), "--days", str(args.days), "--scenarios", str(args.scenarios),
-            "--subperiods", str(args.subperiods), "--gap", repr(args.gap)]
+            "--subperiods", str(args.subperiods), "--gap", repr(args.gap), "--hosting", args.hosting]
 
 
 def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict]]:

@@ -3,8 +3,9 @@ and the last day, and the recording's size per agent-day.
 
 One ``dmosim run --days D --agents N --json`` of small agents. Per day, the DMO's phase times and the agents'
 ``compute`` entries of that day split the day into the agents' critical-path computation and overhead
-(``dmosim.bench.day.split_day``); the run samples each role's resident and peak memory as each day's last hour starts
-(``memory_mib`` of the result). What must not grow with the days is checked as ratios of the last day to the first.
+(``dmosim.bench.day.split_day``); the run samples each role's resident, peak and proportional memory as each day's
+last hour starts (``memory_mib`` of the result). What must not grow with the days is checked as ratios of the last
+day to the first.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ def run(args) -> dict:
     result, compute = run["result"], run["compute"]
     report = summarise(result, compute, cores)
     report["setup"] = {"agents": args.agents, "days": args.days, "scenarios": args.scenarios,
-                       "subperiods": args.subperiods, "gap": args.gap, "recording": "on",
+                       "subperiods": args.subperiods, "gap": args.gap, "hosting": args.hosting, "recording": "on",
                        "process_s": round(run["process_s"], 1),
                        "machine": f"{cores} cores shared with other work: one run, noisy"}
     return {"setup": report.pop("setup"), **report}
@@ -46,10 +47,7 @@ def summarise(result: dict, compute: dict[str, list[dict]], cores: int) -> dict:
                      "per_hour_ms": round(totals["per_hour_ms"], 1), "incidents": len(day["incidents"])})
     memory = result.get("memory_mib", {})
     first, last = (memory.get(str(d["day"]), {}) for d in (days[0], days[-1]))
-    roles = [{"role": name, "rss_first_mib": first[name]["rss_mib"], "rss_last_mib": last[name]["rss_mib"],
-              "peak_first_mib": first[name]["peak_mib"], "peak_last_mib": last[name]["peak_mib"],
-              "peak_ratio": round(last[name]["peak_mib"] / first[name]["peak_mib"], 3)}
-             for name in sorted(set(first) & set(last))]
+    roles = [role_memory(name, first[name], last[name]) for name in sorted(set(first) & set(last))]
     recorded = result.get("recorded", {})
     agent_days = len(result["agents"]) * len(days)
     return {
@@ -58,7 +56,19 @@ def summarise(result: dict, compute: dict[str, list[dict]], cores: int) -> dict:
         "ratios": {
             "last_day_s / first_day_s": round(days[-1]["day_s"] / days[0]["day_s"], 3),
             "mean overhead_pct": round(sum(d["overhead_pct"] for d in days) / len(days), 2),
+            "max rss_mib last / first day (any role)": max((r["rss_ratio"] for r in roles), default=None),
             "max peak_mib last / first day (any role)": max((r["peak_ratio"] for r in roles), default=None),
             "recording bytes per agent-day": round(recorded.get("bytes", 0) / agent_days) if agent_days else None,
         },
     }
+
+
+def role_memory(name: str, first: dict, last: dict) -> dict:
+    """One role's memory on the first and the last day (``memory_mib`` of each): its resident, peak and, where the
+    kernel gives it, proportional memory, each with its ratio last / first."""
+    row = {"role": name}
+    for what in ("rss", "peak", "pss"):
+        a, b = first.get(f"{what}_mib"), last.get(f"{what}_mib")
+        if a is not None and b is not None:
+            row |= {f"{what}_first_mib": a, f"{what}_last_mib": b, f"{what}_ratio": round(b / a, 3)}
+    return row

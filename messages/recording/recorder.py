@@ -14,11 +14,34 @@ from typing import Callable
 
 from ..keys import HISTORY, parse_key
 from ..schemas import DMO
+from ..transport.heap import return_free_memory
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
 CATCH_UP_KINDS = ("clock", "day_summary")  # a DMO message of these kinds: time to ask it for what this recorder lacks
 IN_FLIGHT_S = 2.0  # what the DMO sent this recently may still be on its way: not yet taken as lost
+# Payloads of the DMO's remembered per key: catching up asks for the latest on each key, which is the last one that
+# came on it, or one still missing; a few more cover those a delay fault made come out of order.
+SEEN_PER_KEY = 8
+
+
+class LatestSeen:
+    """The last ``SEEN_PER_KEY`` payloads of the DMO's queued on each of its keys (their digests): what catching up
+    compares the DMO's answers with. Bounded by the keys, however long the run."""
+
+    def __init__(self):
+        self._by_key: dict[str, collections.deque[bytes]] = {}
+
+    def add(self, key: str, payload: bytes) -> None:
+        self._by_key.setdefault(key, collections.deque(maxlen=SEEN_PER_KEY)).append(_digest(payload))
+
+    def __contains__(self, item: tuple[str, bytes]) -> bool:
+        key, payload = item
+        return _digest(payload) in self._by_key.get(key, ())
+
+    def __len__(self) -> int:
+        """Payloads remembered."""
+        return sum(len(digests) for digests in self._by_key.values())
 
 
 class Recorder:
@@ -39,7 +62,8 @@ class Recorder:
         self._live_lock = threading.Lock()
         self.backfilled = 0
         self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
-        self._seen: collections.Counter = collections.Counter()  # (key, payload digest) of the DMO's payloads queued
+        self.seen = LatestSeen()  # the DMO's payloads queued, the latest of each key
+        self._summary = bus.keys.summary()  # once a day's summary is written, the memory the day used goes back
         self._wake = threading.Event()
         self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
@@ -70,9 +94,9 @@ class Recorder:
             self._wake.set()
 
     def _saw(self, parsed, key: str, payload: bytes) -> None:
-        """Count a payload of the DMO's (what catching up asks it for) as queued; the caller holds the lock."""
+        """Note a payload of the DMO's (what catching up asks it for) as queued; the caller holds the lock."""
         if parsed is not None and parsed.role == DMO:
-            self._seen[key, _digest(payload)] += 1
+            self.seen.add(key, payload)
 
     def _catch_up_loop(self) -> None:
         """On each clock and day summary of the DMO's, ask it for the latest message on each of its keys and queue
@@ -90,11 +114,10 @@ class Recorder:
     def _catch_up(self) -> int:
         added, now = 0, time.time_ns()
         for key, payload, at in self.bus.fetch(self.bus.keys.everything(), timeout_s=5.0):
-            seen = key, _digest(payload)
             with self._live_lock:
-                missing = at is not None and now - at > IN_FLIGHT_S * 1e9 and not self._seen[seen]
+                missing = at is not None and now - at > IN_FLIGHT_S * 1e9 and (key, payload) not in self.seen
                 if missing:
-                    self._seen[seen] += 1
+                    self.seen.add(key, payload)
             if missing:
                 self._queue.put((key, payload, at, False))
                 added += 1
@@ -150,6 +173,8 @@ class Recorder:
 
     def _write(self, key: str, payload: bytes, at: int, live: bool, on_write) -> None:
         valid = self.writer.write(key, payload, at)
+        if key == self._summary:
+            return_free_memory()
         if live:  # a backfilled payload's time is the DMO's, long before this recorder's work
             self.first_received_ns = self.first_received_ns or at
         self.last_written_ns = time.time_ns()

@@ -35,6 +35,7 @@ from messages import (Award, Bid, CallForBids, Clock, DaySummary, GridState, Mes
 from messages.keys import parse_key
 from messages.schemas import MAX_HANDLED, AgentDay, HandlingTime, MessageCounts, MidnightUnit
 from messages.transport import Bus
+from messages.transport.heap import return_free_memory
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
@@ -348,6 +349,7 @@ class MicrogridAgent:
                 log.info("%s: the same award again; the schedule already solved stands", self.id)
             else:
                 self._schedule(msg)
+                return_free_memory()  # the day's solves are over: the memory their models and solvers used goes back
         elif isinstance(msg, GridState):
             self._operate(msg)
         elif isinstance(msg, SettlementStatement):

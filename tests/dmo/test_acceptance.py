@@ -11,6 +11,7 @@ from dmo.market import acceptance
 from dmo.market.settlement import READING_TOLERANCE_MW, settle
 from dmo.operator import intake
 from dmo.operator.day import RunResult
+from dmo.operator.finished import FinishedDays
 from dmo.operator.state import DayState
 from dmo.replay.as_dmo import AsDmo
 from messages import Bid, GridState, Keys, MeterReport, Registration, Schedule, decode, encode, sha256
@@ -156,8 +157,8 @@ def test_a_realised_day_is_taken_once_its_day_is_operated_whatever_the_phase_and
     assert sent(agent_day(DAY)).refusal == ("invalid",
                                             f"agent_day of {DAY} before its last hour (now realtime hour 23)")
     state.hour = HOURS
-    assert sent(agent_day(DAY)).what == intake.ACCEPTED and state.realised["mg1"][DAY].total == 115.0
-    assert sent(agent_day(DAY, total=215.0)).refusal[0] == "duplicate" and state.realised["mg1"][DAY].total == 115.0
+    assert sent(agent_day(DAY)).what == intake.ACCEPTED and state.realised["mg1"] == {DAY}
+    assert sent(agent_day(DAY, total=215.0)).refusal[0] == "duplicate" and state.realised["mg1"] == {DAY}
     state.start_day(3, "2026-07-02")  # the next day began: the first day's realised day still comes in
     assert sent(agent_day("2026-06-30")).what == intake.ACCEPTED
     assert sent(agent_day("2026-07-02")).refusal[0] == "invalid"  # being bid for, not operated
@@ -168,8 +169,13 @@ def test_a_realised_day_is_taken_once_its_day_is_operated_whatever_the_phase_and
 
 
 def test_the_dmos_result_gives_each_agents_realised_days_in_order_and_none_for_an_agent_that_sent_none():
-    days = [SimpleNamespace(day=1, market_day="2026-06-30"), SimpleNamespace(day=2, market_day=DAY)]
-    result = RunResult(days, "paper", {"mg1": {DAY: agent_day(DAY, 215.0), "2026-06-30": agent_day("2026-06-30")}})
+    finished = FinishedDays()  # where the DMO keeps them as the run goes
+    for day in ({"day": 1, "market_day": "2026-06-30"}, {"day": 2, "market_day": DAY}):
+        finished.day(day)
+    finished.realised(agent_day(DAY, 215.0))  # in the order they came, not of their days
+    finished.realised(agent_day("2026-06-30"))
+    days, taken = finished.read()
+    result = RunResult(days, "paper", ["mg1", "mg2"], taken)
     realised = result.realised_days(["mg1", "mg2"])
     assert [(d["day"], d["market_day"], d["total"]) for d in realised["mg1"]] == [(1, "2026-06-30", 115.0),
                                                                                  (2, DAY, 215.0)]

@@ -19,6 +19,7 @@ import threading
 import time
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
 import jsonschema
 import pandas as pd
@@ -31,9 +32,9 @@ from dmosim.bench.recording import synthetic_day
 from dmosim.launch.processes import Roles, free_port, wait_for_line
 from messages import SCHEMA_VERSION, decode
 from messages.transport import Bus, BusConfig
-from messages.keys import key_pattern, new_run_id
+from messages.keys import Keys, key_pattern, new_run_id
 from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
-from messages.recording.recorder import Recorder
+from messages.recording.recorder import SEEN_PER_KEY, Recorder
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -572,3 +573,20 @@ def test_the_recorder_catches_up_on_what_the_network_lost_on_its_way(tmp_path):
     assert recorder.caught_up == 1
     assert [(m.relative_key, m.log_time) for m in rec.messages if m.kind == "award"] == [("dmo/award/mg1", sent_at)]
     assert sum(m.kind == "clock" for m in rec.messages) == 1  # what came live is not caught up again
+
+
+def test_what_the_recorder_remembers_to_catch_up_is_bounded_by_the_keys_not_the_days():
+    """The DMO's payloads the recorder notes as they come (to tell what catching up must add) are the last few of each
+    key, however many days the run has, and the latest on each key is still known as come."""
+    run_id = new_run_id()
+    recorder = Recorder(SimpleNamespace(keys=Keys(run_id)), writer=None)
+    latest: dict[str, bytes] = {}
+    for day in range(1, 8):
+        for key, payload in synthetic_day(run_id, 3, 1, market_day=f"2026-07-0{day}", seed=day):
+            recorder._received(key, payload, time.time_ns())  # as the subscription delivers it
+            latest[key] = payload
+    dmo_keys = [key for key in latest if "/dmo/" in key]
+    came = recorder._queue.qsize()  # every payload of the week, to be written
+    assert len(recorder.seen) <= SEEN_PER_KEY * len(dmo_keys) < came / 4, (len(recorder.seen), came)
+    assert all((key, latest[key]) in recorder.seen for key in dmo_keys)
+    assert (dmo_keys[0], b"{}") not in recorder.seen

@@ -233,7 +233,7 @@ def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=No
 
         def run():
             try:
-                outcome["result"] = day.run().days[0]
+                outcome["result"] = day.run().last
             except Exception as exc:  # noqa: BLE001  (reported by the test)
                 outcome["error"] = exc
             done.set()
