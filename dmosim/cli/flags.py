@@ -61,7 +61,9 @@ def add_bus_flags(parser: argparse.ArgumentParser, default_mode: str) -> None:
     auth.add_argument("--auth-dir", metavar="DIR",
                       help="credentials made by `dmosim credentials` (or `dmosim run`): the router uses DIR, a "
                            "client its bundle DIR/<its name>; without it the process joins, or serves, an open network")
-    auth.add_argument("--user", metavar="NAME", help="log in as NAME (default: this process's name)")
+    auth.add_argument("--user", metavar="NAME", help="log in as NAME (default: this process's name); a router that "
+                                                    "--connect's to other routers logs in to them as NAME, with its "
+                                                    "bundle DIR/NAME/ (docs/hosts.md)")
     auth.add_argument("--password-file", metavar="FILE", help="file holding the password (instead of --auth-dir)")
     auth.add_argument("--insecure", action="store_true",
                       help="serve or join an open network: no credentials, no access control (trusted networks "
@@ -89,7 +91,8 @@ def bus_config(args, default_mode: str, name: str | None = None, run_id: str | N
         if args.password_file:
             check_private(args.password_file, secret=True)
         auth = auth_settings(args.auth_dir, args.user, args.password_file, name, router=mode == "router",
-                             run_id=run_id, endpoints=listen if mode == "router" else connect)
+                             run_id=run_id, endpoints=listen + connect if mode == "router" else connect,
+                             connects=bool(connect))
         if mode == "router" and not auth:
             log.warning("%s: anyone who reaches %s may join and publish anything (trusted networks only; "
                         "docs/security.md)", "--insecure" if args.insecure else "no --auth-dir",
@@ -132,12 +135,18 @@ def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -
     ``./dmosim-credentials/<run_id>/``) and says where every process's bundle is; ``args.auth_dir`` then names
     them. Credentials that are there already are used only if nobody else could have made or changed them
     (``check_private``). ``--insecure`` serves an open network instead. A client logs in with the bundle it is
-    given."""
+    given, and so does a router that connects to other routers (a mesh, docs/hosts.md): it joins their run, whose
+    credentials it must be given."""
     if args.insecure:
         if args.auth_dir:
             raise UsageError("--insecure and --auth-dir exclude each other: choose an open network or credentials")
         return
     if (args.mode or "router") != "router" or args.password_file or args.user:
+        return
+    if args.connect:
+        if not args.auth_dir:
+            raise UsageError("--connect: a router that connects to other routers joins their run; give it the run's "
+                             "credentials, --auth-dir DIR --user NAME (docs/hosts.md), or --insecure")
         return
     where = Path(args.auth_dir) if args.auth_dir else Path(DEFAULT_CREDENTIALS) / run_id
     try:
