@@ -55,8 +55,9 @@ def add_bus_flags(parser: argparse.ArgumentParser, default_mode: str) -> None:
     group.add_argument("--lease", type=float, metavar="SECONDS",
                        help="liveliness lease: how soon a frozen process is declared gone (zenoh default 10)")
     group.add_argument("--connect-timeout", type=float, default=60.0, metavar="SECONDS",
-                       help="how long to keep trying the --connect endpoints before giving up (default 60), "
-                            "so a process may start before the one it connects to")
+                       help="how long a client keeps trying the --connect endpoints before giving up (default "
+                            "60), so a process may start before the one it connects to; a router keeps trying "
+                            "for as long as it runs")
     auth = parser.add_argument_group("authentication (docs/security.md)")
     auth.add_argument("--auth-dir", metavar="DIR",
                       help="credentials made by `dmosim credentials` (or `dmosim run`): the router uses DIR, a "
@@ -81,8 +82,9 @@ def check_bus_flags(args, default_mode: str) -> None:
 
 
 def bus_config(args, default_mode: str, name: str | None = None, run_id: str | None = None) -> BusConfig:
-    """The bus settings of the flags of ``add_bus_flags``; ``name`` is who a client logs in as by default, and a
-    router with ``run_id`` checks that its --auth-dir was made for that run (messages/transport/access.py)."""
+    """The bus settings of the flags of ``add_bus_flags``; ``name`` is who a client logs in as by default, a
+    router with ``run_id`` checks that its --auth-dir was made for that run (messages/transport/access.py), and a
+    router that ``--connect``s to other routers logs in to them with its bundle (docs/hosts.md)."""
     try:
         mode = args.mode or default_mode
         listen, connect = tuple(args.listen), tuple(args.connect)
