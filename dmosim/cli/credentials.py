@@ -25,6 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reader", action="append", default=[], metavar="NAME",
                    help="a process that may hear everything of the run and publish nothing (repeatable, at most "
                         f"{MAX_READERS}; default: recorder)")
+    p.add_argument("--router", action="append", default=[], metavar="NAME",
+                   help="a router of a mesh that connects to other routers, one per host (repeatable, at most "
+                        f"{MAX_HOSTS}; needs --tls; docs/hosts.md)")
     p.add_argument("--tls", action="store_true",
                    help="also make a CA and certificates: every process must then connect over tls/ endpoints "
                         "with its own certificate")
@@ -44,7 +47,7 @@ def run(args) -> int:
         run_id = run_id_of(args)
         out = create_auth_dir(args.out, run_id, [m.id for m in fleet], readers=tuple(args.reader) or READERS,
                               tls=args.tls, hosts=tuple(args.host) or DEFAULT_HOSTS, valid_days=args.days,
-                              overwrite=args.overwrite)
+                              routers=tuple(args.router), overwrite=args.overwrite)
     except (FleetError, AuthError) as exc:
         raise UsageError(str(exc)) from None
     except OSError as exc:
@@ -55,5 +58,9 @@ def run(args) -> int:
           f"{'tls' if args.tls else 'tcp'}/HOST:7447 ...")
     print(f"  each other host gets only its bundle, {out}/<name>/ (copy it to DIR/<name>/ there, and keep it "
           f"private): dmosim agent --id <name> --run-id {run_id} --auth-dir DIR ...")
+    for router in args.router:
+        print(f"  {router}'s host (a router of the mesh): dmosim router --run-id {run_id} --auth-dir DIR --user "
+              f"{router} --listen tls/HOST:7447 --connect tls/DMO-HOST:7447, DIR holding {out}'s router files "
+              f"and its bundle {out}/{router}/ (docs/hosts.md)")
     print(f"  bundles: {', '.join(bundles)}")
     return 0

@@ -55,13 +55,16 @@ def add_bus_flags(parser: argparse.ArgumentParser, default_mode: str) -> None:
     group.add_argument("--lease", type=float, metavar="SECONDS",
                        help="liveliness lease: how soon a frozen process is declared gone (zenoh default 10)")
     group.add_argument("--connect-timeout", type=float, default=60.0, metavar="SECONDS",
-                       help="how long to keep trying the --connect endpoints before giving up (default 60), "
-                            "so a process may start before the one it connects to")
+                       help="how long a client keeps trying the --connect endpoints before giving up (default "
+                            "60), so a process may start before the one it connects to; a router keeps trying "
+                            "for as long as it runs")
     auth = parser.add_argument_group("authentication (docs/security.md)")
     auth.add_argument("--auth-dir", metavar="DIR",
                       help="credentials made by `dmosim credentials` (or `dmosim run`): the router uses DIR, a "
                            "client its bundle DIR/<its name>; without it the process joins, or serves, an open network")
-    auth.add_argument("--user", metavar="NAME", help="log in as NAME (default: this process's name)")
+    auth.add_argument("--user", metavar="NAME", help="log in as NAME (default: this process's name); a router that "
+                                                    "--connect's to other routers logs in to them as NAME, with its "
+                                                    "bundle DIR/NAME/ (docs/hosts.md)")
     auth.add_argument("--password-file", metavar="FILE", help="file holding the password (instead of --auth-dir)")
     auth.add_argument("--insecure", action="store_true",
                       help="serve or join an open network: no credentials, no access control (trusted networks "
@@ -79,8 +82,9 @@ def check_bus_flags(args, default_mode: str) -> None:
 
 
 def bus_config(args, default_mode: str, name: str | None = None, run_id: str | None = None) -> BusConfig:
-    """The bus settings of the flags of ``add_bus_flags``; ``name`` is who a client logs in as by default, and a
-    router with ``run_id`` checks that its --auth-dir was made for that run (messages/transport/access.py)."""
+    """The bus settings of the flags of ``add_bus_flags``; ``name`` is who a client logs in as by default, a
+    router with ``run_id`` checks that its --auth-dir was made for that run (messages/transport/access.py), and a
+    router that ``--connect``s to other routers logs in to them with its bundle (docs/hosts.md)."""
     try:
         mode = args.mode or default_mode
         listen, connect = tuple(args.listen), tuple(args.connect)
@@ -89,7 +93,8 @@ def bus_config(args, default_mode: str, name: str | None = None, run_id: str | N
         if args.password_file:
             check_private(args.password_file, secret=True)
         auth = auth_settings(args.auth_dir, args.user, args.password_file, name, router=mode == "router",
-                             run_id=run_id, endpoints=listen if mode == "router" else connect)
+                             run_id=run_id, endpoints=listen + connect if mode == "router" else connect,
+                             connects=bool(connect))
         if mode == "router" and not auth:
             log.warning("%s: anyone who reaches %s may join and publish anything (trusted networks only; "
                         "docs/security.md)", "--insecure" if args.insecure else "no --auth-dir",
@@ -132,12 +137,18 @@ def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -
     ``./dmosim-credentials/<run_id>/``) and says where every process's bundle is; ``args.auth_dir`` then names
     them. Credentials that are there already are used only if nobody else could have made or changed them
     (``check_private``). ``--insecure`` serves an open network instead. A client logs in with the bundle it is
-    given."""
+    given, and so does a router that connects to other routers (a mesh, docs/hosts.md): it joins their run, whose
+    credentials it must be given."""
     if args.insecure:
         if args.auth_dir:
             raise UsageError("--insecure and --auth-dir exclude each other: choose an open network or credentials")
         return
     if (args.mode or "router") != "router" or args.password_file or args.user:
+        return
+    if args.connect:
+        if not args.auth_dir:
+            raise UsageError("--connect: a router that connects to other routers joins their run; give it the run's "
+                             "credentials, --auth-dir DIR --user NAME (docs/hosts.md), or --insecure")
         return
     where = Path(args.auth_dir) if args.auth_dir else Path(DEFAULT_CREDENTIALS) / run_id
     try:

@@ -1,4 +1,5 @@
-"""``dmosim router``: a standalone Zenoh router; the DMO and agents then connect to it as clients."""
+"""``dmosim router``: a standalone Zenoh router; the DMO and agents then connect to it as clients, and routers on
+several hosts connect to one another into a mesh (docs/hosts.md)."""
 
 from __future__ import annotations
 
@@ -13,12 +14,13 @@ from ..console import UsageError
 from .flags import (DEFAULT_AGENTS, add_bus_flags, agent_ids, announce_run_id, bus_config, check_bus_flags,
                     credentials_for, run_id_of, setup_logging)
 
-HELP = "a standalone Zenoh router for the DMO and agents to connect to"
+HELP = "a standalone Zenoh router for the DMO and agents to connect to, and for other routers (a mesh of hosts)"
 log = logging.getLogger("dmosim")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--run-id", help="the run this router serves (default: a new one, printed)")
+    p.add_argument("--run-id", help="the run this router serves (default: a new one, printed; a router that "
+                                    "--connect's to others needs theirs)")
     p.add_argument("--agents", type=agents, help="agents mg1..mgN the credentials are made for, without --auth-dir "
                                                  f"(default: {DEFAULT_AGENTS})")
     p.add_argument("--fleet", help="fleet TOML file naming the agents instead of --agents")
@@ -26,21 +28,43 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_bus_flags(p, "router")
 
 
+def check_relay_flags(args) -> None:
+    """A router that connects to other routers joins their run: it needs that run's id, and it makes no credentials,
+    so it names no agents to make them for."""
+    if not args.connect:
+        return
+    if args.agents is not None or args.fleet is not None:
+        raise UsageError(f"{'--agents' if args.agents is not None else '--fleet'}: a router that connects to other "
+                         "routers makes no credentials; it uses the run's (--auth-dir DIR --user NAME, docs/hosts.md)")
+    if args.run_id is None:
+        raise UsageError("--connect: a router that connects to other routers joins their run; give its --run-id")
+
+
 def run(args) -> int:
     setup_logging("router", args.quiet)
     if args.agents is not None and args.fleet is not None:
         raise UsageError("--agents and --fleet exclude each other: a fleet file names its agents")
     check_bus_flags(args, "router")
+    check_relay_flags(args)
     names = agent_ids(args.fleet, args.agents or DEFAULT_AGENTS)
     run_id = run_id_of(args)
-    credentials_for(args, run_id, names, dmo_client=True)
+    credentials_for(args, run_id, names, dmo_client=True)  # a router that connects makes none: it checks its flags
     config = bus_config(args, "router", run_id=run_id)
     announce_run_id(args)
     stop = threading.Event()
-    with zenoh.open(config.to_zenoh()):
-        log.info("router listening on %s", ", ".join(config.listen) or "zenoh's default endpoints")
-        try:
-            stop.wait()
-        except KeyboardInterrupt:
-            pass
+    with zenoh.open(config.to_zenoh()) as session:
+        log.info("router %s listening on %s%s", session.info.zid(), ", ".join(config.listen) or "zenoh's default "
+                 "endpoints", f"; connecting to {', '.join(config.connect)}" if config.connect else "")
+        with session.info.declare_transport_events_listener(log_router_link, history=True):
+            try:
+                stop.wait()
+            except KeyboardInterrupt:
+                pass
     return 0
+
+
+def log_router_link(event) -> None:
+    """Say when a link to another router of the mesh comes up or goes down (clients come and go unsaid)."""
+    if event.transport.whatami == zenoh.WhatAmI.ROUTER:
+        up = event.kind == zenoh.SampleKind.PUT
+        log.info("router link %s: router %s", "up" if up else "down", event.transport.zid)

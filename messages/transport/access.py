@@ -13,9 +13,12 @@ secrets::
     DIR/access_control.json         the router's rules for this run (no secrets)
     DIR/ca.pem cert.pem key.pem     with TLS: the run's CA, the router's certificate (for the hosts it listens on)
                                     and its key (0600)
-    DIR/<name>/password             the bundle of process <name> ("dmo", "recorder", each agent id, ...): its
-    DIR/<name>/ca.pem cert.pem key.pem   password (0600) and, with TLS, the CA and its client certificate, whose
-                                    common name is <name>, and key (0600)
+    DIR/<name>/password             the bundle of process <name> ("dmo", "recorder", each agent id, each router
+    DIR/<name>/ca.pem cert.pem key.pem   of a mesh, ...): its password (0600) and, with TLS, the CA and its client
+                                    certificate, whose common name is <name>, and key (0600)
+
+In a mesh of routers (docs/hosts.md) every router serves with the same router files and rules, and logs in to the
+routers it connects to with its own bundle.
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ ACL_FILE = "access_control.json"
 PASSWORD_FILE = "password"
 CA_FILE, CERT_FILE, KEY_FILE = "ca.pem", "cert.pem", "key.pem"
 READERS = ("recorder",)              # processes that may hear everything of the run and say nothing
+# The common name of the routers' own certificate. Zenoh authenticates only the side that connects, so a router knows
+# the router it connected to by that certificate alone; no process can be named so (a space), nor present it.
+ROUTER_CERT_NAME = "dmosim router"
 # What the DMO says to every agent. A rejection carries the key, code and reason of a refused message (never its
 # payload); it is public so an agent learns why its own message was refused, e.g. a refused rejoin.
 PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "network", "summary", "rejected")
@@ -51,11 +57,15 @@ class AuthError(ValueError):
 # --- the rules ---------------------------------------------------------------------------------------------------
 
 def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = READERS, *,
-                   tls: bool = False, dmo_client: bool = True) -> dict:
+                   tls: bool = False, dmo_client: bool = True, routers: Sequence[str] = ()) -> dict:
     """The router's ``access_control`` for one run: deny by default, then per process exactly what it needs.
 
     - ``dmo``, with ``dmo_client`` (for a DMO that is a client of a separate router): everything under the run
       prefix. A DMO that is the router itself is not a remote session, and no rule applies to it.
+    - router R of a mesh (``routers``, docs/hosts.md): everything under the run prefix, both ways, since it relays
+      its own clients, whom its own copy of these rules filters. A router that R connected to reaches R with no
+      user name (Zenoh authenticates only the side that connects), so it is known by the routers' certificate
+      (``ROUTER_CERT_NAME``, signed by the run's CA) and granted the same: a mesh needs ``tls``.
     - a reader (the recorder): subscribe to everything of the run and query it (the DMO's history of the day),
       publish nothing, announce only itself.
     - agent X: publish only its own ``agent/X/{register,bid,schedule,meter,day}``; subscribe to, receive and query
@@ -67,26 +77,34 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
     message's, so a subscription to a wider pattern (``dmo/**``) is refused as a whole, not narrowed.
     """
     prefix = Keys(run_id).prefix
-    check_names(agents, readers)
+    check_names(agents, readers, routers)
+    if routers and not tls:
+        raise AuthError("routers relay for one another only over mutual TLS: a router could not tell the router it "
+                        "connected to from a client; make the credentials with TLS (dmosim credentials --tls)")
     alive = f"{prefix}/alive"
     rules: list[dict] = []
     subjects: list[dict] = []
     policies: list[dict] = []
 
-    def grant(subject: str, *grants: tuple[str, Iterable[str], Iterable[str], Iterable[str]]) -> None:
+    def grant(subject: str, *grants: tuple[str, Iterable[str], Iterable[str], Iterable[str]], user: bool = True) -> None:
         ids = []
         for what, flows, messages, keys in grants:
             ids.append(f"{subject}:{what}")
             rules.append({"id": ids[-1], "permission": "allow", "flows": list(flows), "messages": list(messages),
                           "key_exprs": list(keys)})
-        subject_rule = {"id": subject, "usernames": [subject]}
+        subject_rule = {"id": subject, "usernames": [subject]} if user else {"id": subject}
         if tls:
             subject_rule["cert_common_names"] = [subject]  # both must match: the password and the certificate
         subjects.append(subject_rule)
         policies.append({"id": subject, "rules": ids, "subjects": [subject]})
 
+    everything = ("all", ("ingress", "egress"), _ALL_MESSAGES, (f"{prefix}/**",))
     if dmo_client:
-        grant(DMO, ("all", ("ingress", "egress"), _ALL_MESSAGES, (f"{prefix}/**",)))
+        grant(DMO, everything)
+    for router in routers:
+        grant(router, everything)
+    if routers:
+        grant(ROUTER_CERT_NAME, everything, user=False)  # the router this one connected to, by its certificate
     for reader in readers:
         grant(reader,
               ("subscribe", ("ingress",), ("declare_subscriber",), (f"{prefix}/**",)),
@@ -116,16 +134,17 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
             "policies": policies}
 
 
-def check_names(agents: Sequence[str], readers: Sequence[str]) -> None:
+def check_names(agents: Sequence[str], readers: Sequence[str], routers: Sequence[str] = ()) -> None:
     for agent in agents:
         try:
             check_agent_id(agent)
         except ValueError as exc:
             raise AuthError(str(exc)) from None
-    for reader in readers:
-        if not is_name(reader) or reader.lower() == DMO or reader in agents:
-            raise AuthError(f"reader name {reader!r} must match {NAME_PATTERN} and differ from the DMO and agents")
-    names = [DMO, *readers, *agents]
+    for what, names in (("reader", readers), ("router", routers)):
+        for name in names:
+            if not is_name(name) or name.lower() == DMO or name in agents:
+                raise AuthError(f"{what} name {name!r} must match {NAME_PATTERN} and differ from the DMO and agents")
+    names = [DMO, *readers, *routers, *agents]
     if len({n.lower() for n in names}) != len(names):
         raise AuthError("process names must be unique (case-insensitively)")
 
@@ -200,15 +219,29 @@ def _tls(bundle: Path, side: str) -> list[tuple[str, str]]:
 
 
 def auth_settings(auth_dir: str | None, user: str | None, password_file: str | None, name: str | None, *,
-                  router: bool, run_id: str | None = None, endpoints: Sequence[str] = ()) -> Settings:
+                  router: bool, run_id: str | None = None, endpoints: Sequence[str] = (),
+                  connects: bool = False) -> Settings:
     """The Zenoh settings of an auth directory, or of a user and password file: a router's (``router``) or a
-    client's logging in as ``user``, or else ``name``. Nothing given, no settings (an open network). ``endpoints``
-    (listened on, or connected to) must all be ``tls/`` when the credentials hold TLS material, since only a
-    certificate then identifies a process."""
+    client's logging in as ``user``, or else ``name``. Nothing given, no settings (an open network). A router that
+    ``connects`` to other routers (a mesh, docs/hosts.md) also logs in to them as ``user`` (else ``name``) with its
+    bundle, which must hold TLS material (``access_control``). ``endpoints`` (listened on, or connected to) must all be
+    ``tls/`` when the credentials hold TLS material, since only a certificate then identifies a process."""
     if router:
-        if password_file or user:
-            raise AuthError("a router takes --auth-dir, not --user or --password-file")
+        if password_file:
+            raise AuthError("a router takes --auth-dir (and --user NAME to log in to the routers it connects to), "
+                            "not --password-file")
+        if user and not (connects and auth_dir):
+            raise AuthError("--user: a router logs in only to the routers it connects to, with its bundle: give "
+                            "--connect and --auth-dir")
         settings = router_settings(auth_dir, run_id) if auth_dir else ()
+        if connects and auth_dir:
+            if not (user or name):
+                raise AuthError("a router that connects to other routers logs in to them: give --user NAME, its "
+                                "bundle DIR/NAME/ (dmosim credentials --tls --router NAME)")
+            if not (Path(auth_dir) / CA_FILE).is_file():
+                raise AuthError(f"{auth_dir} holds no TLS certificates: routers relay for one another only over "
+                                "mutual TLS (dmosim credentials --tls --router NAME)")
+            settings += bundle_settings(auth_dir, user or name)
     else:
         user = user or name
         if password_file:

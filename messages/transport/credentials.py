@@ -21,31 +21,33 @@ from pathlib import Path
 from scenarios.names import DMO
 
 from ..keys import Keys
-from .access import (ACL_FILE, CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, READERS, USERS_FILE, AuthError,
-                     access_control, check_names)
+from .access import (ACL_FILE, CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, READERS, ROUTER_CERT_NAME, USERS_FILE,
+                     AuthError, access_control, check_names)
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")  # what the router's certificate is valid for, unless told
 SECRETS = (USERS_FILE, PASSWORD_FILE, KEY_FILE)  # files that hold a secret, wherever they are in a directory
 # Certificates cannot be revoked (docs/security.md): a year is their longest validity, far longer than a run.
 MAX_CERT_DAYS = 366
 MAX_READERS = 16  # readers of one run (the recorder, taps): each may hear everything
-MAX_HOSTS = 16    # names and addresses the router's certificate is valid for
+MAX_HOSTS = 16    # names and addresses the router's certificate is valid for; and routers of a mesh, one per host
 
 
 def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], *, readers: Sequence[str] = READERS,
                     tls: bool = False, hosts: Sequence[str] = DEFAULT_HOSTS, valid_days: int = 30,
-                    dmo_client: bool = True, overwrite: bool = False) -> Path:
+                    dmo_client: bool = True, routers: Sequence[str] = (), overwrite: bool = False) -> Path:
     """Generate fresh credentials for one run: a random password per process, the router's dictionary and rules,
     and with ``tls`` a new CA with a certificate for the router (valid for ``hosts``) and one per process.
-    Without ``dmo_client`` there are no credentials for the DMO: it must be the router itself."""
+    Without ``dmo_client`` there are no credentials for the DMO: it must be the router itself. ``routers`` are the
+    other routers of a mesh (docs/hosts.md), each with a bundle to log in to the routers it connects to; they need
+    ``tls``, and serve with the same router files."""
     out = Path(out)
-    check_names(agents, readers)
-    if len(readers) > MAX_READERS or len(hosts) > MAX_HOSTS:
-        raise AuthError(f"at most {MAX_READERS} readers and {MAX_HOSTS} host names, not {len(readers)} and "
-                        f"{len(hosts)}")
+    if len(readers) > MAX_READERS or len(hosts) > MAX_HOSTS or len(routers) > MAX_HOSTS:
+        raise AuthError(f"at most {MAX_READERS} readers, {MAX_HOSTS} host names and {MAX_HOSTS} routers, not "
+                        f"{len(readers)}, {len(hosts)} and {len(routers)}")
     if not 1 <= valid_days <= MAX_CERT_DAYS:
         raise AuthError(f"certificates are valid for 1..{MAX_CERT_DAYS} days, not {valid_days}")
     Keys(run_id)  # a bad run id fails here, not in the router
+    acl = access_control(run_id, agents, readers, tls=tls, dmo_client=dmo_client, routers=routers)  # checks names
     if out.exists():
         if not out.is_dir():
             raise AuthError(f"{out} exists and is not a directory")
@@ -57,12 +59,11 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
             shutil.rmtree(out)
     out.mkdir(mode=0o700, parents=True, exist_ok=True)
     out.chmod(0o700)
-    names = [DMO, *readers, *agents] if dmo_client else [*readers, *agents]
+    names = [*([DMO] if dmo_client else []), *readers, *routers, *agents]
     passwords = {name: secrets.token_urlsafe(24) for name in names}
     for name in names:
         (out / name).mkdir(mode=0o700)
     _write(out / USERS_FILE, "".join(f"{n}:{p}\n" for n, p in passwords.items()))
-    acl = access_control(run_id, agents, readers, tls=tls, dmo_client=dmo_client)
     _write(out / ACL_FILE, json.dumps(acl, indent=2) + "\n", public=True)
     for name, password in passwords.items():
         _write(out / name / PASSWORD_FILE, password)  # the password alone: what a client sends is the file
@@ -130,8 +131,9 @@ def _check_owner(path: Path, info: os.stat_result | None = None) -> None:
 
 
 def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], valid_days: int) -> None:
-    """A CA for this auth directory, the router's server certificate for ``hosts`` and one client certificate per
-    name (common name = the name, which the access-control subjects match). EC P-256 keys."""
+    """A CA for this auth directory, the router's server certificate for ``hosts`` (common name ROUTER_CERT_NAME,
+    which no client certificate has) and one client certificate per name (common name = the name, which the
+    access-control subjects match). EC P-256 keys."""
     from cryptography import x509  # noqa: PLC0415  (only TLS needs it)
     from cryptography.hazmat.primitives import hashes, serialization  # noqa: PLC0415
     from cryptography.hazmat.primitives.asymmetric import ec  # noqa: PLC0415
@@ -177,7 +179,7 @@ def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], va
         return b.sign(ca_key, hashes.SHA256()), key
 
     alt = [_alt_name(x509, host) for host in hosts]
-    save(out, *leaf(hosts[0], ExtendedKeyUsageOID.SERVER_AUTH, alt))
+    save(out, *leaf(ROUTER_CERT_NAME, ExtendedKeyUsageOID.SERVER_AUTH, alt))
     for n in names:
         save(out / n, *leaf(n, ExtendedKeyUsageOID.CLIENT_AUTH))
 

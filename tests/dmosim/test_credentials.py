@@ -1,21 +1,25 @@
 """Credentials as the roles find them (dmosim/cli/flags.py): a DMO, router or client refuses credentials someone else
 could have made or changed, in one line naming the path; the default credentials directory is private; the run id
-a router serves is unknown in advance and said; and each verb's help says its own Zenoh mode."""
+a router serves is unknown in advance and said; each verb's help says its own Zenoh mode; and a mesh's router logs in
+to the router it connects to, as docs/hosts.md shows."""
 
 from __future__ import annotations
 
 import json
 import os
 import re
+import shlex
 from pathlib import Path
 
 import pytest
 
 from dmosim.console import UsageError
 from dmosim.cli.flags import DEFAULT_CREDENTIALS, announce_run_id, bus_config, credentials_for, run_id_of
-from dmosim.cli.main import build_parser
+from dmosim.cli.main import build_parser, main
+from dmosim.cli.router import check_relay_flags
 from messages.keys import RUN_ID_PATTERN
 from messages.transport.access import ACL_FILE, USERS_FILE
+from messages.transport.credentials import create_auth_dir
 
 
 @pytest.fixture
@@ -104,3 +108,48 @@ def test_mode_help_says_each_verbs_own_default(verb, mode, capsys):
         build_parser(verb).parse_args([verb, "--help"])
     flat = "".join(capsys.readouterr().out.split())  # argparse wraps lines, even within --as-dmo
     assert "".join(f"zenoh session mode (default: {mode})".split()) in flat
+
+
+def test_a_router_that_connects_to_another_logs_in_with_its_bundle_over_tls(tmp_path, monkeypatch, capsys):
+    """A mesh's router (docs/hosts.md): it serves with the run's router files and logs in to the router it connects
+    to with its own bundle; every inconsistent flag is one line and exit 2, and it never makes credentials."""
+    monkeypatch.chdir(tmp_path)
+    create_auth_dir(tmp_path / "mesh", "day1", ["mg1"], tls=True, routers=("host2",))
+    create_auth_dir(tmp_path / "plain", "day1", ["mg1"])
+    relay = ["router", "--run-id", "day1", "--listen", "tls/127.0.0.1:0", "--connect", "tls/127.0.0.1:7447"]
+    args = build_parser("router").parse_args([*relay, "--auth-dir", "mesh", "--user", "host2"])
+    credentials_for(args, "day1", ["mg1"], dmo_client=True)
+    settings = dict(bus_config(args, "router", run_id="day1").overrides)
+    assert json.loads(settings["transport/auth/usrpwd/user"]) == "host2"
+    assert json.loads(settings["transport/link/tls/connect_certificate"]) == str((tmp_path / "mesh/host2/cert.pem"))
+    assert json.loads(settings["transport/link/tls/listen_certificate"]) == str((tmp_path / "mesh/cert.pem"))
+    assert json.loads(settings["access_control"])["enabled"]
+    for flags, says in [
+        ([*relay], "--connect: a router that connects to other routers joins their run; give it the run's"),
+        (["router", *relay[3:], "--auth-dir", "mesh", "--user", "host2"], "give its --run-id"),
+        ([*relay, "--agents", "2", "--auth-dir", "mesh", "--user", "host2"], "--agents: a router that connects"),
+        ([*relay, "--auth-dir", "mesh"], "logs in to them: give --user NAME"),
+        ([*relay, "--auth-dir", "mesh", "--user", "host9"], "mesh has no credentials for 'host9'"),
+        ([*relay, "--auth-dir", "plain", "--user", "mg1"], "plain holds no TLS certificates"),
+        ([*relay, "--auth-dir", "missing", "--user", "host2"], "missing/users.txt does not exist"),
+        (["router", "--listen", "tls/127.0.0.1:0", "--auth-dir", "mesh", "--user", "host2"],
+         "--user: a router logs in only to the routers it connects to"),
+        ([*relay[:5], "--connect", "tcp/127.0.0.1:7447", "--auth-dir", "mesh", "--user", "host2"],
+         "not tcp/127.0.0.1:7447"),
+    ]:
+        assert main(flags) == 2, flags
+        err = capsys.readouterr().err
+        assert says in err and err.count("\n") == 1, (flags, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mesh", "plain"]  # a router that connects made nothing
+
+
+def test_the_commands_docs_hosts_md_gives_are_the_tools_own():
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "hosts.md").read_text()
+    commands = [line for block in re.findall(r"```bash\n(.*?)```", doc, re.S) for line in block.splitlines()
+                if line.startswith("dmosim ")]
+    assert len(commands) >= 6
+    for command in commands:
+        verb, *flags = shlex.split(command)[1:]
+        args = build_parser(verb).parse_args([verb, *flags])  # an unknown flag exits here
+        if verb == "router":
+            check_relay_flags(args)

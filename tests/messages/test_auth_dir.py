@@ -1,15 +1,16 @@
 """Credentials on disk (messages/transport/credentials.py): made private whatever the umask, the password file
-holding the password alone, and credentials that someone else could have made or changed refused in one line naming
-the path and what is wrong."""
+holding the password alone, credentials that someone else could have made or changed refused in one line naming
+the path and what is wrong, and a mesh's routers' (docs/hosts.md)."""
 
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
 
-from messages.transport.access import ACL_FILE, PASSWORD_FILE, USERS_FILE, AuthError, read_password
-from messages.transport.credentials import MAX_CERT_DAYS, MAX_READERS, check_private, create_auth_dir
+from messages.transport.access import ACL_FILE, PASSWORD_FILE, ROUTER_CERT_NAME, USERS_FILE, AuthError, read_password
+from messages.transport.credentials import MAX_CERT_DAYS, MAX_HOSTS, MAX_READERS, check_private, create_auth_dir
 
 
 @pytest.fixture
@@ -74,3 +75,40 @@ def test_what_credentials_are_made_for_is_bounded(tmp_path):
     with pytest.raises(AuthError, match=f"at most {MAX_READERS} readers"):
         create_auth_dir(tmp_path / "b", "r1", ["mg1"], readers=readers)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_a_mesh_s_routers_relay_the_whole_run_and_know_the_router_they_connected_to_by_its_certificate(tmp_path):
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    auth = create_auth_dir(tmp_path / "auth", "r1", ["mg1"], tls=True, routers=("host2", "host3"))
+    acl = json.loads((auth / ACL_FILE).read_text())
+    subjects = {s["id"]: s for s in acl["subjects"]}
+    assert subjects["host2"] == {"id": "host2", "usernames": ["host2"], "cert_common_names": ["host2"]}
+    # the router a router connected to has no user name on that link: only the routers' certificate names it
+    assert subjects[ROUTER_CERT_NAME] == {"id": ROUTER_CERT_NAME, "cert_common_names": [ROUTER_CERT_NAME]}
+    for subject in ("host2", "host3", ROUTER_CERT_NAME, "dmo"):
+        (policy,) = [p for p in acl["policies"] if p["subjects"] == [subject]]
+        (rule,) = [r for r in acl["rules"] if r["id"] in policy["rules"]]
+        assert rule["key_exprs"] == ["dmosim/r1/**"] and set(rule["flows"]) == {"ingress", "egress"}
+        assert {"put", "declare_subscriber", "liveliness_token", "query", "reply"} <= set(rule["messages"])
+
+    def common_name(path):
+        cert = x509.load_pem_x509_certificate(path.read_bytes())
+        return cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value
+
+    assert common_name(auth / "cert.pem") == ROUTER_CERT_NAME  # the routers' own, which no process is named
+    assert {common_name(c) for c in auth.glob("*/cert.pem")} == {"dmo", "recorder", "mg1", "host2", "host3"}
+    assert (auth / "host3" / PASSWORD_FILE).is_file() and "host3:" in (auth / USERS_FILE).read_text()
+
+
+def test_a_mesh_needs_tls_and_routers_named_apart(tmp_path):
+    with pytest.raises(AuthError, match="only over mutual TLS"):
+        create_auth_dir(tmp_path / "a", "r1", ["mg1"], routers=("host2",))
+    with pytest.raises(AuthError, match="router name 'mg1' must"):
+        create_auth_dir(tmp_path / "b", "r1", ["mg1"], tls=True, routers=("mg1",))
+    with pytest.raises(AuthError, match="must be unique"):
+        create_auth_dir(tmp_path / "c", "r1", ["mg1"], tls=True, readers=("tap",), routers=("TAP",))
+    with pytest.raises(AuthError, match=f"at most .* {MAX_HOSTS} routers"):
+        create_auth_dir(tmp_path / "d", "r1", ["mg1"], tls=True, routers=[f"h{i}" for i in range(MAX_HOSTS + 1)])
+    assert not any((tmp_path / d).exists() for d in "abcd")
