@@ -38,6 +38,7 @@ TASK_POLL_S = 1.0  # how often a task looks at its lifeline (and at its processe
 COMMAND_STOP_S = 90.0  # how long a stopped `dmosim run` has to stop its own roles and write its files, then SIGKILL
 AGENTS_STOP_S = 5.0  # how long a stopped agent has to leave (Roles.stop_all's grace), then SIGKILL
 CUT = "cut"  # the lifeline's value once the launcher has cut it; before, the number of its beats
+CANCELLED = "cancelled before it started"  # a command's error when it was stopped before its process started
 
 
 class ClusterError(RuntimeError):
@@ -219,6 +220,15 @@ class Lifeline:
         except Exception:  # noqa: BLE001  (the scheduler is gone: the tasks stop when they miss the beats)
             pass
 
+    def remove(self) -> None:
+        """Cut it and take it off the scheduler, once its tasks have ended (one still running stops when it
+        misses the beats)."""
+        self.cut()
+        try:
+            self.variable.delete()
+        except Exception:  # noqa: BLE001  (the scheduler is gone, and the variable with it)
+            pass
+
 
 class Tether:
     """A task's end of a lifeline: ``cut()`` says whether to stop, reading the lifeline by ``read`` (which may fail:
@@ -259,6 +269,8 @@ def run_command(args: list[str], cwd: str, lifeline: str) -> tuple[int, str, str
     it), to its end or until the lifeline is cut; its exit code, stdout and stderr. Stopped, it gets SIGTERM (a
     ``dmosim run`` stops its roles), and SIGKILL to its group after ``COMMAND_STOP_S``."""
     tether = _tether(lifeline)
+    if tether.cut():  # stopped while this task waited for a thread
+        return 1, "", CANCELLED
     process = subprocess.Popen(dmosim_command(*args), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, text=True, env=role_env(), start_new_session=True,
                                cwd=cwd if os.path.isdir(cwd) else None)
@@ -302,6 +314,8 @@ class Commands:
         def poll() -> tuple[int, str, str] | None:
             if not future.done():
                 return None
+            if future.cancelled():
+                return 1, "", CANCELLED
             try:
                 return future.result()
             except Exception as exc:  # noqa: BLE001  (its worker died, or the task failed there)
@@ -311,13 +325,15 @@ class Commands:
 
     def stop(self) -> None:
         """Cancel what has not started, stop what runs, and wait for it to be stopped."""
-        self.lifeline.cut()
+        self.lifeline.cut()  # a task that starts from now on returns at once
         waiting = [f for f in self.futures if not f.done()]
         self.cluster.client.cancel([f for f in waiting if self._queued(f)])
         _await(waiting, COMMAND_STOP_S + TASK_POLL_S + 30)
+        self.lifeline.remove()
 
     def _queued(self, future) -> bool:
-        """Whether the task of ``future`` has not started on a worker (cancelling it then loses nothing)."""
+        """Whether the task of ``future`` is still with the scheduler, given to no worker: cancelled, it is gone at
+        once (one given to a worker returns at once when it starts after the cut)."""
         processing = self.cluster.client.processing()  # worker -> keys under way
         return not any(future.key in keys for keys in processing.values())
 
@@ -348,6 +364,8 @@ def host_agents(agents: list[tuple[str, list[str], str]], modules: tuple[str, ..
     secede()
     tether, reported = _tether(lifeline), Queue(exits)
     codes: dict[str, int | None] = {}
+    if tether.cut():  # the run was over before this task started
+        return {name: None for name, _, _ in agents}
     directory = Path(cwd) if os.path.isdir(cwd) else None
     with Roles() as roles:
         host = roles.fork_host(modules, Path(host_log) if host_log else None) if modules else None
@@ -419,8 +437,10 @@ class RemoteAgents:
                 name, code = self.queue.get(timeout=TASK_POLL_S)
                 self._report(name, code)
                 continue
-            except Exception:  # noqa: BLE001  (Dask's TimeoutError: nothing new)
+            except TimeoutError:  # nothing new
                 pass
+            except Exception:  # noqa: BLE001  (the scheduler out of reach: the tasks' futures will say so)
+                self._done.wait(TASK_POLL_S)
             for future, names in list(self.futures.items()):
                 if future.done():
                     codes = self._codes(future)
@@ -441,6 +461,11 @@ class RemoteAgents:
         self._done.set()
         if self._watcher is not None:
             self._watcher.join()
+        self.lifeline.remove()
+        try:
+            self.queue.close()
+        except Exception:  # noqa: BLE001  (the scheduler is gone, and the queue with it)
+            pass
         codes: dict[str, int | None] = {}
         for future, names in self.futures.items():
             codes.update(self._codes(future) if future.done() else {})

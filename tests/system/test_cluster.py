@@ -2,7 +2,7 @@
 closed; docs/cluster.md). ``dmosim sweep --cluster``: each variant's run is a task on the workers and settles to the
 cent as the same experiment run here. ``dmosim run --cluster --hosting fork``: the agents, forked on the workers,
 settle as that variant's run, whose agents were all on one host. An agent still running when the launcher lets go is
-stopped on its worker."""
+stopped on its worker; a sweep stopped (Ctrl-C) cancels what waits for a worker and stops what runs."""
 
 from __future__ import annotations
 
@@ -10,13 +10,14 @@ import json
 import os
 import queue
 import subprocess
+import time
 
 import pandas as pd
 import pytest
 from test_market_day import ENV, ROOT, dmosim
 
 from dmo.replay.reproduce import differences
-from dmosim.launch.cluster import Cluster, RemoteAgents
+from dmosim.launch.cluster import CANCELLED, Cluster, Commands, RemoteAgents
 from dmosim.launch.processes import free_port, wait_for_line
 from messages.keys import new_run_id
 from messages.recording import read_recording
@@ -125,7 +126,29 @@ def test_an_agent_still_running_when_the_launcher_lets_go_is_stopped_on_its_work
         wait_for_line(log, "connecting to tcp/127.0.0.1", 300, lambda: True)
     assert remote.stop() == {"mg1": -15}  # SIGTERM from its task, once the launcher cut the lifeline
     assert exits.get_nowait() == ("mg1", -15)
-    assert not [pid for pid in os.listdir("/proc") if pid.isdigit() and run_id in _cmdline(pid)]
+    assert _running(run_id) == []
+
+
+def test_a_sweep_stopped_cancels_what_waits_and_stops_what_runs(cluster):
+    run_id = new_run_id()
+    waits = ["agent", "--run-id", run_id, "--id", "mg1", "--connect", f"tcp/127.0.0.1:{free_port()}",
+             "--connect-timeout", "600", "--insecure"]
+    commands = Commands(Cluster(cluster, cluster.scheduler.address, "127.0.0.1"))
+    polls = [commands.start(waits, f"dmosim-test-{i}") for i in range(3)]  # two workers of one thread: one waits
+    deadline = time.monotonic() + 300
+    while len(_running(run_id)) < 2:
+        assert time.monotonic() < deadline, "the commands never started"
+        time.sleep(0.1)  # paces the look at /proc: nothing to wait on but the processes appearing
+    commands.stop()
+    ended = [poll() for poll in polls]
+    assert sorted(code for code, _, _ in ended) == [-15, -15, 1]  # two stopped by SIGTERM, and one that never ran:
+    assert (1, "", CANCELLED) in ended
+    assert _running(run_id) == []
+
+
+def _running(run_id: str) -> list[str]:
+    """The processes of this machine that have ``run_id`` on their command line."""
+    return [pid for pid in os.listdir("/proc") if pid.isdigit() and run_id in _cmdline(pid)]
 
 
 def _cmdline(pid: str) -> str:
