@@ -31,6 +31,7 @@ INSTALL = "pip install 'dmosim[cluster]'"
 SCHEMES = ("tcp", "tls")  # the Dask transports a scheduler is reached by here (tls with Dask's own configuration)
 CONNECT_TIMEOUT_S = 20.0  # how long the launcher tries to reach the scheduler
 WORKERS_TIMEOUT_S = 60.0  # how long a cluster with no worker yet (batch jobs still in the queue) is waited for
+REACH_TIMEOUT_S = 10.0  # how long a worker tries to open a connection to this machine's DMO
 MAX_SCHEDULER_FILE = 65536  # bytes of a scheduler file (dask scheduler --scheduler-file writes about 300)
 BEAT_S = 2.0  # the launcher's beat on a lifeline
 LOST_AFTER_S = 60.0  # a lifeline not beaten for this long: the launcher is gone, and the task stops its processes
@@ -42,7 +43,8 @@ CANCELLED = "cancelled before it started"  # a command's error when it was stopp
 
 
 class ClusterError(RuntimeError):
-    """The cluster cannot be used now (its scheduler does not answer, it has no worker, a task was lost): exit 1."""
+    """The cluster cannot be used now (its scheduler does not answer, it has no worker, a worker cannot reach this
+    machine's DMO): a runtime failure, exit 1."""
 
 
 class ClusterUsage(ValueError):
@@ -83,6 +85,17 @@ class Cluster:
             raise ClusterUsage(f"{directory}: {len(blind)} of the cluster's {len(seen)} workers do not see it "
                                f"({blind[0]}...): the directory must be on a filesystem every worker shares "
                                "(docs/cluster.md)")
+
+    def check_reaches(self, port: int) -> None:
+        """``ClusterError`` unless every worker can open a TCP connection to this machine's ``host`` at ``port``
+        (the DMO's), so that a wrong ``--advertise`` is told at once, not by agents that time out."""
+        answers = self.client.run(reaches, self.host, port)
+        cut = {w: why for w, why in sorted(answers.items()) if why is not None}
+        if cut:
+            worker, why = next(iter(cut.items()))
+            raise ClusterError(f"{len(cut)} of the cluster's {len(answers)} workers cannot reach this machine's DMO at "
+                               f"{_join(self.host, port)} ({worker}: {why}); give --advertise the address they reach "
+                               "this machine at (docs/cluster.md)")
 
     def close(self) -> None:
         self.client.close()
@@ -173,6 +186,15 @@ def read_token(path: str) -> str | None:
         return Path(path).read_text()
     except OSError:
         return None
+
+
+def reaches(host: str, port: int) -> str | None:
+    """On a worker: None if it can open a TCP connection to ``host`` at ``port``, else why not."""
+    try:
+        with socket.create_connection((host, port), timeout=REACH_TIMEOUT_S):
+            return None
+    except OSError as exc:
+        return exc.strerror or str(exc)
 
 
 def deal(names: list[str], workers: list[str]) -> dict[str, list[str]]:

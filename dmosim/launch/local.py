@@ -109,6 +109,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         fork = e.agents.hosting == "fork"
         host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if fork and remote is None else None
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
+        if cluster:
+            cluster.check_reaches(port)
         observer_config = BusConfig(mode="client", connect=(local,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
             watch = _Watch(roles, faults, say, tick)

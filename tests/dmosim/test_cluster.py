@@ -6,6 +6,7 @@ Runs on a real Dask cluster are in tests/system/test_cluster.py."""
 from __future__ import annotations
 
 import json
+import socket
 import sys
 from pathlib import Path
 
@@ -87,13 +88,13 @@ def test_a_scheduler_file_gives_its_address(tmp_path):
 
 
 class Workers:
-    """A client whose ``run`` calls the function as each worker would: ``blind`` ones cannot read the file."""
+    """A client whose ``run`` calls the function here as each worker would: ``blind`` ones cannot read the file."""
 
-    def __init__(self, blind: set[str]):
+    def __init__(self, blind: set[str] = frozenset()):
         self.blind = blind
 
-    def run(self, function, path):
-        return {w: (None if w in self.blind else function(path)) for w in ("tcp://w1:1", "tcp://w2:1")}
+    def run(self, function, *args):
+        return {w: (None if w in self.blind else function(*args)) for w in ("tcp://w1:1", "tcp://w2:1")}
 
 
 def test_every_worker_must_see_the_directory(tmp_path):
@@ -102,6 +103,17 @@ def test_every_worker_must_see_the_directory(tmp_path):
         Cluster(Workers({"tcp://w2:1"}), "tcp://s:1", "127.0.0.1").check_sees(tmp_path)
     assert list(tmp_path.iterdir()) == []  # the probe file is gone either way
     assert read_token(str(tmp_path / "missing")) is None
+
+
+def test_every_worker_must_reach_the_dmo():
+    with socket.socket() as listening:
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        Cluster(Workers(), "tcp://s:1", "127.0.0.1").check_reaches(listening.getsockname()[1])
+    port = free_port()
+    with pytest.raises(ClusterError, match=rf"2 workers cannot reach this machine's DMO at 127.0.0.1:{port} "
+                                           r"\(tcp://w1:1: Connection refused\); give --advertise"):
+        Cluster(Workers(), "tcp://s:1", "127.0.0.1").check_reaches(port)
 
 
 def test_a_scheduler_nobody_runs_is_a_runtime_failure():

@@ -1,7 +1,7 @@
 """``--cluster`` on a real Dask cluster of this machine (``distributed.LocalCluster``, two worker processes, always
 closed; docs/cluster.md). ``dmosim sweep --cluster``: each variant's run is a task on the workers and settles to the
-cent as the same experiment run here. ``dmosim run --cluster --hosting fork``: the agents, forked on the workers,
-settle as that variant's run, whose agents were all on one host. An agent still running when the launcher lets go is
+cent as the same experiment run here. ``dmosim run --cluster --hosting fork``: the agents, forked on the workers and
+connected to the DMO where ``--advertise`` says, settle as that variant's run, whose agents were all on one host. An agent still running when the launcher lets go is
 stopped on its worker; a sweep stopped (Ctrl-C) cancels what waits for a worker and stops what runs."""
 
 from __future__ import annotations
@@ -102,14 +102,16 @@ def test_agents_forked_on_the_workers_settle_as_agents_on_one_host(cluster, swee
     variant = pd.read_csv(summary["table"]).query("`market.penalty` == 150")["label"].iloc[0]
     on_one_host = json.loads((tmp / "sweep" / variant / "result.json").read_text())
     out = subprocess.run(dmosim("run", str(tmp / "sweep" / "experiments" / f"{variant}.toml"), "--hosting", "fork",
-                                "--cluster", cluster.scheduler.address, "--out", str(tmp_path / "run"), "--json",
-                                "--quiet"), capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+                                "--cluster", cluster.scheduler.address, "--advertise", "127.0.0.2", "--out",
+                                str(tmp_path / "run"), "--json", "--quiet"),
+                         capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     spread = json.loads(out.stdout)
 
     assert spread["settlement"] == on_one_host["settlement"] and spread["awards"] == on_one_host["awards"]
     workers = sorted(cluster.scheduler_info()["workers"])
     assert spread["cluster"]["agents"] == {workers[0]: ["mg1"], workers[1]: ["mg2"]}
+    assert spread["cluster"]["dmo"].startswith("tcp/127.0.0.2:")  # where --advertise said the workers reach it
     logs = tmp_path / "run" / "logs"
     for i, agent in enumerate(("mg1", "mg2"), start=1):  # each worker's host forked its agent, and their logs are here
         assert f"{agent} registered" in (logs / f"{agent}.log").read_text()
