@@ -453,7 +453,9 @@ class RemoteAgents:
         self.exits.put((name, code))
 
     def _watch(self) -> None:
-        """Pass each exit the tasks report on, and those of agents whose task ended without reporting them."""
+        """Pass each exit the tasks report on, and those of agents whose task ended without reporting them or whose
+        worker left the cluster (its task would wait for it forever: it may run there only)."""
+        worker_of = {name: worker for worker, names in self.placed.items() for name in names}
         while not self._done.is_set() and len(self.reported) < len(self.names):
             try:
                 name, code = self.queue.get(timeout=TASK_POLL_S)
@@ -468,6 +470,12 @@ class RemoteAgents:
                     codes = self._codes(future)
                     for name in names:
                         self._report(name, codes.get(name) if codes.get(name) is not None else -signal.SIGKILL)
+            try:
+                present = self.cluster.client.scheduler_info()["workers"]
+            except Exception:  # noqa: BLE001  (the scheduler out of reach: the futures will say so)
+                continue
+            for name in [n for n, worker in worker_of.items() if worker not in present]:
+                self._report(name, -signal.SIGKILL)
 
     @staticmethod
     def _codes(future) -> dict:

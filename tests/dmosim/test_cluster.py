@@ -1,7 +1,7 @@
 """``--cluster`` without a cluster (docs/cluster.md): how agents are dealt to workers, when a task stops on its
 lifeline, what the flag accepts, the check that workers see a directory, and the one-line errors of ``dmosim run``
 and ``dmosim sweep`` (no Dask installed, a malformed address, a scheduler nobody runs, a fault it cannot fire).
-Runs on a real Dask cluster are in tests/system/test_cluster.py."""
+Runs on a real Dask cluster are in tests/system/test_on_a_cluster.py."""
 
 from __future__ import annotations
 
