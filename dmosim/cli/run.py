@@ -9,6 +9,8 @@ DMO's result, the recording as tables and a figure, and the roles' logs (dmosim/
 from __future__ import annotations
 
 import argparse
+import contextlib
+import re
 import signal
 import sys
 from pathlib import Path
@@ -23,7 +25,9 @@ from ..console import Progress, UsageError, print_json
 from ..experiment.rundir import RunDir, RunDirError
 from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, settled_by,
                                with_settings)
+from ..launch.cluster import Cluster
 from ..launch.faults import Fault, parse_fault
+from .placement import add_cluster_flag, check_cluster, check_shared, connected
 from ..launch.local import RoleFailed, run_locally
 from ..launch.roles import fleet_written, resolved, strategy_of
 from ..results.verdict import one_line
@@ -60,6 +64,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     out.add_argument("--check", action="store_true",
                      help="check the inputs (experiment, cases, fleet, faults, paths, --out) and exit without running")
     add_trust_flag(p)
+    place = p.add_argument_group("placement (docs/cluster.md)")
+    add_cluster_flag(place, "the agents (the DMO, the recorder and this launcher stay here)")
+    place.add_argument("--advertise", metavar="HOST",
+                       help="with --cluster: the address of this machine that the workers reach the DMO at (default: "
+                            "the one this machine reaches the scheduler from)")
     p.add_argument("--tls", action="store_true",
                    help="also connect the roles over mutual TLS with certificates made for this run (the per-run "
                         "passwords and access control are always on; docs/security.md)")
@@ -156,6 +165,7 @@ def run(args) -> int:
     recorder_faults = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent == "recorder"]
     if args.no_record and recorder_faults:
         raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
+    _check_placement(args, experiment, fleet)
     if args.check:
         check_out(args)
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
@@ -171,6 +181,13 @@ def run(args) -> int:
                  if experiment.market.import_curve or experiment.market.export_curve else "")
               + f"{len(experiment.faults)} fault(s)")
         return 0
+    # The cluster is reached before the run directory is made: one that does not answer leaves nothing behind.
+    with connected(args, args.advertise) if args.cluster else contextlib.nullcontext() as cluster:
+        return _launch(args, experiment, record_to, cluster)
+
+
+def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Cluster | None) -> int:
+    """The run itself, into its new run directory; its exit code."""
     run_id = new_run_id()
     try:
         rundir = RunDir.make(args.out, run_id, args.overwrite)
@@ -182,8 +199,10 @@ def run(args) -> int:
     say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
     signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
     try:
+        if cluster:
+            check_shared(cluster, rundir.root)
         result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say,
-                             tick=tick)
+                             tick=tick, cluster=cluster)
     except RoleFailed as exc:
         if bar:
             bar.close()
@@ -201,6 +220,21 @@ def run(args) -> int:
         print(f"failed: {one_line(result['verdict']['problems'])}", file=sys.stderr)
         return 1  # as a runtime failure: the same exit as any run that went wrong
     return 0
+
+
+def _check_placement(args, experiment: Experiment, fleet) -> None:
+    """``--cluster`` and ``--advertise`` as given, before anything starts: a process fault on an agent needs the
+    agent's process here (docs/cluster.md, "What is supported")."""
+    if args.advertise is not None and args.cluster is None:
+        raise UsageError("--advertise goes with --cluster")
+    if args.advertise is not None and not re.fullmatch(r"[A-Za-z0-9.:_-]{1,253}", args.advertise):
+        raise UsageError(f"--advertise {args.advertise!r}: expected a host name or an IP address")
+    check_cluster(args)
+    agents = {m.id for m in fleet}
+    remote = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent in agents]
+    if args.cluster and remote:
+        raise UsageError(f"--fault {remote[0]}: with --cluster the agents run on the cluster's workers, where this "
+                         "launcher cannot signal them; kill and restart faults may name the dmo or the recorder")
 
 
 def _interrupt(*_):

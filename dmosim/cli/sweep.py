@@ -5,12 +5,14 @@ time; then one table of every run and agent (``sweep.csv``) and its figure (``sw
 Every variant is validated before the first run starts. A run that fails, or ends with a verdict that is not ok
 (docs/experiments.md, "The result"), is reported and keeps a row saying so (``status`` ``failed`` or
 ``untrusted``); the others go on, and the sweep exits 1 at the end. Ctrl-C stops every run under way (each stops
-its roles).
+its roles). With ``--cluster`` each run is a task on the workers of a Dask cluster instead of a process here
+(dmosim/launch/cluster.py, docs/cluster.md), into the same directories, which the workers must share.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import subprocess
@@ -23,10 +25,12 @@ from ..console import Progress, UsageError, print_json
 from ..experiment.rundir import RUNS, RunDirError, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
+from ..launch.cluster import Commands
 from ..launch.processes import dmosim_command, role_env
 from ..launch.roles import resolved, strategy_of
 from .checks import Checked, check_inputs, strategy_source
 from .flags import check_out
+from .placement import add_cluster_flag, check_cluster, check_shared, connected
 
 HELP = "run an experiment once per combination of swept settings, into one table and figure"
 
@@ -38,7 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "combination runs; values are TOML: numbers, true/false, strings, arrays like [1,0.8])")
     p.add_argument("--parallel", type=integer(1, MAX_VARIANTS), metavar="N",
                    help="runs at a time (default: what the machine's cores fit: cores / agents of a run, at least "
-                        "1; each run is a DMO and its agents, each agent solving on a core)")
+                        "1; each run is a DMO and its agents, each agent solving on a core; with --cluster, the "
+                        "workers' threads in all)")
+    add_cluster_flag(p, "each variant's dmosim run")
     p.add_argument("--out", metavar="DIR",
                    help="the sweep's directory: one run directory per variant, sweep.csv (sweep-seeds.csv), sweep.png "
                         "(default: runs/sweep-<experiment name>-<time>)")
@@ -65,7 +71,7 @@ def run(args) -> int:
         except ExperimentError as exc:
             raise UsageError(f"{v.label}: {exc}") from None
     keys = list(runs[0].settings)
-    parallel = args.parallel or max(1, (os.cpu_count() or 1) // agents)
+    check_cluster(args)
     if args.check:
         check_out(args)
         print(f"dmosim sweep: {len(runs)} valid run(s) of {args.experiment}, sweeping {', '.join(keys)}:")
@@ -73,19 +79,27 @@ def run(args) -> int:
             print(f"  {v.label}")
         return 0
     stamp = time.strftime("%Y%m%dT%H%M%S")
-    try:
-        root = claim_directory(Path(args.out) if args.out else RUNS / f"sweep-{experiment.name}-{stamp}",
-                               args.overwrite)
-    except RunDirError as exc:
-        raise UsageError(str(exc)) from None
-    bar = None if args.quiet else Progress("runs")
-    say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
-    say(f"sweep of {args.experiment}: {len(runs)} run(s), {parallel} at a time, into {root}")
-    try:
-        rows, failed = _run_all(runs, root, parallel, say, tick)
-    finally:
-        if bar:
-            bar.close()
+    # The cluster is reached before the sweep's directory is claimed: one that does not answer leaves nothing behind.
+    with connected(args) if args.cluster else contextlib.nullcontext() as cluster:
+        try:
+            root = claim_directory(Path(args.out) if args.out else RUNS / f"sweep-{experiment.name}-{stamp}",
+                                   args.overwrite)
+        except RunDirError as exc:
+            raise UsageError(str(exc)) from None
+        if cluster:
+            check_shared(cluster, root)
+            commands, parallel = Commands(cluster), args.parallel or cluster.threads()
+            where = f" on the cluster at {args.cluster} ({len(cluster.workers())} workers, {cluster.threads()} threads)"
+        else:
+            commands, parallel, where = LocalCommands(), args.parallel or max(1, (os.cpu_count() or 1) // agents), ""
+        bar = None if args.quiet else Progress("runs")
+        say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
+        say(f"sweep of {args.experiment}: {len(runs)} run(s), {parallel} at a time{where}, into {root}")
+        try:
+            rows, failed = _run_all(runs, root.resolve(), parallel, commands, say, tick)
+        finally:
+            if bar:
+                bar.close()
 
     import pandas as pd  # noqa: PLC0415  (pandas, matplotlib: once the runs are done)
 
@@ -130,10 +144,41 @@ def _portable(experiment: Experiment) -> Experiment:
         update={"fleet": str(Path(fleet).resolve())})})
 
 
-def _run_all(runs: list[Variant], root: Path, parallel: int, say, tick) -> tuple[list[dict], list[str]]:
-    """Every variant as ``dmosim run``, at most ``parallel`` at once; the table's rows and the failed labels.
-    ``tick(runs done, runs in all, what is under way)`` follows them (``dmosim.console.Progress.update``); ``say``
-    reports a run that did not end ok."""
+class LocalCommands:
+    """``dmosim`` commands as processes of this machine, each watched by ``poll``, all stopped by ``stop``: what
+    ``dmosim.launch.cluster.Commands`` does on a cluster's workers."""
+
+    def __init__(self):
+        self.processes: list[subprocess.Popen] = []
+
+    def start(self, args: list[str], name: str):
+        """Start ``dmosim ARGS``; a function that returns None while it runs, then its exit code, stdout and stderr."""
+        process = subprocess.Popen(dmosim_command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                   env=role_env())
+        self.processes.append(process)
+
+        def poll() -> tuple[int, str, str] | None:
+            if process.poll() is None:
+                return None
+            out, err = process.communicate()
+            return process.returncode, out, err
+
+        return poll
+
+    def stop(self) -> None:
+        """Stop every command still running, and wait for it: ``dmosim run`` stops its roles on SIGTERM."""
+        running = [p for p in self.processes if p.poll() is None]
+        for process in running:
+            process.terminate()
+        for process in running:
+            process.wait()
+
+
+def _run_all(runs: list[Variant], root: Path, parallel: int, commands: LocalCommands | Commands, say,
+             tick) -> tuple[list[dict], list[str]]:
+    """Every variant as ``dmosim run`` started by ``commands``, at most ``parallel`` at once; the table's rows and
+    the failed labels. ``tick(runs done, runs in all, what is under way)`` follows them
+    (``dmosim.console.Progress.update``); ``say`` reports a run that did not end ok."""
     from ..results.sweeps import sweep_rows  # noqa: PLC0415
 
     (root / "experiments").mkdir(exist_ok=True)
@@ -144,23 +189,23 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say, tick) -> tuple
                 v = pending.pop(0)
                 file = root / "experiments" / f"{v.label}.toml"
                 file.write_text(to_toml(v.experiment))
-                argv = dmosim_command("run", str(file), "--out", str(root / v.label), "--json", "--quiet")
-                process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                           env=role_env())
-                running[v.label] = (v, process, time.monotonic())
+                poll = commands.start(["run", str(file), "--out", str(root / v.label), "--json", "--quiet"],
+                                      f"dmosim-sweep-{v.label}")
+                running[v.label] = (v, poll, time.monotonic())
                 tick(done, len(runs), f"started {v.label}")
-            for label, (v, process, started) in list(running.items()):
-                if process.poll() is None:
+            for label, (v, poll, started) in list(running.items()):
+                ended = poll()
+                if ended is None:
                     continue
-                out, err = process.communicate()
+                code, out, err = ended
                 del running[label]
                 done += 1
                 seconds = time.monotonic() - started
                 result = _result(out)
-                if process.returncode and (result or {}).get("verdict", {}).get("ok", True):
+                if code and (result or {}).get("verdict", {}).get("ok", True):
                     result = None  # it went wrong otherwise than by its verdict: nothing of it to table
                 rows[label] = sweep_rows(v.settings, label, str((root / label).resolve()), seconds, result,
-                                         (err.strip().splitlines() or [f"exit {process.returncode}"])[-1])
+                                         (err.strip().splitlines() or [f"exit {code}"])[-1])
                 status = rows[label][0]["status"]
                 if status == "ok":
                     tick(done, len(runs), f"{label} done in {seconds:.0f} s")
@@ -170,12 +215,8 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, say, tick) -> tuple
                     say(f"{done}/{len(runs)} {status.upper()}: {label} after {seconds:.0f} s: "
                         f"{rows[label][0]['error']}")
             time.sleep(0.2)
-    except BaseException:
-        for _, process, _ in running.values():
-            process.terminate()  # dmosim run stops its roles on SIGTERM
-        for _, process, _ in running.values():
-            process.wait()
-        raise
+    finally:  # Ctrl-C, or any failure here: nothing of the sweep goes on (once all are over, a no-op)
+        commands.stop()
     return [row for v in runs for row in rows[v.label]], failed
 
 

@@ -1,7 +1,8 @@
 """A run on this machine: the DMO, one process per agent and the recorder, started from an experiment over Zenoh on
 loopback with credentials made for the run, watched (process faults fire on the DMO's clock) and always stopped.
 With ``agents.hosting = "fork"`` each agent's process is forked from one host that has imported the agent's code
-(host.py), instead of starting a Python of its own; the agents run the same command either way.
+(host.py), instead of starting a Python of its own; the agents run the same command either way. With a ``cluster``
+the agents run on its workers instead (cluster.py), the DMO listening for them on every interface of this machine.
 
 ``run_locally`` returns the DMO's result (``RunResult.report``: what the agents realised is in it, from their
 ``agent_day`` messages, never from their logs) with where the recording went and the run's verdict
@@ -11,6 +12,7 @@ recorder is an observer: if it fails, the days go on and settle, and the tables 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import queue
 import signal
@@ -18,7 +20,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterable
 
 from dmo.replay.reproduce import differences, statements_of
 from messages import HOURS, Clock, Schedule
@@ -26,7 +28,7 @@ from messages.keys import new_run_id
 from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import Bus, BusConfig
 from messages.transport.access import bundle_settings
-from messages.transport.credentials import create_auth_dir
+from messages.transport.credentials import DEFAULT_HOSTS, create_auth_dir
 from scenarios.case import case_path
 from scenarios.fleet import FleetMember
 
@@ -34,6 +36,7 @@ from ..experiment.rundir import RunDir
 from ..experiment.spec import Experiment, load_experiment, to_toml
 from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
+from .cluster import Cluster, RemoteAgents, endpoint
 from .faults import Fault, parse_fault
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
 from .roles import fleet_of, fleet_written, resolved
@@ -82,9 +85,10 @@ def roles_memory(roles: Roles) -> dict[str, dict]:
 class RoleFailed(RuntimeError):
     """A role of the run failed; ``names`` are the roles, and the message says where their logs are."""
 
-    def __init__(self, names: list[str], roles: Roles):
+    def __init__(self, names: list[str], roles: Roles, logs: Path):
         self.names = names
-        super().__init__("; ".join(f"{n} failed (its log: {roles.roles[n].log})" for n in names))
+        where = {n: roles.roles[n].log if n in roles.roles else logs / f"{n}.log" for n in names}  # remote: its file
+        super().__init__("; ".join(f"{n} failed (its log: {where[n]})" for n in names))
 
 
 def run_experiment(experiment: Experiment | str | Path, out: str | Path | None = None, *, overwrite: bool = False,
@@ -101,8 +105,10 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
 
 def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
                 repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None,
-                tick: Callable[[int, int, str], None] | None = None) -> dict:
+                tick: Callable[[int, int, str], None] | None = None, cluster: Cluster | None = None) -> dict:
     """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
+    with ``cluster``, the agents run on its workers (no process fault may name one: they are not signalled from
+    here), which must see the run directory;
     ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
     with before its result is written. ``tick(hours done, hours in all, where the clock is)`` follows the DMO's
     clock (``dmosim.console.Progress.update``); without it, ``say`` gets a line per clock message."""
@@ -112,21 +118,31 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     began = time.monotonic()
     rundir.experiment.write_text(to_toml(e))
-    port = free_port()
-    endpoint = f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
+    port, scheme = free_port(), "tls" if tls else "tcp"
+    local = endpoint(scheme, "127.0.0.1", port)  # where the roles of this machine connect
+    # With a cluster the DMO listens on every interface, and the agents connect where the workers reach this machine.
+    listen, reach = ((local, local) if cluster is None else
+                     (endpoint(scheme, "::" if ":" in cluster.host else "0.0.0.0", port),
+                      endpoint(scheme, cluster.host, port)))
     logs = rundir.logs
     auth = create_auth_dir(logs / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
+                           hosts=tuple(dict.fromkeys([*DEFAULT_HOSTS, *([cluster.host] if cluster else [])])),
                            valid_days=2, dmo_client=False, overwrite=True)  # the DMO is the router
-    common = ["--run-id", run_id, "--experiment", str(rundir.experiment), "--auth-dir", str(auth)]
-    say(f"run {run_id}: DMO and {len(fleet)} agents on {endpoint}, {e.days} day(s) from {e.market_day}; "
-        f"writing to {rundir.root}" + ("" if record else "; not recording"))
-    with Roles() as roles:
+    # absolute paths: an agent on a cluster's worker starts in another directory
+    common = ["--run-id", run_id, "--experiment", str(rundir.experiment.resolve()), "--auth-dir", str(auth.resolve())]
+    say(f"run {run_id}: DMO and {len(fleet)} agents on {reach}"
+        + (f", the agents on the cluster at {cluster.address}" if cluster else "")
+        + f", {e.days} day(s) from {e.market_day}; writing to {rundir.root}" + ("" if record else "; not recording"))
+    with Roles() as roles, _remote(cluster, run_id, roles) as remote:
         roles.start("dmo", dmosim_command(
-            "dmo", *common, "--listen", endpoint, "--result", str(rundir.result),
+            "dmo", *common, "--listen", listen, "--result", str(rundir.result),
             "--journal", str(logs / "dmo.journal"), *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
-        host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if e.agents.hosting == "fork" else None
+        fork = e.agents.hosting == "fork"
+        host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if fork and remote is None else None
         wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
-        observer_config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, OBSERVER))
+        if cluster:
+            cluster.check_reaches(port)
+        observer_config = BusConfig(mode="client", connect=(local,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
             watch = _Watch(roles, faults, say, tick)
             observer.subscribe(observer.keys.clock(), watch.on_clock)
@@ -135,20 +151,27 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                 # The DMO waits for the recorder before its first message; the agents start once that message is
                 # out, so the recording has the run from its first message.
                 roles.start("recorder", dmosim_command(
-                    "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", endpoint,
+                    "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", local,
                     "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
-            agents = [(m.id, dmosim_command("agent", *common, "--id", m.id, "--connect", endpoint, "--lease",
-                                            repr(AGENT_LEASE_S)), logs / f"{m.id}.log") for m in fleet]
-            alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
-            for group in groups(agents, e.agents.per_process if host is not None else 1, alone):
-                if len(group) > 1:
-                    roles.start_group(host, group)
-                else:
-                    roles.start(group[0][0], group[0][1], log=group[0][2], host=host)
-            failed = wait_for_run(roles, watch)
+            agents = [(m.id, ["agent", *common, "--id", m.id, "--connect", reach, "--lease", repr(AGENT_LEASE_S)],
+                       (logs / f"{m.id}.log").resolve()) for m in fleet]
+            if remote is None:
+                alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
+                for group in groups(agents, e.agents.per_process if host is not None else 1, alone):
+                    commands = [(name, dmosim_command(*args), log) for name, args, log in group]
+                    if len(commands) > 1:
+                        roles.start_group(host, commands)
+                    else:
+                        roles.start(commands[0][0], commands[0][1], log=commands[0][2], host=host)
+            else:
+                placed = remote.start(agents, AGENT_MODULES if fork else None,
+                                      lambda i: (logs / f"{HOST}-{i + 1}.log").resolve())
+                say(f"agents on {len(placed)} worker(s): "
+                    + "; ".join(f"{w}: {', '.join(names)}" for w, names in placed.items()))
+            failed = wait_for_run(roles, watch, remote=remote.names if remote else ())
         if failed:
-            raise RoleFailed(failed, roles)
+            raise RoleFailed(failed, roles, logs)
         recorder = _stop_recorder(roles, watch, faults) if record else None
         restarts = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
     result = json.loads(rundir.result.read_text())
@@ -157,6 +180,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     result.update(experiment=e.name, run_dir=str(rundir.root.resolve()), logs=str(logs.resolve()),
                   recording=str(record.resolve()) if record else None, faults=[str(f) for f in parsed],
                   restarts=restarts)
+    if remote is not None:
+        result["cluster"] = {"scheduler": cluster.address, "dmo": reach, "agents": remote.placed}
     # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.
     rec, complete = None, False
     if record:
@@ -176,6 +201,11 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     result["verdict"] = verdict(found)
     rundir.result.write_text(json.dumps(result, indent=2) + "\n")
     return result
+
+
+def _remote(cluster: Cluster | None, run_id: str, roles: Roles) -> RemoteAgents | contextlib.nullcontext:
+    """The run's agents on the cluster's workers, stopped on leaving; without a cluster, nothing."""
+    return RemoteAgents(cluster, run_id, roles.exits) if cluster else contextlib.nullcontext()
 
 
 def reproduction(source: str | Path, again: Recording, say: Callable[[str], None] = lambda text: None) -> dict:
@@ -288,8 +318,10 @@ def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, dict]
                  "complete": rec.complete and recorder is None, "recorder": recorder}
 
 
-def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0) -> list[str]:
+def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Iterable[str] = ()) -> list[str]:
     """Block on process exits until the DMO is done and the agents have left; return the names that failed.
+    ``remote`` names agents that are not among ``roles`` (on a cluster's workers) whose exits come on ``roles.exits``
+    all the same.
 
     An agent that exits non-zero on its own stops the run. One killed on purpose is the DMO's problem: the day
     goes on and settles it by the missing-data rule. Once the DMO is done, the agents have ``leave_s`` to leave;
@@ -298,13 +330,13 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0) -> list[str
     what it did before is settled, so it is stopped. The recorder is an observer: whenever it exits, the run goes
     on (the DMO needs it only before its first message) and ``watch.recorder_exit`` notes when.
     """
-    pending = set(roles.roles) - {"recorder"}
+    pending = set(roles.roles) - {"recorder"} | set(remote)
     while pending:
         timeout = leave_s if "dmo" not in pending else None
         try:
             name, code = roles.exits.get(timeout=timeout)
         except queue.Empty:
-            late = sorted(n for n in pending if roles.roles[n].restarts)
+            late = sorted(n for n in pending if n in roles.roles and roles.roles[n].restarts)
             if late:
                 watch.say(f"{', '.join(late)} restarted after the run had ended: stopped")
             return sorted(pending - set(late))
@@ -314,7 +346,7 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0) -> list[str
                       "its tables will come from the DMO's journal")
             continue
         pending.discard(name)
-        if code != 0 and not roles.roles[name].killed_on_purpose:
+        if code != 0 and not (name in roles.roles and roles.roles[name].killed_on_purpose):
             return [name]
     return []
 

@@ -1,0 +1,160 @@
+"""``--cluster`` on a real Dask cluster of this machine (``distributed.LocalCluster``, two worker processes, always
+closed; docs/cluster.md). ``dmosim sweep --cluster``: each variant's run is a task on the workers and settles to the
+cent as the same experiment run here. ``dmosim run --cluster --hosting fork``: the agents, forked on the workers and
+connected to the DMO where ``--advertise`` says, settle as that variant's run, whose agents were all on one host. An agent still running when the launcher lets go is
+stopped on its worker; a sweep stopped (Ctrl-C) cancels what waits for a worker and stops what runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import subprocess
+import time
+
+import pandas as pd
+import pytest
+from test_market_day import ENV, ROOT, dmosim
+
+from dmo.replay.reproduce import differences
+from dmosim.launch.cluster import CANCELLED, Cluster, Commands, RemoteAgents
+from dmosim.launch.processes import free_port, wait_for_line
+from messages.keys import new_run_id
+from messages.recording import read_recording
+
+distributed = pytest.importorskip("distributed")  # the test extra installs it; the cluster extra for users
+
+EXPERIMENT = """name = "tiny"
+market_day = "2026-07-01"
+[agents]
+count = 2
+[market]
+subperiods = 1
+penalty = {penalty}
+[schedule]
+scenarios = 1
+gap = 0.05
+time_limit = 60.0
+[deadlines]
+registration = 60.0
+bid = 120.0
+schedule = 120.0
+hour = 60.0
+"""
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, scheduler_port=0,
+                                  dashboard_address=None) as local, distributed.Client(local,
+                                                                                     set_as_default=False) as client:
+        client.get_task_stream()  # from now on the scheduler keeps a record of each task: where it ran
+        yield client
+
+
+@pytest.fixture(scope="module")
+def sweep(cluster, tmp_path_factory):
+    """A sweep of penalty 0 and 150 on the cluster, and beside it the same experiment at penalty 0 run here."""
+    tmp = tmp_path_factory.mktemp("cluster")
+    for penalty in (0, 150):
+        (tmp / f"penalty-{penalty}.toml").write_text(EXPERIMENT.format(penalty=float(penalty)))
+    runs = {"sweep": subprocess.Popen(dmosim("sweep", str(tmp / "penalty-0.toml"), "--set", "market.penalty=0,150",
+                                             "--cluster", cluster.scheduler.address, "--out", str(tmp / "sweep"),
+                                             "--json"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     cwd=ROOT, env=ENV),
+            "here": subprocess.Popen(dmosim("run", str(tmp / "penalty-0.toml"), "--out", str(tmp / "here"), "--json",
+                                            "--quiet"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     cwd=ROOT, env=ENV)}
+    try:
+        out = {name: p.communicate(timeout=900) for name, p in runs.items()}
+    finally:
+        for p in runs.values():
+            if p.poll() is None:
+                p.terminate()  # the sweep cancels its tasks and stops its runs, the run its roles
+                p.wait()
+    for name, p in runs.items():
+        assert p.returncode == 0, f"{name}: {out[name][1][-3000:]}"
+    return tmp, json.loads(out["sweep"][0]), json.loads(out["here"][0]), out["sweep"][1]
+
+
+def test_a_sweep_on_a_cluster_runs_each_variant_there_and_settles_as_a_run_here(cluster, sweep):
+    tmp, summary, here, progress = sweep
+    assert f"2 run(s), 2 at a time on the cluster at {cluster.scheduler.address} (2 workers, 2 threads)" in progress
+    # each variant was a task of the cluster's workers
+    ran = {t["key"].rsplit("-", 1)[0]: t["worker"] for t in cluster.get_task_stream()
+           if str(t["key"]).startswith("dmosim-sweep-")}
+    table = pd.read_csv(summary["table"])
+    assert set(ran) == {f"dmosim-sweep-{label}" for label in table["label"]}
+    assert set(ran.values()) <= set(cluster.scheduler_info()["workers"])
+    assert summary["failed"] == [] and summary["untrusted"] == [] and list(table["status"]) == ["ok"] * 4
+    assert (tmp / "sweep" / "sweep.png").read_bytes()[:4] == b"\x89PNG"
+
+    first = table[table["market.penalty"] == 0].set_index("agent")
+    for agent, statement in here["settlement"].items():
+        for column in ("energy_charge", "deviation_penalty", "total"):
+            assert first.loc[agent, column] == statement[column], (agent, column)
+    assert differences(read_recording(here["recording"]),
+                       read_recording(tmp / "sweep" / first["label"].iloc[0] / "recording.mcap")) == []
+
+
+def test_agents_forked_on_the_workers_settle_as_agents_on_one_host(cluster, sweep, tmp_path):
+    tmp, summary, _, _ = sweep
+    variant = pd.read_csv(summary["table"]).query("`market.penalty` == 150")["label"].iloc[0]
+    on_one_host = json.loads((tmp / "sweep" / variant / "result.json").read_text())
+    out = subprocess.run(dmosim("run", str(tmp / "sweep" / "experiments" / f"{variant}.toml"), "--hosting", "fork",
+                                "--cluster", cluster.scheduler.address, "--advertise", "127.0.0.2", "--out",
+                                str(tmp_path / "run"), "--json", "--quiet"),
+                         capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    assert out.returncode == 0, out.stderr[-3000:]
+    spread = json.loads(out.stdout)
+
+    assert spread["settlement"] == on_one_host["settlement"] and spread["awards"] == on_one_host["awards"]
+    workers = sorted(cluster.scheduler_info()["workers"])
+    assert spread["cluster"]["agents"] == {workers[0]: ["mg1"], workers[1]: ["mg2"]}
+    assert spread["cluster"]["dmo"].startswith("tcp/127.0.0.2:")  # where --advertise said the workers reach it
+    logs = tmp_path / "run" / "logs"
+    for i, agent in enumerate(("mg1", "mg2"), start=1):  # each worker's host forked its agent, and their logs are here
+        assert f"{agent} registered" in (logs / f"{agent}.log").read_text()
+        assert (logs / f"_host-{i}.log").is_file()
+
+
+def test_an_agent_still_running_when_the_launcher_lets_go_is_stopped_on_its_worker(cluster, tmp_path):
+    run_id, log, exits = new_run_id(), tmp_path / "mg1.log", queue.Queue()
+    # an agent that waits, for ten minutes, for a DMO nobody runs
+    waits = ["agent", "--run-id", run_id, "--id", "mg1", "--connect", f"tcp/127.0.0.1:{free_port()}",
+             "--connect-timeout", "600", "--insecure"]
+    with RemoteAgents(Cluster(cluster, cluster.scheduler.address, "127.0.0.1"), run_id, exits) as remote:
+        remote.start([("mg1", waits, log)], None, lambda i: tmp_path / "unused.log")
+        wait_for_line(log, "connecting to tcp/127.0.0.1", 300, lambda: True)
+    assert remote.stop() == {"mg1": -15}  # SIGTERM from its task, once the launcher cut the lifeline
+    assert exits.get_nowait() == ("mg1", -15)
+    assert _running(run_id) == []
+
+
+def test_a_sweep_stopped_cancels_what_waits_and_stops_what_runs(cluster):
+    run_id = new_run_id()
+    waits = ["agent", "--run-id", run_id, "--id", "mg1", "--connect", f"tcp/127.0.0.1:{free_port()}",
+             "--connect-timeout", "600", "--insecure"]
+    commands = Commands(Cluster(cluster, cluster.scheduler.address, "127.0.0.1"))
+    polls = [commands.start(waits, f"dmosim-test-{i}") for i in range(3)]  # two workers of one thread: one waits
+    deadline = time.monotonic() + 300
+    while len(_running(run_id)) < 2:
+        assert time.monotonic() < deadline, "the commands never started"
+        time.sleep(0.1)  # paces the look at /proc: nothing to wait on but the processes appearing
+    commands.stop()
+    ended = [poll() for poll in polls]
+    assert sorted(code for code, _, _ in ended) == [-15, -15, 1]  # two stopped by SIGTERM, and one that never ran:
+    assert (1, "", CANCELLED) in ended
+    assert _running(run_id) == []
+
+
+def _running(run_id: str) -> list[str]:
+    """The processes of this machine that have ``run_id`` on their command line."""
+    return [pid for pid in os.listdir("/proc") if pid.isdigit() and run_id in _cmdline(pid)]
+
+
+def _cmdline(pid: str) -> str:
+    try:
+        return open(f"/proc/{pid}/cmdline", "rb").read().decode(errors="replace")
+    except OSError:
+        return ""
