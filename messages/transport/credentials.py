@@ -22,7 +22,7 @@ from scenarios.names import DMO
 
 from ..keys import Keys
 from .access import (ACL_FILE, CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, READERS, ROUTER_CERT_NAME, USERS_FILE,
-                     AuthError, access_control, check_names)
+                     AuthError, access_control)
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")  # what the router's certificate is valid for, unless told
 SECRETS = (USERS_FILE, PASSWORD_FILE, KEY_FILE)  # files that hold a secret, wherever they are in a directory
