@@ -1,8 +1,9 @@
 """``--cluster`` on a real Dask cluster of this machine (``distributed.LocalCluster``, two worker processes, always
 closed; docs/cluster.md). ``dmosim sweep --cluster``: each variant's run is a task on the workers and settles to the
 cent as the same experiment run here. ``dmosim run --cluster --hosting fork``: the agents, forked on the workers and
-connected to the DMO where ``--advertise`` says, settle as that variant's run, whose agents were all on one host. An agent still running when the launcher lets go is
-stopped on its worker; a sweep stopped (Ctrl-C) cancels what waits for a worker and stops what runs."""
+connected to the DMO where ``--advertise`` says, settle as that variant's run, whose agents were all on one host.
+An agent still running when the launcher lets go is stopped on its worker; a sweep stopped (Ctrl-C) cancels what
+waits for a worker and stops what runs."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import os
 import queue
 import subprocess
 import time
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -52,10 +54,9 @@ def cluster():
         yield client
 
 
-@pytest.fixture(scope="module")
-def sweep(cluster, tmp_path_factory):
-    """A sweep of penalty 0 and 150 on the cluster, and beside it the same experiment at penalty 0 run here."""
-    tmp = tmp_path_factory.mktemp("cluster")
+def sweep_and_run_here(cluster, tmp: Path) -> tuple[dict, dict, str]:
+    """A sweep of penalty 0 and 150 on the cluster, and beside it the same experiment at penalty 0 run here: the
+    sweep's summary, the run's result, and the sweep's progress lines."""
     for penalty in (0, 150):
         (tmp / f"penalty-{penalty}.toml").write_text(EXPERIMENT.format(penalty=float(penalty)))
     runs = {"sweep": subprocess.Popen(dmosim("sweep", str(tmp / "penalty-0.toml"), "--set", "market.penalty=0,150",
@@ -74,11 +75,13 @@ def sweep(cluster, tmp_path_factory):
                 p.wait()
     for name, p in runs.items():
         assert p.returncode == 0, f"{name}: {out[name][1][-3000:]}"
-    return tmp, json.loads(out["sweep"][0]), json.loads(out["here"][0]), out["sweep"][1]
+    return json.loads(out["sweep"][0]), json.loads(out["here"][0]), out["sweep"][1]
 
 
-def test_a_sweep_on_a_cluster_runs_each_variant_there_and_settles_as_a_run_here(cluster, sweep):
-    tmp, summary, here, progress = sweep
+# One test, so that the runs it compares run once even when pytest-xdist deals the tests of this file to
+# several processes.
+def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on_one_host(cluster, tmp_path):
+    summary, here, progress = sweep_and_run_here(cluster, tmp_path)
     assert f"2 run(s), 2 at a time on the cluster at {cluster.scheduler.address} (2 workers, 2 threads)" in progress
     # each variant was a task of the cluster's workers
     ran = {t["key"].rsplit("-", 1)[0]: t["worker"] for t in cluster.get_task_stream()
@@ -87,27 +90,25 @@ def test_a_sweep_on_a_cluster_runs_each_variant_there_and_settles_as_a_run_here(
     assert set(ran) == {f"dmosim-sweep-{label}" for label in table["label"]}
     assert set(ran.values()) <= set(cluster.scheduler_info()["workers"])
     assert summary["failed"] == [] and summary["untrusted"] == [] and list(table["status"]) == ["ok"] * 4
-    assert (tmp / "sweep" / "sweep.png").read_bytes()[:4] == b"\x89PNG"
+    assert (tmp_path / "sweep" / "sweep.png").read_bytes()[:4] == b"\x89PNG"
 
+    # the variant at penalty 0 settles to the cent as the same experiment run here
     first = table[table["market.penalty"] == 0].set_index("agent")
     for agent, statement in here["settlement"].items():
         for column in ("energy_charge", "deviation_penalty", "total"):
             assert first.loc[agent, column] == statement[column], (agent, column)
     assert differences(read_recording(here["recording"]),
-                       read_recording(tmp / "sweep" / first["label"].iloc[0] / "recording.mcap")) == []
+                       read_recording(tmp_path / "sweep" / first["label"].iloc[0] / "recording.mcap")) == []
 
-
-def test_agents_forked_on_the_workers_settle_as_agents_on_one_host(cluster, sweep, tmp_path):
-    tmp, summary, _, _ = sweep
-    variant = pd.read_csv(summary["table"]).query("`market.penalty` == 150")["label"].iloc[0]
-    on_one_host = json.loads((tmp / "sweep" / variant / "result.json").read_text())
-    out = subprocess.run(dmosim("run", str(tmp / "sweep" / "experiments" / f"{variant}.toml"), "--hosting", "fork",
-                                "--cluster", cluster.scheduler.address, "--advertise", "127.0.0.2", "--out",
+    # the variant at penalty 150 again, its agents forked on the two workers: settled as when all were on one host
+    variant = table[table["market.penalty"] == 150]["label"].iloc[0]
+    on_one_host = json.loads((tmp_path / "sweep" / variant / "result.json").read_text())
+    out = subprocess.run(dmosim("run", str(tmp_path / "sweep" / "experiments" / f"{variant}.toml"), "--hosting",
+                                "fork", "--cluster", cluster.scheduler.address, "--advertise", "127.0.0.2", "--out",
                                 str(tmp_path / "run"), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     spread = json.loads(out.stdout)
-
     assert spread["settlement"] == on_one_host["settlement"] and spread["awards"] == on_one_host["awards"]
     workers = sorted(cluster.scheduler_info()["workers"])
     assert spread["cluster"]["agents"] == {workers[0]: ["mg1"], workers[1]: ["mg2"]}
