@@ -86,7 +86,8 @@ def access_control(run_id: str, agents: Sequence[str], readers: Sequence[str] = 
     subjects: list[dict] = []
     policies: list[dict] = []
 
-    def grant(subject: str, *grants: tuple[str, Iterable[str], Iterable[str], Iterable[str]], user: bool = True) -> None:
+    def grant(subject: str, *grants: tuple[str, Iterable[str], Iterable[str], Iterable[str]],
+              user: bool = True) -> None:
         ids = []
         for what, flows, messages, keys in grants:
             ids.append(f"{subject}:{what}")
