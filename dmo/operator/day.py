@@ -207,11 +207,13 @@ class MarketDay:
         last = None
         for day in range(s.day, c.days + 1):
             if day > s.day:
-                last = None  # the day before is on disk as its report: its messages go before the next day's come
+                self.finished.day(last.report())  # the day before goes to disk before the next day's messages come
+                last = None
                 s.start_day(day, c.market_day_of(day))
             last = self._run_day(day)
-            self.finished.day(last.report())
         self._linger()
+        if last is not None:  # the last day's report after lingering: it counts the realised days accepted meanwhile
+            self.finished.day(last.report())
         if self.journal is not None:
             self.journal.close()
         days, realised = self.finished.read()

@@ -114,3 +114,39 @@ def test_the_dmo_holds_no_more_messages_on_its_last_day_than_on_its_first_and_st
     assert {a: [(d["day"], d["total"]) for d in days] for a, days in report["realised"].items()} == {
         a: [(d, 115.0) for d in range(1, DAYS + 1)] for a in AGENTS}
     assert result.last.state.day == DAYS and set(result.last.statements) == set(AGENTS)
+
+
+LAST_DAY = "2026-07-02"  # of a two-day run
+
+
+class LateReporters(LoopbackAgents):
+    """Agents that report their realised day once they have the day's summary, and then leave: on the last day that
+    is while the DMO lingers for them."""
+
+    def _answers(self, msg):
+        if msg.kind == "day_summary":
+            return [realised_day(a, msg.market_day) for a in AGENTS]
+        out = super()._answers(msg)
+        return [m for m in out if m.kind != "agent_day"]
+
+    def publish(self, msg):
+        super().publish(msg)
+        if msg.kind == "day_summary" and msg.market_day == LAST_DAY:
+            for a in AGENTS:
+                self.events.put(("leave", a))
+        return msg
+
+
+def test_realised_days_reported_while_the_dmo_lingers_are_counted_in_the_last_days_report():
+    config = DayConfig(market_day="2026-07-01", agents=len(AGENTS), iso_price=(50.0,) * HOURS, import_limit=100.0,
+                       export_limit=100.0, penalty=150.0, credit=0.0, subperiods=K, islanded_hours=(),
+                       fixed_awards=(AWARD,) * HOURS, registration_s=30.0, bids_s=30.0, schedule_s=30.0,
+                       hour_s=30.0, linger_s=30.0, days=2)
+    bus = LateReporters("late1")
+    market = MarketDay(bus, config, lambda phase, hour: None)
+    bus.events = market.events
+    report = market.run().report("late1", {})
+    assert report["market_days"] == ["2026-07-01", LAST_DAY]
+    assert [d["accepted_messages"].get("agent_day", 0) for d in report["days"]] == [0, 2 * len(AGENTS)]
+    assert {a: [d["market_day"] for d in days] for a, days in report["realised"].items()} == {
+        a: ["2026-07-01", LAST_DAY] for a in AGENTS}
