@@ -33,7 +33,7 @@ class FinishedDays:
     def realised(self, msg: AgentDay) -> None:
         """A realised day the DMO accepted."""
         self._write({"realised": msg.sender, "market_day": msg.market_day,
-                     "reported": msg.model_dump(mode="json", exclude=set(ENVELOPE))})
+                     "reported": msg.model_dump(exclude=set(ENVELOPE))})
 
     def read(self) -> tuple[list[dict], dict[str, dict[str, dict]]]:
         """Every day's report in the order written, and agent -> market day -> its realised day as reported (without
