@@ -26,6 +26,7 @@ from messages import PHASES, Bid, GridState, make_receipt, make_rejection, sha25
 from messages.codec import MessageError
 from messages.schemas import AgentDay
 from messages.transport import Bus
+from messages.transport.heap import return_free_memory
 from scenarios.horizon import HOURS
 from scenarios.names import check_agent_id
 
@@ -209,6 +210,7 @@ class MarketDay:
             if day > s.day:
                 self.finished.day(last.report())  # the day before goes to disk before the next day's messages come
                 last = None
+                return_free_memory()  # what the day's messages took from the C heap goes back to the OS
                 s.start_day(day, c.market_day_of(day))
             last = self._run_day(day)
         self._linger()

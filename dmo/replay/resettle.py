@@ -312,3 +312,15 @@ def compare(day: RecordedDay, statements: dict[str, Statement]) -> list[str]:
                     diffs.append(f"{agent} day summary {name}: recorded {recorded[name]!r}, "
                                  f"recomputed {getattr(st, name)!r}")
     return diffs
+
+
+def resettled_differences(rec: Recording, days: list[str], trust: Trust | None = None) -> list[str]:
+    """Each of ``days`` (market days) re-settled from the recording alone under the rule it names
+    (``recorded_rule``, with ``trust``), against the statements it records: the differences (``compare``), each
+    after its market day; empty when every statement re-settles to the cent. ResettleError when a day cannot be
+    re-settled, UntrustedRule as ``recorded_rule``."""
+    out = []
+    for name in days:
+        day = recorded_day(rec, name)
+        out += [f"{name}: {d}" for d in compare(day, resettle(day, recorded_rule(day, trust)))]
+    return out

@@ -5,9 +5,9 @@ For each N, one ``dmosim run --agents N --hosting H --per-process K`` of small a
 on. While it runs, the proportional set size (PSS: each shared page counted once over the processes sharing it) of
 every process of the run (the launcher, the DMO, the recorder, the agents' host and the agents) is summed about every
 ``INTERVAL_S`` seconds; the largest sum is the run's memory. The day is split as ``dmosim bench day`` splits it
-(``split_day``): the agents' critical-path computation and the overhead. Then the recording is re-settled day by day
-and compared with the statements the DMO published (``dmo.replay.resettle``). Definitions in docs/benchmarks.md,
-"Fleets".
+(``split_day``): the agents' critical-path computation and the overhead. Whether the recording re-settles to the
+statements the DMO published is the run's own check (``recorded.resettled`` of its result). Definitions in
+docs/benchmarks.md, "Fleets".
 """
 
 from __future__ import annotations
@@ -20,9 +20,6 @@ import shutil
 import tempfile
 import threading
 from pathlib import Path
-
-from dmo.replay.resettle import compare, recorded_day, recorded_rule, recording_days, resettle
-from messages.recording import read_recording
 
 from ..arguments import gap, integer, nonneg_float, positive_int
 from ..experiment.spec import HOSTINGS, MAX_AGENTS
@@ -74,12 +71,12 @@ def run(args) -> dict:
                  "overhead_pct": largest["overhead_pct"], "overhead_target_pct": GOAL_PCT,
                  "registration_s": largest["registration_s"], "clearing_s": largest["clearing_s"],
                  "phase_target_s": GOAL_PHASE_S, "resettled_identically": largest["resettled_identically"],
-                 "incidents": largest["incidents"],
+                 "incidents": largest["incidents"], "verdict_ok": largest["verdict_ok"],
                  "met": largest["agents"] >= GOAL_AGENTS and largest["total_gib"] < GOAL_GIB
                  and largest["incidents"] == 0
                  and largest["wall_s"] < GOAL_WALL_S and largest["overhead_pct"] < GOAL_PCT
                  and max(largest["registration_s"], largest["clearing_s"]) < GOAL_PHASE_S
-                 and largest["resettled_identically"]},
+                 and largest["resettled_identically"] and largest["verdict_ok"]},
     }
 
 
@@ -90,7 +87,8 @@ def _one_fleet(args, n: int, per_process: int, keep: Path, cores: int) -> dict:
     day = run_and_read(flags, args.timeout, keep=keep, watch=memory.watching)
     result = day["result"]
     split = split_day(result["phase_s"], day["compute"], cores)["totals"]
-    differences = resettled_differences(Path(result["recording"]))
+    again = result["recorded"]["resettled"]
+    differences = again.get("differences", []) or ([again["error"]] if again.get("error") else [])
     others = {role: round(mib, 1) for role, mib in memory.peak_by_role.items() if role != "agents"}
     return {"agents": n, "total_gib": round(memory.peak_mib / 1024, 2),
             "per_agent_mib": round(memory.peak_mib / n, 1),
@@ -100,19 +98,9 @@ def _one_fleet(args, n: int, per_process: int, keep: Path, cores: int) -> dict:
             "day_s": round(split["day_s"], 1), "wall_s": round(day["process_s"], 1),
             "solving_pct": round(100.0 * split["compute_s"] / split["day_s"], 1) if split["day_s"] else None,
             "overhead_pct": round(split["overhead_pct"], 2), "cpu_wait_s": round(split["cpu_wait_s"], 1),
-            "incidents": len(result.get("incidents", [])), "resettled_identically": not differences,
-            **({"differences": "; ".join(differences[:3])} if differences else {})}
-
-
-def resettled_differences(recording: Path) -> list[str]:
-    """Each recorded day re-settled from the recording alone, against the statements the DMO published: the
-    differences, one line each (none: identical)."""
-    rec = read_recording(recording)
-    out = []
-    for name in recording_days(rec):
-        day = recorded_day(rec, name)
-        out += [f"{name}: {d}" for d in compare(day, resettle(day, recorded_rule(day)))]
-    return out
+            "incidents": len(result.get("incidents", [])), "resettled_identically": again["identical"],
+            **({"differences": "; ".join(differences[:3])} if differences else {}),
+            "verdict_ok": result["verdict"]["ok"]}
 
 
 class TreeMemory:

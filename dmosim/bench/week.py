@@ -30,7 +30,8 @@ def run(args) -> dict:
     result, compute = run["result"], run["compute"]
     report = summarise(result, compute, cores)
     report["setup"] = {"agents": args.agents, "days": args.days, "scenarios": args.scenarios,
-                       "subperiods": args.subperiods, "gap": args.gap, "hosting": args.hosting, "recording": "on",
+                       "subperiods": args.subperiods, "gap": args.gap, "hosting": args.hosting,
+                       "per_process": args.per_process, "recording": "on",
                        "process_s": round(run["process_s"], 1),
                        "machine": f"{cores} cores shared with other work: one run, noisy"}
     return {"setup": report.pop("setup"), **report}

@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Callable, Iterable
 
+from dmo.market.choice import Trust, UntrustedRule
+from dmo.replay.resettle import resettled_differences
 from dmo.replay.reproduce import differences, statements_of
 from messages import HOURS, Clock, Schedule
 from messages.keys import new_run_id
@@ -196,6 +198,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             say("writing the run's tables and figure" + ("" if complete else " from the DMO's journal (the "
                                                                                "recording is incomplete)"))
             result.update(_write_results(said, rundir, run_id))
+    if complete:
+        result["recorded"]["resettled"] = resettled(rec, [d["market_day"] for d in result.get("days", [])], e)
     found = problems(result, agents=[m.id for m in fleet], days=e.days,
                      recorded=set(statements_of(rec)) if complete else None)
     result["verdict"] = verdict(found)
@@ -316,6 +320,20 @@ def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, dict]
         return None, {"error": str(exc), "complete": False, "recorder": recorder}
     return rec, {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
                  "complete": rec.complete and recorder is None, "recorder": recorder}
+
+
+def resettled(rec: Recording, days: list[str], e: Experiment) -> dict:
+    """The settled ``days`` re-settled from the recording alone, as ``dmosim settle`` would, and compared with the
+    statements the DMO published: ``identical`` and the ``differences`` (one line each, after the market day), or
+    the ``error`` that kept a day from being re-settled. The rule the experiment named is trusted; no other is."""
+    trust = Trust.of(False, [e.market.settlement] if e.market.settlement else [])
+    try:
+        found = resettled_differences(rec, days, trust)
+    except UntrustedRule as exc:
+        return {"identical": False, "error": f"the recording names the rule {exc.spec}, not the experiment's"}
+    except ValueError as exc:
+        return {"identical": False, "error": str(exc)}
+    return {"identical": not found, "differences": found}
 
 
 def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Iterable[str] = ()) -> list[str]:

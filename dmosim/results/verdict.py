@@ -18,7 +18,8 @@ def problems(result: dict, *, agents: Iterable[str], days: int,
     an agent locked out on a day (the day's ``locked_out``: its process talked to the DMO while the DMO was not
     taking its messages); a day the DMO did not settle; an agent of the run with no statement on a settled day; a
     statement the DMO settled that the complete recording lacks; the recorder's failure or an unreadable or cut
-    recording (``recorded``); a ``--from`` run that did not settle as its recording (``reproduced``).
+    recording (``recorded``); a complete recording whose days do not re-settle, from it alone, to the statements the
+    DMO published (``recorded.resettled``); a ``--from`` run that did not settle as its recording (``reproduced``).
     """
     out = []
     settled = result.get("days", [])
@@ -62,7 +63,14 @@ def _recording_problems(recorded: dict | None) -> list[str]:
         return [f"the recording cannot be read: {recorded['error']}"]
     if not recorded.get("complete", False):
         return ["the recording is incomplete"]
-    return []
+    again = recorded.get("resettled")
+    if again is None or again.get("identical", False):
+        return []
+    if again.get("error"):
+        return [f"the recording cannot be re-settled: {again['error']}"]
+    diffs = again.get("differences", [])
+    return [f"the recording does not re-settle as the DMO settled: {len(diffs)} difference(s)"
+            + (f", first {diffs[0]}" if diffs else "")]
 
 
 def _reproduction_problems(reproduced: dict | None) -> list[str]:

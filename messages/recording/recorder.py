@@ -110,6 +110,7 @@ class Recorder:
                 self.caught_up += self._catch_up()
             except Exception:  # the DMO may be gone: what is missing stays missing, the recording goes on
                 log.debug("catching up failed", exc_info=True)
+            return_free_memory()  # the answer, the latest on every key of the DMO's (awards, statements), is gone
 
     def _catch_up(self) -> int:
         added, now = 0, time.time_ns()

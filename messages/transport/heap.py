@@ -1,5 +1,6 @@
 """What a long-lived process of a run has freed, given back to the operating system at the end of a piece of work
-(an agent's schedule, a day of the recording), so that its resident memory does not creep up with the days.
+(an agent's schedule, a day of the DMO's or of the recording), so that its resident memory does not creep up with
+the days.
 
 glibc's allocator keeps freed memory in its arenas (one per thread that allocated, up to eight per core) for reuse,
 and returns only what lies at the top of an arena. A day's solves (cvxpy, HiGHS) or a day's chunks of recording

@@ -13,6 +13,8 @@ from dmosim.bench.recording import synthetic_day
 from dmosim.cli.info import describe, missing_meter, render
 from dmosim.cli.main import main
 from dmo.operator.journal import traffic_entry
+from dmosim.experiment.spec import Experiment
+from dmosim.launch.local import resettled
 from dmosim.results.journaled import journal_recording
 from dmosim.results.sweeps import sweep_rows
 from dmosim.results.tables import tables
@@ -80,6 +82,36 @@ def test_a_complete_recording_must_hold_every_statement_the_dmo_settled():
 ])
 def test_a_failed_recorder_or_a_bad_recording_is_a_problem(recorded, expected):
     assert problems(result(day(1, DAY), recorded=recorded), agents=["mg1", "mg2"], days=1) == [expected]
+
+
+@pytest.mark.parametrize("resettled, expected", [
+    ({"identical": True, "differences": []}, []),
+    ({"identical": False, "differences": [f"{DAY}: mg1 total: recorded 10.0, recomputed 12.5", "more"]},
+     [f"the recording does not re-settle as the DMO settled: 2 difference(s), first {DAY}: mg1 total: recorded "
+      "10.0, recomputed 12.5"]),
+    ({"identical": False, "error": "the recording names the rule evil.py:rule, not the experiment's"},
+     ["the recording cannot be re-settled: the recording names the rule evil.py:rule, not the experiment's"]),
+])
+def test_a_complete_recording_that_does_not_resettle_to_the_published_statements_is_a_problem(resettled, expected):
+    recorded = {"complete": True, "recorder": None, "resettled": resettled}
+    assert problems(result(day(1, DAY), recorded=recorded), agents=["mg1", "mg2"], days=1) == expected
+
+
+def test_the_run_resettles_its_recording_and_finds_a_meter_report_the_recording_lost(tmp_path):
+    """As dmosim run does before its verdict (``launch.local.resettled``): a whole recorded day re-settles to its
+    statements; one that lost an hour of mg2's meter reports does not, and the difference names mg2."""
+    run_id = new_run_id()
+    whole = synthetic_day(run_id, 2, 2)
+    experiment = Experiment()
+    rec = read_recording(write(tmp_path / "whole.mcap", run_id, whole))
+    assert resettled(rec, [DAY], experiment) == {"identical": True, "differences": []}
+    lost = [m for m in whole if not (m[0].endswith("agent/mg2/meter") and decode(m[1]).hour == 3)]
+    again = resettled(read_recording(write(tmp_path / "lost.mcap", run_id, lost)), [DAY], experiment)
+    assert again["identical"] is False and again["differences"]
+    assert all(d.startswith(f"{DAY}: mg2 ") for d in again["differences"]), again["differences"]
+    found = problems(result(day(1, DAY), recorded={"complete": True, "recorder": None, "resettled": again}),
+                     agents=["mg1", "mg2"], days=1)
+    assert len(found) == 1 and found[0].startswith("the recording does not re-settle as the DMO settled")
 
 
 def test_a_from_run_that_did_not_reproduce_is_a_problem_with_its_first_difference():
