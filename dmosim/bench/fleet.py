@@ -21,6 +21,8 @@ import tempfile
 import threading
 from pathlib import Path
 
+from messages.transport.credentials import MAX_HOSTS
+
 from ..arguments import gap, integer, nonneg_float, positive_int
 from ..experiment.spec import HOSTINGS, MAX_AGENTS
 from .day import GOAL_PCT, run_and_read, split_day
@@ -38,6 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--hosting", choices=HOSTINGS, default="fork", help="how the agents start (default: fork)")
     parser.add_argument("--per-process", type=positive_int, default=10, metavar="K",
                         help="agents per forked process (default: 10; 1 with --hosting process)")
+    parser.add_argument("--routers", type=integer(0, MAX_HOSTS), default=0, metavar="N",
+                        help="Zenoh routers the run starts, as dmosim run --routers (default: 0, the DMO is the router)")
     parser.add_argument("--scenarios", type=positive_int, default=1, help="scenarios per agent schedule (default: 1)")
     parser.add_argument("--subperiods", type=positive_int, default=1, help="sub-periods per hour (default: 1)")
     parser.add_argument("--gap", type=gap, default=0.05, help="relative MIP gap of the schedules (default: 0.05)")
@@ -61,7 +65,8 @@ def run(args) -> dict:
     largest = max(rows, key=lambda r: r["agents"])
     return {
         "setup": {"agents": "the fleet of dmosim run: the paper's microgrid, scaled and shifted",
-                  "hosting": args.hosting, "per_process": per_process, "scenarios": args.scenarios,
+                  "hosting": args.hosting, "per_process": per_process, "routers": args.routers,
+                  "scenarios": args.scenarios,
                   "subperiods": args.subperiods, "gap": args.gap, "recording": "on",
                   "memory": f"the largest sum of every process's PSS, sampled every {INTERVAL_S:g} s",
                   "machine": f"{cores} cores shared with other work: one run per N, noisy"},
@@ -82,7 +87,8 @@ def run(args) -> dict:
 
 def _one_fleet(args, n: int, per_process: int, keep: Path, cores: int) -> dict:
     flags = ["--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
-             "--gap", repr(args.gap), "--hosting", args.hosting, "--per-process", str(per_process)]
+             "--gap", repr(args.gap), "--hosting", args.hosting, "--per-process", str(per_process),
+             "--routers", str(args.routers)]
     memory = TreeMemory()
     day = run_and_read(flags, args.timeout, keep=keep, watch=memory.watching)
     result = day["result"]

@@ -29,6 +29,7 @@ from ..launch.cluster import Cluster
 from ..launch.faults import Fault, parse_fault
 from .placement import add_cluster_flag, check_cluster, check_shared, connected
 from ..launch.local import RoleFailed, run_locally
+from ..launch.mesh import router_names
 from ..launch.roles import fleet_written, resolved, strategy_of
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
@@ -238,6 +239,13 @@ def _check_placement(args, experiment: Experiment, fleet) -> None:
     if args.cluster and experiment.agents.per_process > 1:
         raise UsageError(f"agents.per_process = {experiment.agents.per_process}: with --cluster each worker forks its "
                          "agents one to a process; give 1")
+    if args.cluster and experiment.agents.routers:
+        raise UsageError(f"agents.routers = {experiment.agents.routers}: with --cluster the agents connect to the DMO "
+                         "from the workers; give 0, or run routers on the hosts yourself (docs/hosts.md)")
+    taken = sorted(agents & set(router_names(experiment.agents.routers)))
+    if taken:
+        raise UsageError(f"agents.routers = {experiment.agents.routers}: {taken[0]} is the name of a router of the run "
+                         "and of an agent; rename the agent")
 
 
 def _interrupt(*_):

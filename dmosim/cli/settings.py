@@ -10,6 +10,7 @@ from typing import Iterable
 
 from dmo.market.rules import MAX_MW, MAX_RATE
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE, FleetError
@@ -56,6 +57,10 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
             "with --hosting fork, K agents in each forked process, a thread each: the pages a process copies from "
             "the host are paid once per K agents; an agent a kill or restart fault names runs alone "
             f"(default: {default.agents.per_process})"))),
+        "agents.routers": ("--routers", dict(type=integer(0, MAX_HOSTS), metavar="N", help=(
+            "start N Zenoh routers on this machine, each standing for one host's (docs/hosts.md): the DMO and the "
+            "recorder are clients of the first, the agents of all N in blocks; more than one form a mesh over "
+            f"mutual TLS; 0: the DMO is the agents' router (default: {default.agents.routers})"))),
         "days": ("--days", dict(type=integer(1, MAX_DAYS),
                                 help="consecutive market days; agents register once and carry their state across "
                                      f"midnight (at most {MAX_DAYS}; default: {default.days})")),

@@ -19,6 +19,7 @@ from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
 from dmo.market.clearing import MAX_BLOCKS, IsoCurve
 from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
 from microgrid_agent.solvers.routes import METHODS
 from scenarios.case import read_toml
@@ -68,7 +69,8 @@ class Agents(_Section):
     diverse from the experiment's seed (scenarios/diverse.py; a run writes them into its run directory as a fleet
     file), or the members of a fleet file; ``strategy`` how each bids (docs/strategies.md), unless its fleet entry
     names its own; ``hosting`` how ``dmosim run`` starts their processes (``HOSTINGS``), and with ``fork`` how many
-    agents each runs (``per_process``)."""
+    agents each runs (``per_process``); ``routers`` the Zenoh routers it starts for them, each standing for one
+    host's (launch/mesh.py), or none: the DMO is their router."""
 
     count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
     fleet: PathText | None = None  # a fleet file, relative to the experiment file
@@ -76,6 +78,7 @@ class Agents(_Section):
     strategy: Annotated[str, Field(min_length=1, max_length=MAX_STRATEGY)] = DEFAULT_STRATEGY
     hosting: Literal[HOSTINGS] = "process"  # type: ignore[valid-type]
     per_process: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 1  # agents a forked process runs, one thread each
+    routers: Annotated[int, Field(ge=0, le=MAX_HOSTS)] = 0  # dmosim routers started, one per host (0: the DMO is it)
 
     @field_validator("strategy")
     @classmethod
@@ -242,6 +245,7 @@ FLAGS = {
     "seed": "seed", "days": "days", "market_day": "market_day", "agents.count": "agents", "agents.fleet": "fleet",
     "agents.generate": "generate",
     "agents.strategy": "strategy", "agents.hosting": "hosting", "agents.per_process": "per_process",
+    "agents.routers": "routers",
     "market.case": "case", "market.mode": "market", "market.penalty": "penalty", "market.credit": "credit",
     "market.settlement": "settlement",
     "market.import_limit": "import_limit", "market.export_limit": "export_limit",

@@ -40,6 +40,7 @@ from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
 from .cluster import Cluster, RemoteAgents, endpoint
 from .faults import Fault, parse_fault
+from .mesh import router_names, spread, start_routers
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
 from .roles import fleet_of, fleet_written, resolved
 
@@ -120,6 +121,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     began = time.monotonic()
     rundir.experiment.write_text(to_toml(e))
+    names = router_names(e.agents.routers)  # none: the DMO is the router
+    tls = tls or len(names) > 1  # routers of a mesh relay for one another over mutual TLS only
     port, scheme = free_port(), "tls" if tls else "tcp"
     local = endpoint(scheme, "127.0.0.1", port)  # where the roles of this machine connect
     # With a cluster the DMO listens on every interface, and the agents connect where the workers reach this machine.
@@ -129,19 +132,25 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     logs = rundir.logs
     auth = create_auth_dir(logs / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
                            hosts=tuple(dict.fromkeys([*DEFAULT_HOSTS, *([cluster.host] if cluster else [])])),
-                           valid_days=2, dmo_client=False, overwrite=True)  # the DMO is the router
+                           valid_days=2, dmo_client=bool(names), routers=tuple(names[1:]), overwrite=True)
     # absolute paths: an agent on a cluster's worker starts in another directory
     common = ["--run-id", run_id, "--experiment", str(rundir.experiment.resolve()), "--auth-dir", str(auth.resolve())]
     say(f"run {run_id}: DMO and {len(fleet)} agents on {reach}"
         + (f", the agents on the cluster at {cluster.address}" if cluster else "")
         + f", {e.days} day(s) from {e.market_day}; writing to {rundir.root}" + ("" if record else "; not recording"))
     with Roles() as roles, _remote(cluster, run_id, roles) as remote:
+        routers = start_routers(roles, names, scheme, run_id, auth, logs) if names else []
+        if routers:
+            local = reach = routers[0]
+            say(f"{len(routers)} router(s): " + ", ".join(f"{n} on {at}" for n, at in zip(names, routers)))
         roles.start("dmo", dmosim_command(
-            "dmo", *common, "--listen", listen, "--result", str(rundir.result),
-            "--journal", str(logs / "dmo.journal"), *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
+            "dmo", *common, *(("--mode", "client", "--connect", local) if routers else ("--listen", listen)),
+            "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"),
+            *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
         fork = e.agents.hosting == "fork"
         host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if fork and remote is None else None
-        wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
+        if not routers:
+            wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
         if cluster:
             cluster.check_reaches(port)
         observer_config = BusConfig(mode="client", connect=(local,), overrides=bundle_settings(auth, OBSERVER))
@@ -156,7 +165,9 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                     "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", local,
                     "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
-            agents = [(m.id, ["agent", *common, "--id", m.id, "--connect", reach, "--lease", repr(AGENT_LEASE_S)],
+            router_of = spread([m.id for m in fleet], len(routers)) if routers else {}
+            agents = [(m.id, ["agent", *common, "--id", m.id, "--connect",
+                              routers[router_of[m.id]] if routers else reach, "--lease", repr(AGENT_LEASE_S)],
                        (logs / f"{m.id}.log").resolve()) for m in fleet]
             if remote is None:
                 alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
@@ -171,7 +182,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                                       lambda i: (logs / f"{HOST}-{i + 1}.log").resolve())
                 say(f"agents on {len(placed)} worker(s): "
                     + "; ".join(f"{w}: {', '.join(names)}" for w, names in placed.items()))
-            failed = wait_for_run(roles, watch, remote=remote.names if remote else ())
+            failed = wait_for_run(roles, watch, remote=remote.names if remote else (), routers=names)
         if failed:
             raise RoleFailed(failed, roles, logs)
         recorder = _stop_recorder(roles, watch, faults) if record else None
@@ -336,7 +347,8 @@ def resettled(rec: Recording, days: list[str], e: Experiment) -> dict:
     return {"identical": not found, "differences": found}
 
 
-def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Iterable[str] = ()) -> list[str]:
+def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Iterable[str] = (),
+                 routers: Iterable[str] = ()) -> list[str]:
     """Block on process exits until the DMO is done and the agents have left; return the names that failed.
     ``remote`` names agents that are not among ``roles`` (on a cluster's workers) whose exits come on ``roles.exits``
     all the same.
@@ -346,9 +358,11 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Ite
     one still there has failed, unless it was restarted on purpose: its restart came after the run had ended (a
     fault fires when the launcher sees the clock reach its hour, which a fast day may have passed by then), and
     what it did before is settled, so it is stopped. The recorder is an observer: whenever it exits, the run goes
-    on (the DMO needs it only before its first message) and ``watch.recorder_exit`` notes when.
+    on (the DMO needs it only before its first message) and ``watch.recorder_exit`` notes when. The run's own
+    ``routers`` (``--routers``) stay up to the end: one that exits fails the run.
     """
-    pending = set(roles.roles) - {"recorder"} | set(remote)
+    routers = set(routers)
+    pending = set(roles.roles) - {"recorder", *routers} | set(remote)
     while pending:
         timeout = leave_s if "dmo" not in pending else None
         try:
@@ -363,6 +377,8 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Ite
             watch.say(f"the recorder exited at {watch.recorder_exit} ({_exit_status(code)}); the run goes on, and "
                       "its tables will come from the DMO's journal")
             continue
+        if name in routers:  # the run's routers stay up to the end: one that exits has failed
+            return [name]
         pending.discard(name)
         if code != 0 and not (name in roles.roles and roles.roles[name].killed_on_purpose):
             return [name]

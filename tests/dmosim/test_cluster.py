@@ -156,6 +156,8 @@ def test_run_refuses_what_it_cannot_do_on_a_cluster(experiment, capsys):
     assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--hosting", "fork", "--per-process",
                  "4", "--check"]) == 2
     assert "agents.per_process = 4: with --cluster each worker forks its agents one to a process" in one_line(capsys)
+    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--routers", "2", "--check"]) == 2
+    assert "agents.routers = 2: with --cluster the agents connect to the DMO from the workers" in one_line(capsys)
     # the DMO and the recorder stay on this machine: their faults are fired as ever
     assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--fault", "restart:dmo:3",
                  "--fault", "kill:recorder:2", "--check"]) == 0

@@ -78,6 +78,9 @@ def test_flags_override_the_file(tmp_path, capsys):
     (["run", "--from", "nothing.mcap", "--check"], "nothing.mcap: no such file"),
     (["run", "--settlement", "tests/dmo/test_rules.py:_raises", "--check"], "raised KeyError: 'mg1'"),
     (["dmo", "--agents", "1", "--settlement", "nosuch"], "market.settlement: unknown settlement rule 'nosuch'"),
+    (["run", "--routers", "17", "--check"], "--routers: expected an integer in 0..16, got '17'"),
+    (["run", "--fleet", "tests/data/router_named_fleet.toml", "--routers", "2", "--check"],
+     "agents.routers = 2: host2 is the name of a router of the run and of an agent; rename the agent"),
 ])
 def test_bad_input_to_run_is_one_line_and_exit_2(argv, says, capsys):
     assert main(argv) == 2

@@ -17,6 +17,7 @@ import pytest
 
 from dmosim.launch.host import AgentStreams
 from dmosim.launch.local import groups, wait_for_run
+from dmosim.launch.mesh import router_names, spread
 from dmosim.launch.processes import Roles, dmosim_command, free_port, memory_mib, wait_for_line
 
 DONE = [sys.executable, "-c", "pass"]
@@ -195,6 +196,26 @@ def test_what_an_agent_s_threads_print_and_log_goes_to_its_own_stream_named_afte
         thread.join()
     assert mine.getvalue() == "mg7 from the agent\nmg7 from its helper\nprinted by its helper\n"
     assert fallback.getvalue() == "zenoh from elsewhere\n"
+
+
+def test_the_run_s_routers_stay_up_to_the_end_and_one_that_exits_fails_the_run():
+    with Roles() as roles:
+        roles.start("host1", STAYS)
+        roles.start("dmo", DONE)
+        roles.start("mg1", DONE)
+        assert wait_for_run(roles, SimpleNamespace(say=print), leave_s=0.5, routers=["host1"]) == []
+    with Roles() as roles:
+        roles.start("host1", STAYS)
+        roles.start("host2", DONE)
+        roles.start("dmo", STAYS)
+        assert wait_for_run(roles, SimpleNamespace(say=print), leave_s=0.5, routers=["host1", "host2"]) == ["host2"]
+
+
+def test_agents_are_spread_over_the_routers_in_blocks_of_consecutive_agents():
+    agents = [f"mg{i}" for i in range(1, 8)]
+    assert router_names(3) == ["host1", "host2", "host3"] and router_names(0) == []
+    assert spread(agents, 3) == {"mg1": 0, "mg2": 0, "mg3": 0, "mg4": 1, "mg5": 1, "mg6": 2, "mg7": 2}
+    assert set(spread(agents, 1).values()) == {0} and spread(agents[:2], 3) == {"mg1": 0, "mg2": 1}
 
 
 def test_agents_are_grouped_in_the_run_s_order_and_those_a_fault_names_run_alone():
