@@ -222,6 +222,8 @@ def main(modules: list[str]) -> None:
     os.dup2(2, 1)  # what a library prints on fd 1 (HiGHS's banner) goes to the host's log, not into the replies
     for name in modules:
         importlib.import_module(name)
+    for name in modules:  # what a module prepares once for every child, e.g. the agents' compute slots (slots.py)
+        getattr(sys.modules[name], "before_forks", lambda: None)()
     cwd_first = bool(sys.path) and sys.path[0] == os.getcwd()  # as python -m put it (not with PYTHONSAFEPATH)
     command = _serve(replies)
     if command is not None:  # a forked child: from here on, it is `python -m MODULE ARGS` of its own, or a group

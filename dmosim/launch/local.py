@@ -51,7 +51,7 @@ AWAIT_RECORDER = ("--await-recorder", "60")  # the DMO's first message waits for
 # What the host of forked agents imports before it forks them: what `dmosim agent` imports to run a day
 # (docs/benchmarks.md, "Hosting agents"), by name: the launcher itself does not load the solver stack.
 AGENT_MODULES = ("dmosim.cli.main", "dmosim.cli.agent", "microgrid_agent.agent.process",
-                 "microgrid_agent.agent.bidding")
+                 "microgrid_agent.agent.bidding", "microgrid_agent.agent.slots")
 # The lease each agent announces: how long the DMO waits, after an agent's last sign of life, to call a silent one
 # vanished. A killed agent's link closes at once, whatever the lease; a live one that is starved of a core for a
 # moment must not be called gone: with 1 s, 200 agents bidding at once on 2 cores all vanished within 10 s.
