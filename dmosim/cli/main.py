@@ -10,6 +10,7 @@ import argparse
 import os
 import sys
 
+from messages.transport.heap import limit_arenas
 from scenarios.case import CaseError
 
 from ..console import UsageError
@@ -96,6 +97,8 @@ def native_stdout_to_stderr() -> None:
 
 
 def console() -> int:
-    """The ``dmosim`` executable: ``main`` with stdout reserved for dmosim's own output."""
+    """The ``dmosim`` executable: ``main`` with stdout reserved for dmosim's own output, and few C heap arenas
+    (``limit_arenas``: a role lives for days)."""
+    limit_arenas()
     native_stdout_to_stderr()
     return main()

@@ -47,6 +47,8 @@ import traceback
 from pathlib import Path
 from typing import NoReturn
 
+from messages.transport.heap import limit_arenas
+
 from ..console import LOG_DATEFMT, LOG_FORMAT
 
 READY_TIMEOUT_S = 300.0  # how long the host may take over its imports (about 3 s alone, more on a busy machine)
@@ -222,6 +224,7 @@ def main(modules: list[str]) -> None:
     os.dup2(2, 1)  # what a library prints on fd 1 (HiGHS's banner) goes to the host's log, not into the replies
     for name in modules:
         importlib.import_module(name)
+    limit_arenas()  # before any child starts its threads: the setting is the host's, and so each child's
     for name in modules:  # what a module prepares once for every child, e.g. the agents' compute slots (slots.py)
         getattr(sys.modules[name], "before_forks", lambda: None)()
     cwd_first = bool(sys.path) and sys.path[0] == os.getcwd()  # as python -m put it (not with PYTHONSAFEPATH)
