@@ -16,6 +16,8 @@ import time
 from pathlib import Path
 from typing import Iterable, Mapping
 
+from mcap.data_stream import RecordBuilder
+from mcap.records import ChunkIndex
 from mcap.writer import CompressionType, Writer
 
 from ..codec import MAX_PAYLOAD_BYTES, MessageError, decode
@@ -152,6 +154,7 @@ class RecordingWriter:
         """Close the open chunk and hand everything written to the OS (not fsync: a killed process loses
         nothing the OS has; a power cut is another matter)."""
         self._mcap.flush()
+        _compact_last_chunk_index(self._mcap)
         self._pending = self._pending_bytes = 0
         self._chunk_opened = time.monotonic()
 
@@ -170,3 +173,29 @@ class RecordingWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class WrittenChunkIndex:
+    """A chunk index kept as the bytes the summary section will hold, which is how mcap's writer writes it.
+
+    The writer keeps every chunk's index until the summary (it needs them there); as a ``ChunkIndex`` an index holds
+    a dict of the chunk's channels, about 100 bytes each, as bytes 10. Chunks close every second, so over a week
+    of 100 agents the dicts made a large part of what the recorder's memory gained (docs/benchmarks.md, "week")."""
+
+    __slots__ = ("record",)
+
+    def __init__(self, index: ChunkIndex):
+        builder = RecordBuilder()
+        index.write(builder)
+        self.record = builder.end()
+
+    def write(self, stream: RecordBuilder) -> None:
+        stream.write(self.record)
+
+
+def _compact_last_chunk_index(writer: Writer) -> None:
+    """The index of the chunk ``writer`` closed last, as a ``WrittenChunkIndex`` (the list is mcap's own, private:
+    tests/messages/test_recording.py checks it is still there and what the summary reads back)."""
+    indexes = getattr(writer, "_Writer__chunk_indices", None)
+    if indexes and isinstance(indexes[-1], ChunkIndex):
+        indexes[-1] = WrittenChunkIndex(indexes[-1])

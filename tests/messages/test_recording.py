@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import collections
+import datetime
 import json
 import os
 import re
@@ -34,7 +35,9 @@ from messages import SCHEMA_VERSION, decode
 from messages.transport import Bus, BusConfig
 from messages.keys import Keys, key_pattern, new_run_id
 from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
+from messages.recording import writer as writer_module
 from messages.recording.recorder import SEEN_PER_KEY, Recorder
+from messages.recording.writer import WrittenChunkIndex
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -335,6 +338,57 @@ def test_a_recorder_killed_with_sigkill_loses_at_most_its_open_chunk(tmp_path):
     assert all(m.invalid is None for m in rec.messages)
     info = dmosim("info", str(path))
     assert info.returncode == 0 and f"file cut after {len(rec.messages)} messages" in info.stdout
+
+
+def test_closed_chunks_keep_their_index_as_the_summary_bytes_and_the_file_is_mcaps_own(tmp_path, monkeypatch):
+    """The writer keeps each closed chunk's index as the bytes the summary will hold, not as mcap's ChunkIndex with
+    a dict of its channels; the file is byte for byte what mcap writes without that, and its summary reads back."""
+    run_id = new_run_id()
+    mix = synthetic_day(run_id, 20, 1)
+    monkeypatch.setattr(time, "time_ns", lambda: 1_700_000_000_000_000_000)  # the header's and attachments' times
+    paths, sizes = {}, {}
+    for compact in (True, False):
+        if not compact:
+            monkeypatch.setattr(writer_module, "_compact_last_chunk_index", lambda writer: None)
+        paths[compact] = tmp_path / f"{compact}.mcap"
+        writer = RecordingWriter(paths[compact], run_id, chunk_messages=25, flush_interval_s=3600)
+        with monkeypatch.context() as m:  # the metadata's start time
+            m.setattr(writer_module, "_dt", SimpleNamespace(datetime=SimpleNamespace(now=lambda tz: FIXED_START),
+                                                            timezone=writer_module._dt.timezone))
+            writer.start({"seed": "1"})
+        for i, (key, payload) in enumerate(mix):
+            writer.write(key, payload, 1_000_000_000 + i)
+        indexes = writer._mcap._Writer__chunk_indices
+        sizes[compact] = sum(map(deep_size, indexes)) / len(indexes)
+        assert all(isinstance(x, WrittenChunkIndex) for x in indexes) == compact and len(indexes) > 20
+        writer.close()
+    assert paths[True].read_bytes() == paths[False].read_bytes()
+    assert sizes[True] * 4 < sizes[False], sizes  # per chunk of 25 messages on about 20 channels
+    with open(paths[True], "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert sum(c.message_index_offsets != {} for c in summary.chunk_indexes) == len(summary.chunk_indexes)
+    assert read_recording(paths[True]).complete and len(read_recording(paths[True]).messages) == len(mix)
+
+
+FIXED_START = datetime.datetime(2026, 7, 1, tzinfo=datetime.timezone.utc)
+
+
+def deep_size(obj) -> int:
+    """Bytes an object holds with what it refers to (dicts, dataclass fields, slots), counting each object once."""
+    seen, stack, total = set(), [obj], 0
+    while stack:
+        o = stack.pop()
+        if id(o) in seen:
+            continue
+        seen.add(id(o))
+        total += sys.getsizeof(o)
+        if isinstance(o, dict):
+            stack += [*o.keys(), *o.values()]
+        elif hasattr(o, "__dict__"):
+            stack.append(vars(o))
+        elif hasattr(type(o), "__slots__"):
+            stack += [getattr(o, name) for name in type(o).__slots__]
+    return total
 
 
 def test_chunks_reach_the_disk_as_they_close_so_an_unfinished_file_reads(tmp_path):
