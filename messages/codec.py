@@ -56,17 +56,19 @@ def decode(payload: bytes, expected_kind: str | None = None) -> Message:
     return msg
 
 
-# What each version added to a kind ("*": to every kind), and what an older message means by their absence.
-ADDED = ((2, "clock", {"day": 1, "days": 1}),
-         (3, "award", {"settlement_rule": None, "deviation_cost": None}),
-         (3, "settlement_statement", {"settlement_rule": None}),
-         (4, "*", {"run": "", "incarnation": 0}),
-         (5, "award", {"congestion": None}),
-         (6, "registration", {"strategy": None}),
-         (7, "registration", {"bus": None}),
-         (7, "award", {"bus": None, "energy_price_per_mwh": None, "congestion_price_per_mwh": None,
-                       "voltage_price_per_mwh": None}),
-         (8, "grid_state", {"buses": [], "room_mw": []}))
+# What each version added to a kind ("*": to every kind), at its top level or to each item of one of its lists,
+# and what an older message means by their absence.
+ADDED = ((2, "clock", None, {"day": 1, "days": 1}),
+         (3, "award", None, {"settlement_rule": None, "deviation_cost": None}),
+         (3, "settlement_statement", None, {"settlement_rule": None}),
+         (4, "*", None, {"run": "", "incarnation": 0}),
+         (5, "award", None, {"congestion": None}),
+         (6, "registration", None, {"strategy": None}),
+         (7, "registration", None, {"bus": None}),
+         (7, "award", None, {"bus": None, "energy_price_per_mwh": None, "congestion_price_per_mwh": None,
+                             "voltage_price_per_mwh": None}),
+         (8, "grid_state", None, {"buses": [], "room_mw": []}),
+         (9, "agent_day", "compute", {"started_at": None, "turn_s": 0.0}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -77,8 +79,9 @@ def _upgrade(payload: bytes) -> bytes | None:
     Version 4 -> 5: an award states no congestion (null), which the tables show as unknown. Version 5 -> 6: a
     registration names no bidding strategy (null). Version 6 -> 7: a registration and an award name no bus and
     the award no price components (null): the copper plate. Version 7 -> 8: a grid state carries no operating
-    envelope (no buses, no rooms), as on the copper plate. An older message that already has a field of a later
-    version is left as it is, for validation to refuse."""
+    envelope (no buses, no rooms), as on the copper plate. Version 8 -> 9: the messages an agent_day says its
+    agent handled say neither when each was taken up (null) nor a wait for a turn (0). An older message that
+    already has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):
@@ -88,13 +91,20 @@ def _upgrade(payload: bytes) -> bytes | None:
     version = data.get("schema_version")
     if not isinstance(version, int) or isinstance(version, bool) or version >= SCHEMA_VERSION:
         return None
-    added = {}
-    for since, kind, fields in ADDED:
-        if kind in (data.get("kind"), "*") and version < since:
+    upgraded = dict(data)
+    for since, kind, within, fields in ADDED:
+        if kind not in (data.get("kind"), "*") or version >= since:
+            continue
+        if within is None:
             if any(name in data for name in fields):
                 return None
-            added.update(fields)
-    return json.dumps({**data, **added}).encode() if added else None
+            upgraded.update(fields)
+        elif isinstance(data.get(within), list):
+            items = data[within]
+            if any(not isinstance(item, dict) or any(name in item for name in fields) for item in items):
+                return None
+            upgraded[within] = [{**item, **fields} for item in items]
+    return json.dumps(upgraded).encode() if upgraded != data else None
 
 
 def _oversize(size: int) -> str:

@@ -26,8 +26,9 @@ from scenarios.network import MAX_BUSES
 # clearing's congestion per hour, and an agent may report its realised day (``agent_day``); 6: a registration
 # names the agent's bidding strategy; 7: on a feeder, registrations and awards name the agent's bus, awards carry
 # their price's components, and ``network_hour`` publishes the feeder's hours; 8: on a feeder, a grid state carries
-# the hour's operating envelope (``buses``, ``room_mw``)
-SCHEMA_VERSION = 8
+# the hour's operating envelope (``buses``, ``room_mw``); 9: each message an agent_day says the agent handled carries
+# when it was taken up and how long the agent waited for its turn (``started_at``, ``turn_s``)
+SCHEMA_VERSION = 9
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -476,6 +477,17 @@ class HandlingTime(_WireModel):
     hour: Annotated[Hour | None, Field(description="its hour (a clock's or grid state's in real time), or null")]
     wall_s: Annotated[NonNeg, Field(description="wall-clock seconds")]
     cpu_s: Annotated[NonNeg, Field(description="CPU seconds of the agent's process")]
+    started_at: Annotated[Annotated[int, Strict(), Field(ge=0, lt=2**63)] | None, Field(description=(
+        "when it took the message up, ns since the Unix epoch on the agent's clock; null before version 9"))]
+    turn_s: Annotated[NonNeg, Field(description=(
+        "seconds of wall_s it waited for its turn to compute, among agents forked from one host that take turns "
+        "(0 otherwise, and before version 9): it computed from started_at + turn_s to started_at + wall_s"))]
+
+    @model_validator(mode="after")
+    def _turn_within_wall(self):
+        if self.turn_s > self.wall_s:
+            raise ValueError(f"turn_s {self.turn_s} is a part of wall_s {self.wall_s}, not more")
+        return self
 
 
 Counts = Annotated[dict[Annotated[str, Strict(), Field(min_length=1, max_length=64)], Count], Field(max_length=64)]

@@ -2,10 +2,10 @@
 
 For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
 (``phase_s``) and each agent reports, after its last meter report of the day, the wall and CPU time of every message
-it handled (the ``compute`` of its ``agent_day`` message, which the DMO's result gives under ``realised``). The
-split is ``split_day``: per step (the call for bids, the award, each hour's grid state) the slowest agent's compute
-time is on the critical path; the day's wall time minus that critical path is the overhead (definition in
-docs/benchmarks.md).
+it handled, when it took it up and how long it waited for its turn (the ``compute`` of its ``agent_day`` message,
+which the DMO's result gives under ``realised``). The split is ``split_day``: the time in which at least one agent
+computed is the agents' computation, and the rest of the day, when none did and the day waited on messages and the
+DMO, is the overhead (definition in docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -72,26 +72,36 @@ def run(args) -> dict:
 
 
 def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: int) -> dict:
-    """Split the DMO's phase times into the agents' critical-path computation and overhead.
+    """Split the DMO's phase times into the agents' computation and overhead.
 
-    ``compute`` is agent -> its ``compute`` entries ({kind, hour, wall_s, cpu_s}, ``agents_reported``). Per step, the
-    critical path is the largest wall time of any agent; the CPU bound the least wall time the step's CPU work could
-    take on ``cores`` cores: max(largest CPU time, total CPU time / cores), so ``cpu_wait_s`` (critical path minus
-    CPU bound) is time the slowest agents spent waiting for a core, taken by each other or by other work on the
-    machine. Registration (the agents' processes starting and connecting) is reported as ``startup_s``, outside
-    the day.
+    ``compute`` is agent -> its ``compute`` entries ({kind, hour, wall_s, cpu_s, started_at, turn_s},
+    ``agents_reported``). An entry computed from ``started_at + turn_s`` to ``started_at + wall_s``: a phase's
+    computation is the time in which at least one agent computed (the union of those intervals), and the rest of its
+    wall time, when no agent computed and the day waited on messages and the DMO, is overhead. Entries without
+    ``started_at`` (an agent_day older than version 9) count as before: per step, the largest wall time of any agent
+    (the critical path). The CPU bound is the least wall time the step's CPU work could take on ``cores`` cores:
+    max(largest CPU time, total CPU time / cores), so ``cpu_wait_s`` (computation minus CPU bound) is time the agents
+    spent waiting for a core, taken by each other or by other work on the machine (``cpu_s`` is the agent's process's:
+    agents sharing a process each count all of it). Registration (the agents' processes starting and connecting) is
+    reported as ``startup_s``, outside the day.
     """
-    steps: dict[tuple[str, int | None], list[tuple[float, float]]] = {}
+    steps: dict[tuple[str, int | None], list[dict]] = {}
     for entries in compute.values():
         for e in entries:
             if e["kind"] in STEP_PHASE:
-                steps.setdefault((e["kind"], e["hour"]), []).append((e["wall_s"], e["cpu_s"]))
+                steps.setdefault((e["kind"], e["hour"]), []).append(e)
     per_phase = {phase: [0.0, 0.0] for phase in phase_s}
-    for (kind, _), times in steps.items():
-        wall = max(w for w, _ in times)
-        cpu_bound = max(max(c for _, c in times), sum(c for _, c in times) / cores)
-        per_phase[STEP_PHASE[kind]][0] += wall
-        per_phase[STEP_PHASE[kind]][1] += cpu_bound
+    timed: dict[str, list[tuple[float, float]]] = {}  # phase -> computing intervals, s since the epoch
+    for (kind, _), entries in steps.items():
+        phase = STEP_PHASE[kind]
+        if all(e.get("started_at") is not None for e in entries):
+            timed.setdefault(phase, []).extend(
+                (e["started_at"] / 1e9 + e.get("turn_s", 0.0), e["started_at"] / 1e9 + e["wall_s"]) for e in entries)
+        else:
+            per_phase[phase][0] += max(e["wall_s"] for e in entries)
+        per_phase[phase][1] += max(max(e["cpu_s"] for e in entries), sum(e["cpu_s"] for e in entries) / cores)
+    for phase, intervals in timed.items():
+        per_phase[phase][0] += covered(intervals)
     rows = [{"phase": phase, "wall_s": wall, "compute_s": per_phase[phase][0], "overhead_s": wall - per_phase[phase][0],
              "cpu_bound_s": per_phase[phase][1]} for phase, wall in phase_s.items() if phase != "registration"]
     day_s = sum(r["wall_s"] for r in rows)
@@ -110,6 +120,16 @@ def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: 
         "cpu_wait_s": compute_s - cpu_bound_s,
     }
     return {"phases": rows, "totals": totals}
+
+
+def covered(intervals: list[tuple[float, float]]) -> float:
+    """The length of the union of intervals (start, end)."""
+    total, reach = 0.0, float("-inf")
+    for start, end in sorted(intervals):
+        if end > reach:
+            total += end - max(start, reach)
+            reach = end
+    return total
 
 
 def add_run_flags(parser: argparse.ArgumentParser, *, agents: int, days: int, scenarios: int, subperiods: int,

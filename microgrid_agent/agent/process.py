@@ -165,12 +165,16 @@ class MicrogridAgent:
             if isinstance(msg, tuple):  # a refusal in a receipt: no computation to account for
                 self._handle(msg)
                 continue
-            started, self._answering = (time.perf_counter(), time.process_time()), None
-            with computing(self.id):  # a turn among the agents of a host (slots.py): waiting counts in wall_s
+            started_at, self._answering = time.time_ns(), None
+            started = (time.perf_counter(), time.process_time())
+            with computing():  # a turn among the agents of a host (slots.py): waiting counts in wall_s and turn_s
+                turn_s = time.perf_counter() - started[0]
                 self._handle(msg)
             ended = self._answering or (time.perf_counter(), time.process_time())
+            return_free_memory()  # what its models and solves took from the C heap goes back (0.2 ms)
             self.compute.append(HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
-                                             wall_s=ended[0] - started[0], cpu_s=ended[1] - started[1]))
+                                             wall_s=ended[0] - started[0], cpu_s=ended[1] - started[1],
+                                             started_at=started_at, turn_s=turn_s))
             if self._realised_due:  # after the compute of the last grid state, which it carries
                 self._realised_due = False
                 self._send_realised()
@@ -351,7 +355,6 @@ class MicrogridAgent:
                 log.info("%s: the same award again; the schedule already solved stands", self.id)
             else:
                 self._schedule(msg)
-                return_free_memory()  # the day's solves are over: the memory their models and solvers used goes back
         elif isinstance(msg, GridState):
             self._operate(msg)
         elif isinstance(msg, SettlementStatement):

@@ -109,6 +109,24 @@ def test_split_takes_the_slowest_agent_per_step_and_bounds_cpu_by_the_cores():
     assert t["agent_cpu_s"] == pytest.approx(1.0 + 2.0 + 2.0 + 1.0 + 24 * 0.15)
 
 
+def test_split_counts_as_computation_the_time_in_which_any_agent_computed_once_entries_say_when():
+    """Two agents taking turns on one core: mg2 took the call for bids up late (0.5 s in) and waited for its turn
+    until mg1 answered (1.0 s); the hour's grid states came 0.5 s apart and nobody computed in between."""
+    t0 = 1_780_000_000 * 10**9
+    at = lambda s: t0 + round(s * 1e9)  # noqa: E731
+    def entry(kind, start, turn, wall, hour=None):
+        return {"kind": kind, "hour": hour, "wall_s": wall, "cpu_s": 0.1, "started_at": at(start), "turn_s": turn}
+
+    compute = {"mg1": [entry("call_for_bids", 0.0, 0.0, 1.0), entry("grid_state", 10.0, 0.0, 0.25, 1)],
+               "mg2": [entry("call_for_bids", 0.5, 0.5, 1.5), entry("grid_state", 10.75, 0.0, 0.25, 2)]}
+    phase_s = {"registration": 1.0, "bidding": 2.25, "realtime": 1.25}
+    phases = {row["phase"]: row for row in split_day(phase_s, compute, cores=1)["phases"]}
+    assert phases["bidding"]["compute_s"] == pytest.approx(2.0)  # mg1 0-1, mg2 1-2: the slowest agent's wall is 1.5
+    assert phases["bidding"]["overhead_s"] == pytest.approx(0.25)
+    assert phases["realtime"]["compute_s"] == pytest.approx(0.5)
+    assert phases["realtime"]["overhead_s"] == pytest.approx(0.75)
+
+
 def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_with_the_first():
     phase_s = {"registration": 2.0, "bidding": 1.0, "clearing": 0.0, "scheduling": 2.0, "realtime": 2.4,
                "settlement": 0.0}

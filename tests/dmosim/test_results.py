@@ -439,8 +439,8 @@ def test_the_agents_realised_days_are_a_table_of_what_the_dmo_accepted(tmp_path)
         sender=agent, market_day=DAY, generation=100.0 * n, startup=10.0, curtailment=0.0, penalty=5.0,
         total=100.0 * n + 15.0, curtailment_mwh=0.0, deviation_mwh=0.5 * n, units={},
         stored_mwh=None if n == 1 else 2.0,
-        compute=(HandlingTime(kind="award", hour=None, wall_s=1.5, cpu_s=1.0),
-                 HandlingTime(kind="grid_state", hour=24, wall_s=0.5, cpu_s=0.25)),
+        compute=(HandlingTime(kind="award", hour=None, wall_s=1.5, cpu_s=1.0, started_at=10**18, turn_s=0.5),
+                 HandlingTime(kind="grid_state", hour=24, wall_s=0.5, cpu_s=0.25, started_at=10**18 + 10**9, turn_s=0.0)),
         messages=MessageCounts(published=50, received=60, rejected={}, handler_errors=0, ignored={}, sent_again=n,
                                asked=0, faults_injected={}), seq=1000) for n, agent in enumerate(("mg1", "mg2"), 1)}
     at = find(day, "dmo/summary")

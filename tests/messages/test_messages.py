@@ -63,8 +63,10 @@ SAMPLES = {
                           penalty=15.0, total=30135.0, curtailment_mwh=0.0, deviation_mwh=0.1,
                           units={"G1": MidnightUnit(on=True, output_mw=2.5, hours=24),
                                  "G2": MidnightUnit(on=False, output_mw=0.0, hours=3)}, stored_mwh=1.2,
-                          compute=[HandlingTime(kind="award", hour=None, wall_s=2.5, cpu_s=2.4),
-                                   HandlingTime(kind="grid_state", hour=24, wall_s=0.05, cpu_s=0.04)],
+                          compute=[HandlingTime(kind="award", hour=None, wall_s=2.5, cpu_s=2.4,
+                                                started_at=1_780_000_000 * 10**9, turn_s=0.1),
+                                   HandlingTime(kind="grid_state", hour=24, wall_s=0.05, cpu_s=0.04,
+                                                started_at=1_780_000_009 * 10**9, turn_s=0.0)],
                           messages=MessageCounts(published=60, received=80, rejected={}, handler_errors=0,
                                                  ignored={"award_again": 1}, sent_again=2, asked=0,
                                                  faults_injected={"drop": 1})),
@@ -153,6 +155,12 @@ def _older(kind: str, version: int, *dropped: str) -> bytes:
     return _bytes({**data, "schema_version": version})
 
 
+def _older_within(kind: str, version: int, within: str, *dropped: str) -> bytes:
+    data = _wire(kind)
+    items = [{k: v for k, v in item.items() if k not in dropped} for item in data[within]]
+    return _bytes({**data, within: items, "schema_version": version})
+
+
 BOUND = ("run", "incarnation")  # version 4's envelope fields
 
 
@@ -162,7 +170,8 @@ FEEDER = ("bus", "energy_price_per_mwh", "congestion_price_per_mwh", "voltage_pr
 def test_older_messages_read_as_they_were_meant():
     """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates; a
     version-3 message is bound to no run and no process; a version-4 award states no congestion; a version-6 award
-    or registration names no bus (the copper plate); a version-7 grid state carries no operating envelope."""
+    or registration names no bus (the copper plate); a version-7 grid state carries no operating envelope; a version-8
+    agent_day says neither when the messages it handled were taken up nor a wait for a turn."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
     award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER))
@@ -178,6 +187,9 @@ def test_older_messages_read_as_they_were_meant():
     assert (grid.buses, grid.room_mw) == ((), ()) and grid.connected == SAMPLES["grid_state"].connected
     bid = decode(_older("bid", 3, *BOUND))
     assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
+    day = decode(_older_within("agent_day", 8, "compute", "started_at", "turn_s"))
+    assert [(h.started_at, h.turn_s) for h in day.compute] == [(None, 0.0), (None, 0.0)]
+    assert [h.wall_s for h in day.compute] == [h.wall_s for h in SAMPLES["agent_day"].compute]
     # a message of an older version that has a later version's field is not upgraded, and a current one that
     # leaves a field out is refused
     _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
@@ -188,6 +200,14 @@ def test_older_messages_read_as_they_were_meant():
     _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
     _rejects(_older("award", SCHEMA_VERSION, "congestion"), "invalid", "congestion")
     _rejects(_older("bid", SCHEMA_VERSION, "run"), "invalid", "run")
+    _rejects(_older_within("agent_day", 8, "compute", "turn_s"), "invalid", "turn_s")
+    _rejects(_older_within("agent_day", SCHEMA_VERSION, "compute", "turn_s"), "invalid", "turn_s")
+
+
+def test_the_wait_for_a_turn_is_a_part_of_the_handling_time():
+    day = _wire("agent_day")
+    day["compute"][0].update(wall_s=0.5, turn_s=0.75)
+    _rejects(_bytes(day), "invalid", "turn_s")
 
 
 def test_rejects_non_finite_numbers():

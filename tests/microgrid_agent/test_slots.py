@@ -1,10 +1,9 @@
-"""The agents of one host take turns in as many slots as the machine has cores (microgrid_agent/agent/slots.py): a
-slot is held while a message is handled, the next agent gets it once it is given back, and an agent killed while
-holding one gives it back with its process."""
+"""The agents of one host take turns, as many at once as the machine has cores (microgrid_agent/agent/slots.py): a
+turn is held while a message is handled, a turn given back goes to an agent waiting for any, and an agent killed
+while holding one gives it back with its process."""
 
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import threading
@@ -14,71 +13,79 @@ import pytest
 from microgrid_agent.agent import slots
 
 
-def free(path: str) -> bool:
-    fd = os.open(path, os.O_RDWR)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        return True
-    except BlockingIOError:
-        return False
-    finally:
-        os.close(fd)
-
-
 @pytest.fixture
-def one_slot(monkeypatch) -> str:
-    monkeypatch.setattr(slots, "_paths", [])
-    monkeypatch.setattr(os, "cpu_count", lambda: 1)
-    slots.before_forks()
-    (path,) = slots._paths
-    return path
+def turns(monkeypatch):
+    """A host's turns, as many as ``turns(n)`` says cores, removed after the test."""
+    made = []
+
+    def make(cores: int) -> None:
+        monkeypatch.setattr(slots, "_semaphore", [])
+        monkeypatch.setattr(os, "cpu_count", lambda: cores)
+        slots.before_forks()
+        made.extend(slots._semaphore)
+
+    yield make
+    for semaphore in made:
+        slots._LIBC.semctl(semaphore, 0, 0)  # IPC_RMID, as the host's exit does
+
+
+class Holder(threading.Thread):
+    """An agent that takes a turn, says so, and keeps it until told to give it back."""
+
+    def __init__(self, order: list[str], name: str):
+        super().__init__(name=name)
+        self.order, self.holding, self.release = order, threading.Event(), threading.Event()
+
+    def run(self):
+        with slots.computing():
+            self.order.append(f"{self.name} in")
+            self.holding.set()
+            self.release.wait()
+        self.order.append(f"{self.name} out")
 
 
 def test_without_a_host_nothing_is_waited_for(monkeypatch):
-    monkeypatch.setattr(slots, "_paths", [])
-    with slots.computing("mg1"), slots.computing("mg2"):  # both at once: no slot to take
-        pass
+    monkeypatch.setattr(slots, "_semaphore", [])
+    with slots.computing(), slots.computing():  # both at once: no turn to take
+        assert slots.free_turns() is None
 
 
-def test_an_agent_waits_while_another_holds_the_slot_and_gets_it_once_given_back(one_slot):
-    holding, release, order = threading.Event(), threading.Event(), []
-
-    def first():
-        with slots.computing("mg1"):
-            holding.set()
-            release.wait()
-            order.append("mg1 done")
-
-    def second():
-        with slots.computing("mg2"):
-            order.append("mg2 in")
-
-    threads = [threading.Thread(target=first)]
-    threads[0].start()
-    holding.wait()
-    assert not free(one_slot)
-    threads.append(threading.Thread(target=second))
-    threads[1].start()
-    release.set()
-    for t in threads:
-        t.join()
-    assert order == ["mg1 done", "mg2 in"] and free(one_slot)
+@pytest.mark.parametrize("freed_first", [0, 1])
+def test_a_turn_given_back_goes_to_the_agent_waiting_whichever_turn_it_is(turns, freed_first):
+    """Two turns held, a third agent waiting: it gets in as soon as either is given back, the other still held."""
+    turns(2)
+    order = []
+    holders = [Holder(order, "mg1"), Holder(order, "mg2")]
+    for h in holders:
+        h.start()
+        h.holding.wait()
+    assert slots.free_turns() == 0
+    waiting = Holder(order, "mg3")
+    waiting.start()
+    holders[freed_first].release.set()
+    assert waiting.holding.wait(timeout=60), order  # got a turn while the other holder keeps its own
+    assert order[-1] == "mg3 in" and f"{holders[1 - freed_first].name} out" not in order
+    for h in (*holders, waiting):
+        h.release.set()
+        h.join()
+    assert slots.free_turns() == 2
 
 
-def test_an_agent_killed_while_holding_its_slot_gives_it_back(one_slot):
+def test_an_agent_killed_while_holding_its_turn_gives_it_back(turns):
+    turns(1)
     read, write = os.pipe()
     pid = os.fork()
-    if pid == 0:  # the agent: takes the slot, says so, and waits to be killed
+    if pid == 0:  # the agent: takes the turn, says so, and waits to be killed
         try:
-            with slots.computing("mg1"):
+            with slots.computing():
                 os.write(write, b"x")
                 signal.pause()
         finally:
             os._exit(1)
     os.close(write)
     assert os.read(read, 1) == b"x"
-    assert not free(one_slot)
+    assert slots.free_turns() == 0
     os.kill(pid, signal.SIGKILL)
     os.waitpid(pid, 0)
     os.close(read)
-    assert free(one_slot)
+    assert slots.free_turns() == 1
