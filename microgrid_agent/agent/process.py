@@ -171,13 +171,13 @@ class MicrogridAgent:
                 turn_s = time.perf_counter() - started[0]
                 self._handle(msg)
             ended = self._answering or (time.perf_counter(), time.process_time())
-            return_free_memory()  # what its models and solves took from the C heap goes back (0.2 ms)
             self.compute.append(HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
                                              wall_s=ended[0] - started[0], cpu_s=ended[1] - started[1],
                                              started_at=started_at, turn_s=turn_s))
             if self._realised_due:  # after the compute of the last grid state, which it carries
                 self._realised_due = False
                 self._send_realised()
+                return_free_memory()  # the day's hours are over: what their models took from the C heap goes back
 
     def _next_message(self):
         """The next message from the DMO. When it has been silent for a while, ask it for the latest of what this
@@ -355,6 +355,7 @@ class MicrogridAgent:
                 log.info("%s: the same award again; the schedule already solved stands", self.id)
             else:
                 self._schedule(msg)
+                return_free_memory()  # the day's solves are over: the memory their models and solvers used goes back
         elif isinstance(msg, GridState):
             self._operate(msg)
         elif isinstance(msg, SettlementStatement):

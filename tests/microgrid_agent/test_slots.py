@@ -1,6 +1,6 @@
 """The agents of one host take turns, as many at once as the machine has cores (microgrid_agent/agent/slots.py): a
-turn is held while a message is handled, a turn given back goes to an agent waiting for any, and an agent killed
-while holding one gives it back with its process."""
+turn is held while a message is handled, a turn given back goes to an agent waiting for any, a process holds one turn
+at a time, and an agent killed while holding one gives it back with its process."""
 
 from __future__ import annotations
 
@@ -29,19 +29,35 @@ def turns(monkeypatch):
         slots._LIBC.semctl(semaphore, 0, 0)  # IPC_RMID, as the host's exit does
 
 
-class Holder(threading.Thread):
-    """An agent that takes a turn, says so, and keeps it until told to give it back."""
+class Agent:
+    """An agent in a forked process of its own: takes a turn, says so on a pipe, and keeps it until told to give it
+    back (or is killed)."""
 
-    def __init__(self, order: list[str], name: str):
-        super().__init__(name=name)
-        self.order, self.holding, self.release = order, threading.Event(), threading.Event()
+    def __init__(self):
+        self._said, said = os.pipe()
+        release, self._release = os.pipe()
+        self.pid = os.fork()
+        if self.pid == 0:
+            try:
+                with slots.computing():
+                    os.write(said, b"x")
+                    os.read(release, 1)
+            finally:
+                os._exit(0)
+        os.close(said)
+        os.close(release)
 
-    def run(self):
-        with slots.computing():
-            self.order.append(f"{self.name} in")
-            self.holding.set()
-            self.release.wait()
-        self.order.append(f"{self.name} out")
+    def holding(self) -> bool:
+        """Waits until it holds its turn (it says so once it does)."""
+        return os.read(self._said, 1) == b"x"
+
+    def give_back(self) -> None:
+        os.write(self._release, b"x")
+        os.waitpid(self.pid, 0)
+
+    def kill(self) -> None:
+        os.kill(self.pid, signal.SIGKILL)
+        os.waitpid(self.pid, 0)
 
 
 def test_without_a_host_nothing_is_waited_for(monkeypatch):
@@ -54,38 +70,48 @@ def test_without_a_host_nothing_is_waited_for(monkeypatch):
 def test_a_turn_given_back_goes_to_the_agent_waiting_whichever_turn_it_is(turns, freed_first):
     """Two turns held, a third agent waiting: it gets in as soon as either is given back, the other still held."""
     turns(2)
-    order = []
-    holders = [Holder(order, "mg1"), Holder(order, "mg2")]
-    for h in holders:
-        h.start()
-        h.holding.wait()
-    assert slots.free_turns() == 0
-    waiting = Holder(order, "mg3")
-    waiting.start()
-    holders[freed_first].release.set()
-    assert waiting.holding.wait(timeout=60), order  # got a turn while the other holder keeps its own
-    assert order[-1] == "mg3 in" and f"{holders[1 - freed_first].name} out" not in order
-    for h in (*holders, waiting):
-        h.release.set()
-        h.join()
+    holders = [Agent(), Agent()]
+    assert all(h.holding() for h in holders) and slots.free_turns() == 0
+    waiting = Agent()
+    holders[freed_first].give_back()
+    assert waiting.holding() and slots.free_turns() == 0  # the other holder keeps its own
+    holders[1 - freed_first].give_back()
+    waiting.give_back()
     assert slots.free_turns() == 2
+
+
+def test_a_process_holds_one_turn_at_a_time(turns):
+    """Two agents of one process: the second waits for the first although a turn is free, then gets one."""
+    turns(2)
+    order, first_in, release = [], threading.Event(), threading.Event()
+
+    def first():
+        with slots.computing():
+            order.append("mg1 in")
+            first_in.set()
+            release.wait()
+            order.append("mg1 out")
+
+    def second():
+        with slots.computing():
+            order.append("mg2 in")
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    threads[0].start()
+    first_in.wait()
+    threads[1].start()
+    other = Agent()  # another process takes the turn the second agent could not
+    assert other.holding() and slots.free_turns() == 0
+    other.give_back()
+    release.set()
+    for t in threads:
+        t.join()
+    assert order == ["mg1 in", "mg1 out", "mg2 in"] and slots.free_turns() == 2
 
 
 def test_an_agent_killed_while_holding_its_turn_gives_it_back(turns):
     turns(1)
-    read, write = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # the agent: takes the turn, says so, and waits to be killed
-        try:
-            with slots.computing():
-                os.write(write, b"x")
-                signal.pause()
-        finally:
-            os._exit(1)
-    os.close(write)
-    assert os.read(read, 1) == b"x"
-    assert slots.free_turns() == 0
-    os.kill(pid, signal.SIGKILL)
-    os.waitpid(pid, 0)
-    os.close(read)
+    agent = Agent()
+    assert agent.holding() and slots.free_turns() == 0
+    agent.kill()
     assert slots.free_turns() == 1
