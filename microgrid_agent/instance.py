@@ -22,14 +22,17 @@ class Instance:
     params: Params
 
     def solve(self, method: str = "extensive", workers: int = 2, progress=None, **options) -> StochasticSchedule:
-        """The extensive form (reference) or the Benders decomposition (or "auto": by scenario count); both
-        certify their gap. ``progress(message)`` hears of each Benders iteration (the extensive form reports
+        """The extensive form (reference), the Benders decomposition, or the decomposition in one tree (or "auto": by
+        scenario count); each certifies its gap. ``progress(message)`` hears of each Benders iteration (the extensive form reports
         through HiGHS's own log, ``verbose``)."""
-        if resolve_method(method, self.scen.S) == "benders":
-            from .solvers.benders import solve_decomposed  # noqa: PLC0415
-
-            return solve_decomposed(self.case, self.scen, self.params, workers=workers, progress=progress,
-                                    **{k: v for k, v in options.items() if k in ("gap", "time_limit")})
+        route = resolve_method(method, self.scen.S)
+        if route in ("benders", "tree"):
+            if route == "benders":
+                from .solvers.benders import solve_decomposed as decomposed  # noqa: PLC0415
+            else:
+                from .solvers.tree import solve_tree as decomposed  # noqa: PLC0415
+            return decomposed(self.case, self.scen, self.params, workers=workers, progress=progress,
+                              **{k: v for k, v in options.items() if k in ("gap", "time_limit")})
         return solve(self.case, self.scen, self.params, **options)
 
 

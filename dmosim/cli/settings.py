@@ -95,7 +95,8 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
                                                                         f"{s.time_limit:g})")),
         "schedule.method": ("--method", dict(choices=METHODS,
                                              help="route of the agents' solves: extensive, one MILP; benders, "
-                                                  f"decomposed (docs/solver.md); auto, benders from "
+                                                  "decomposed (docs/solver.md); tree, decomposed in one SCIP tree "
+                                                  "(pip install 'dmosim[scip]'); auto, benders from "
                                                   f"{AUTO_BENDERS_SCENARIOS} scenarios on (default: {s.method})")),
         "schedule.workers": ("--workers", dict(type=integer(1, MAX_WORKERS),
                                                help=f"processes per agent for Benders subproblems, at most "

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from dmo.market.rules import MAX_RATE
 from messages.schemas import MAX_SUBPERIODS
-from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
+from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS, check_available
 from scenarios.case import load_case
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE
@@ -61,7 +61,8 @@ def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
     """How the stochastic schedule is solved."""
     p.add_argument("--method", choices=METHODS, default="auto",
                    help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
-                        f"(docs/solver.md); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
+                        "(docs/solver.md); tree: the decomposition in one SCIP branch-and-bound tree (pip install "
+                        f"'dmosim[scip]'); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
     p.add_argument("--workers", type=integer(1, MAX_WORKERS), default=workers,
                    help=f"processes for the Benders subproblems, at most {MAX_WORKERS} (default: {workers})")
 
@@ -88,7 +89,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def check_instance_flags(args) -> None:
-    """What the instance flags' types cannot see alone: a sample of at least the scenarios it is reduced to."""
+    """What the instance flags' types cannot see alone: a sample of at least the scenarios it is reduced to, and a
+    method this installation has."""
+    try:
+        check_available(args.method)
+    except ValueError as exc:
+        raise UsageError(f"--method {exc}") from None
     if args.sample_size is not None and args.sample_size < args.scenarios:
         raise UsageError(f"--sample-size {args.sample_size}: the sample is reduced to --scenarios {args.scenarios}, "
                          "so it needs at least as many")

@@ -21,7 +21,7 @@ from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
-from microgrid_agent.solvers.routes import METHODS
+from microgrid_agent.solvers.routes import METHODS, check_available
 from scenarios.case import read_toml
 from scenarios.days import MAX_SEED, market_days
 from scenarios.fleet import MAX_SCALE, MAX_STRATEGY
@@ -158,6 +158,11 @@ class ScheduleSettings(_Section):
     time_limit: Seconds = 600.0
     method: Literal[METHODS] = "auto"  # type: ignore[valid-type]
     workers: Annotated[int, Field(ge=1, le=MAX_WORKERS)] = 1
+
+    @field_validator("method")
+    @classmethod
+    def _installed(cls, method: str) -> str:
+        return check_available(method)
 
 
 class Profiles(_Section):

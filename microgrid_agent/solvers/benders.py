@@ -48,7 +48,8 @@ class _OneScenario:
 
     def set(self, scen: ScenarioSet, s: int) -> None:
         self.load.value = scen.load[s:s + 1]
-        self.renewable.value = scen.renewable[:, s]
+        # a case without renewables has none to set; its parameter is one row the model never reads
+        self.renewable.value = scen.renewable[:, s] if len(scen.renewable) else np.zeros(self.renewable.shape)
         self.connected.value = scen.connected[s:s + 1]
 
 
@@ -225,7 +226,7 @@ class Master:
         problem = cp.Problem(cp.Minimize(startup_cost(case, v) + scen.probability @ theta), cons)
         data, columns = compile_problem(problem)
         self.h = highs_model(data, integer=True)
-        self.var = v
+        self.var, self.probability = v, scen.probability
         self.x_cols = np.concatenate([columns.of(v[n]) for n in FIRST_STAGE if n in v])
         self.theta_cols = columns.of(theta)
         self.cost = np.asarray(data["c"], float)[self.x_cols]  # start-up and shut-down costs of x
@@ -358,73 +359,90 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
         master = Master(case, scen, params)
         trace.build_s = time.perf_counter() - start
         pr = scen.probability
+        report = reporter(progress, trace, start)
+        relax(master, pool, trace, deadline, report, gap=gap, lp_tolerance=lp_tolerance,
+              max_lp_iterations=max_lp_iterations, stability=stability)
         lower, upper, best = -np.inf, np.inf, None
 
-        def evaluate(phase: str, x: np.ndarray, bound: float, master_s: float) -> tuple[float, np.ndarray]:
-            t1 = time.perf_counter()
-            values, grads = pool.evaluate(x)
-            master.add_cuts(x, values, grads)
-            value = master.first_stage_cost(x) + float(pr @ values)
-            trace.add(phase, bound, value, master_s, time.perf_counter() - t1)
-            return value, values
-
-        def report(what: str, lb: float, ub: float, master_s: float) -> None:
-            if progress:
-                progress(f"benders {what} {len(trace.rows)}: bound {lb:,.2f}, best {ub:,.2f} "
-                         f"({_apart(lb, ub):.2%} apart), master {master_s:.1f} s, "
-                         f"{time.perf_counter() - start:.0f} s in all")
-
-        def master_solve(relaxed: bool):
+        def master_solve():
             # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
             # half the target gap once close, where their bound is the one certified. A MILP master need not
             # prove more than the target: x costing (1 - gap) x the best value or more are cut off
             # (``_CUTOFF_MARGIN`` above it, so that a bound at the cutoff, less HiGHS's tolerance, certifies).
             t0 = time.perf_counter()
             remaining = None if deadline is None else max(1.0, deadline - t0)
-            master_gap = max(gap / 2, min(_EARLY_GAP, _apart(lower, upper) / 4))
+            master_gap = max(gap / 2, min(_EARLY_GAP, apart(lower, upper) / 4))
             cutoff = upper - (gap - 2 * _CUTOFF_MARGIN) * abs(upper) if np.isfinite(upper) else None
-            x, _, bound = master.solve(relaxed=relaxed, gap=master_gap, time_limit=remaining, cutoff=cutoff)
+            x, _, bound = master.solve(relaxed=False, gap=master_gap, time_limit=remaining, cutoff=cutoff)
             if x is None:  # nothing below the cutoff: the bound is the cutoff, less the pruning tolerance
                 bound -= _CUTOFF_MARGIN * abs(upper)
             return x, bound, time.perf_counter() - t0
 
-        # The LP relaxation first: cheap masters, most of the cuts. In-out stabilisation (Ben-Ameur and Neto
-        # 2007): cuts are taken between the master's point and the best point so far, which damps Kelley's
-        # zig-zag; the LP bound is the master's, the value at any point an upper bound of the LP relaxation.
-        core, core_value = None, np.inf
-        for _ in range(max_lp_iterations):
-            x_master, bound, master_s = master_solve(relaxed=True)
-            x = x_master if core is None else stability * x_master + (1 - stability) * core
-            value, _ = evaluate("lp", x, bound, master_s)
-            if value < core_value:
-                core, core_value = x, value
-            report("LP relaxation, iteration", bound, core_value, master_s)
-            if _apart(bound, core_value) <= lp_tolerance or _late(deadline):
-                break
-        master.prune()
         status = "optimal"
         while True:
-            x, bound, master_s = master_solve(relaxed=False)
+            x, bound, master_s = master_solve()
             lower = max(lower, bound)
             if x is None:  # every x left costs (1 - gap) x the best value or more: the best is certified
                 trace.add("milp", bound, upper, master_s, 0.0)
                 report("integer master, iteration", lower, upper, master_s)
                 break
-            value, values = evaluate("milp", x, bound, master_s)
+            t1 = time.perf_counter()
+            values, grads = pool.evaluate(x)
+            master.add_cuts(x, values, grads)
+            value = master.first_stage_cost(x) + float(pr @ values)
+            trace.add("milp", bound, value, master_s, time.perf_counter() - t1)
             if value < upper:
                 upper, best = value, x
                 master.remember(x, values)
             report("integer master, iteration", lower, upper, master_s)
-            if _apart(lower, upper) <= gap:
+            if apart(lower, upper) <= gap:
                 break
-            if _late(deadline):
+            if late(deadline):
                 status = "time_limit"
                 break
         arrays, costs = pool.dispatch(best)
     finally:
         pool.close()
     found = Found(first_stage_values(master.var, best), master.first_stage_cost(best), arrays, costs, lower, status)
-    return _schedule(case, scen, params, found, trace, time.perf_counter() - start)
+    return schedule_of(case, scen, params, found, trace, time.perf_counter() - start, "benders")
+
+
+def reporter(progress, trace: Trace, start: float):
+    """report(what, lower, upper, master_s): a progress line per iteration of a decomposed solve, if ``progress``."""
+
+    def report(what: str, lb: float, ub: float, master_s: float) -> None:
+        if progress:
+            progress(f"benders {what} {len(trace.rows)}: bound {lb:,.2f}, best {ub:,.2f} "
+                     f"({apart(lb, ub):.2%} apart), master {master_s:.1f} s, "
+                     f"{time.perf_counter() - start:.0f} s in all")
+
+    return report
+
+
+def relax(master: Master, pool: ScenarioPool, trace: Trace, deadline: float | None, report, *, gap: float,
+          lp_tolerance: float = 1e-3, max_lp_iterations: int = 100, stability: float = 0.5) -> None:
+    """The LP relaxation of the master first: cheap masters, most of the cuts; then the cuts slack at its optimum set
+    aside (``Master.prune``). In-out stabilisation (Ben-Ameur and Neto 2007): cuts are taken between the master's
+    point and the best point so far, which damps Kelley's zig-zag; the LP bound is the master's, the value at any point
+    an upper bound of the LP relaxation. Stops within ``lp_tolerance`` of the LP relaxation's optimum."""
+    pr = master.probability
+    core, core_value = None, np.inf
+    for _ in range(max_lp_iterations):
+        t0 = time.perf_counter()
+        x_master, _, bound = master.solve(relaxed=True, gap=gap, time_limit=None)
+        master_s = time.perf_counter() - t0
+        x = x_master if core is None else stability * x_master + (1 - stability) * core
+        t1 = time.perf_counter()
+        values, grads = pool.evaluate(x)
+        master.add_cuts(x, values, grads)
+        value = master.first_stage_cost(x) + float(pr @ values)
+        trace.add("lp", bound, value, master_s, time.perf_counter() - t1)
+        if value < core_value:
+            core, core_value = x, value
+        report("LP relaxation, iteration", bound, core_value, master_s)
+        if apart(bound, core_value) <= lp_tolerance or late(deadline):
+            break
+    master.prune()
 
 
 def first_stage_vector(case: Case, values: dict[str, np.ndarray]) -> np.ndarray:
@@ -445,7 +463,7 @@ def first_stage_values(var: dict[str, cp.Variable], x: np.ndarray) -> dict[str, 
     return pieces
 
 
-def _apart(lower: float, upper: float) -> float:
+def apart(lower: float, upper: float) -> float:
     """The relative gap (upper - lower) / |upper|; infinite until there is an upper bound. A schedule that costs
     nothing (a microgrid importing free energy) is closed once the bound reaches it."""
     if not np.isfinite(upper):
@@ -455,7 +473,7 @@ def _apart(lower: float, upper: float) -> float:
     return (upper - lower) / abs(upper)
 
 
-def _late(deadline: float | None) -> bool:
+def late(deadline: float | None) -> bool:
     return deadline is not None and time.perf_counter() >= deadline
 
 
@@ -472,9 +490,9 @@ def _dispatch(case: Case, scen: ScenarioSet, params: Params, arrays: dict[str, n
                     dp_plus=dp_plus_of(params, scen.subperiods, stacked("PM", 1)[0], stacked("dP", 1)[0]))
 
 
-def _schedule(case: Case, scen: ScenarioSet, params: Params, found: Found, trace: Trace,
-              total: float) -> StochasticSchedule:
-    """The schedule of what the search found, in ``total`` seconds."""
+def schedule_of(case: Case, scen: ScenarioSet, params: Params, found: Found, trace: Trace, total: float,
+                method: str) -> StochasticSchedule:
+    """The schedule of what a decomposed search (``method``) found, in ``total`` seconds."""
     pieces, Dn, pr = found.first, len(case.loads), scen.probability
     first = FirstStage(commitment=pieces["I"], startup=pieces["y"], shutdown=pieces["w"],
                        discharging=pieces.get("u", np.zeros(HOURS)), charging=pieces.get("v", np.zeros(HOURS)),
@@ -490,4 +508,4 @@ def _schedule(case: Case, scen: ScenarioSet, params: Params, found: Found, trace
                                               total_s=total),
                               unit_names=tuple(u.name for u in case.units),
                               load_names=tuple(d.name for d in case.loads),
-                              extra={"method": "benders", "decomposition": summary, "trace": trace.rows})
+                              extra={"method": method, "decomposition": summary, "trace": trace.rows})

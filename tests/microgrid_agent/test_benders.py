@@ -12,7 +12,7 @@ from microgrid_agent.checker import check_schedule
 from microgrid_agent.solvers.benders import (
     Master,
     Subproblems,
-    _apart,
+    apart,
     first_stage_values,
     solve_decomposed,
 )
@@ -160,10 +160,10 @@ def test_the_master_allows_no_shut_down_that_ramps_cannot_reach():
 
 
 def test_the_relative_gap_is_closed_only_when_the_bound_reaches_a_zero_cost():
-    assert _apart(5_940.0, 6_000.0) == pytest.approx(0.01)
-    assert _apart(-1.0, np.inf) == np.inf
-    assert _apart(0.0, 0.0) == 0.0  # a microgrid that imports free energy: no division by zero
-    assert _apart(-1e-3, 0.0) == np.inf
+    assert apart(5_940.0, 6_000.0) == pytest.approx(0.01)
+    assert apart(-1.0, np.inf) == np.inf
+    assert apart(0.0, 0.0) == 0.0  # a microgrid that imports free energy: no division by zero
+    assert apart(-1e-3, 0.0) == np.inf
 
 
 @pytest.mark.slow

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from microgrid_agent.checker import check_schedule
-from microgrid_agent.instance import make_instance
+from microgrid_agent.instance import Instance, make_instance
 from dmo.market.rules import BUILT_IN
 from microgrid_agent.model import DeviationCost, Params
 from microgrid_agent.solvers.extensive import solve
@@ -107,6 +107,22 @@ def test_optimum_equals_brute_force_enumeration(min_up):
     schedule = verified(case, scen, params)
     assert schedule.objective == pytest.approx(best, rel=1e-6)
     assert schedule.commitment.iloc[ACTIVE:].to_numpy().sum() == 0
+
+
+@pytest.mark.parametrize("method", ["benders", "tree"])
+def test_the_decomposed_routes_find_the_brute_force_optimum(method):
+    """Benders (iterated masters) and the tree (one branch-and-bound tree) reach the enumerated optimum, each
+    schedule verified by the checker, each bound below it."""
+    if method == "tree":
+        pytest.importorskip("pyscipopt")
+    case = tiny_case((2, 1))
+    scen = tiny_scenarios(case)
+    params = Params(np.asarray(case.grid.p_sch), case.grid.penalty)
+    best = brute_force_best(case, scen, lambda c: feasible_min_up(c[0], 2) and feasible_min_up(c[1], 1))
+    schedule = Instance(case, scen, params).solve(method=method, workers=1, gap=EXACT)
+    check_schedule(case, scen, schedule, p_sch=params.p_sch, penalty=params.penalty).raise_if_failed()
+    assert schedule.extra["method"] == method
+    assert schedule.objective == pytest.approx(best, rel=1e-6) and schedule.bound <= best * (1 + 1e-6)
 
 
 def test_a_unit_carried_across_midnight_keeps_the_state_its_minimum_time_still_asks_for():
