@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import mimetypes
 import signal
@@ -20,6 +21,7 @@ from .flags import add_bus_flags, bus_config, recording_path, setup_logging
 
 HELP = "the recorder role: every message of one run into an MCAP file"
 log = logging.getLogger("dmosim.recorder")
+STUCK_S = 30.0  # a recorder this long in stopping is stuck (a 200-agent day's recorder stops in well under 1 s)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,7 +84,7 @@ def run(args) -> int:
 
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())  # finish the file: the last chunk, the summary, the footer
+        signal.signal(sig, lambda *_: _stopping(stop))
     writer = RecordingWriter(out, args.run_id, chunk_messages=args.chunk_messages, flush_interval_s=args.flush_interval)
     try:
         writer.start(meta, attachments)
@@ -95,9 +97,17 @@ def run(args) -> int:
             if args.ready_file:
                 Path(args.ready_file).write_text(str(out) + "\n")
             recorder.run(stop)
+            log.info("recorded %d messages (%d invalid) on %d keys to %s, %d of them caught up from the DMO after the "
+                     "network lost them; %.3f s from the first receipt to the last write", writer.messages,
+                     writer.invalid, len(writer.counts), out, recorder.caught_up, recorder.busy_s)
     finally:
         writer.close()
-    log.info("recorded %d messages (%d invalid) on %d keys to %s, %d of them caught up from the DMO after the network "
-             "lost them; %.3f s from the first receipt to the last write", writer.messages, writer.invalid,
-             len(writer.counts), out, recorder.caught_up, recorder.busy_s)
     return 0
+
+
+def _stopping(stop: threading.Event) -> None:
+    """Finish the file (the last chunk, the summary, the footer) and leave; a recorder still there ``STUCK_S`` later
+    writes where each of its threads is to its log and exits 1 (its launcher then looks at the file itself)."""
+    stop.set()
+    faulthandler.dump_traceback_later(STUCK_S, exit=True)
+

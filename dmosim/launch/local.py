@@ -185,7 +185,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             failed = wait_for_run(roles, watch, remote=remote.names if remote else (), routers=names)
         if failed:
             raise RoleFailed(failed, roles, logs)
-        recorder = _stop_recorder(roles, watch, faults) if record else None
+        recorder = _stop_recorder(roles, watch, faults, record) if record else None
         restarts = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
     result = json.loads(rundir.result.read_text())
     result.update(wall_s=round(time.monotonic() - began, 3),
@@ -291,9 +291,10 @@ def _wait_until(event: threading.Event, roles: Roles, watched: tuple[str, ...], 
             raise RuntimeError(f"no sign of {what} within {timeout_s:g} s")
 
 
-def _stop_recorder(roles: Roles, watch: _Watch, faults: list[Fault]) -> str | None:
-    """SIGTERM the recorder once the run is over: it writes its last chunk, the summary and the footer. None if it
-    did all that; else its failure in one line: killed by a fault, exited before the run ended, or failed to finish
+def _stop_recorder(roles: Roles, watch: _Watch, faults: list[Fault], path: Path) -> str | None:
+    """SIGTERM the recorder once the run is over: it writes its last chunk, the summary and the footer to ``path``.
+    None if it did all that (a recorder that finished its file but did not exit cleanly is killed and logged, its
+    file trusted); else its failure in one line: killed by a fault, exited before the run ended, or failed to finish
     its file."""
     role = roles.roles["recorder"]
     process = role.process
@@ -308,8 +309,26 @@ def _stop_recorder(roles: Roles, watch: _Watch, faults: list[Fault]) -> str | No
     try:
         code = process.wait(timeout=RECORDER_STOP_S)
     except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+        code = None
+    if code == 0:
+        return None
+    if _finished(path):  # it wrote its footer and then failed to leave: what it recorded is whole
+        left = "did not exit and was killed" if code is None else f"ended {_exit_status(code)}"
+        watch.say(f"the recorder finished its file but then {left} (its log: {role.log})")
+        return None
+    if code is None:
         return f"did not finish its file within {RECORDER_STOP_S:g} s of being stopped (its log: {role.log})"
-    return None if code == 0 else f"failed to finish its file ({_exit_status(code, role.log)}; its log: {role.log})"
+    return f"failed to finish its file ({_exit_status(code, role.log)}; its log: {role.log})"
+
+
+def _finished(path: Path) -> bool:
+    """Whether the recording at ``path`` is whole: its summary and footer written."""
+    try:
+        return read_recording(path).complete
+    except RecordingError:
+        return False
 
 
 def _exit_status(code: int, log: Path | None = None) -> str:

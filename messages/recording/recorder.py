@@ -46,7 +46,8 @@ class LatestSeen:
 
 class Recorder:
     """Records every payload under one run prefix, as it arrived, valid or not: Zenoh's threads only enqueue,
-    and ``run`` writes on the calling thread until ``stop`` is set, then drains the queue and closes the file.
+    and ``run`` writes on the calling thread until ``stop`` is set, then drains the queue, closes the file and only
+    then undeclares (what arrives after the stop is not recorded).
 
     The liveliness token ``alive/<name>`` (``alive/recorder`` for ``dmosim record``) is declared after the
     subscription and the backfill, so whoever sees the recorder present (the DMO waits for it) knows that it is
@@ -162,8 +163,7 @@ class Recorder:
                         break
                     self._write(*item, on_write)
                 writer.tick()
-        finally:
-            self.stop()
+        finally:  # the file first: nothing of Zenoh's (undeclaring, closing) stands between the run and its footer
             while True:
                 try:
                     item = q.get_nowait()
@@ -171,6 +171,7 @@ class Recorder:
                     break
                 self._write(*item, on_write)
             writer.close()
+            self.stop()
 
     def _write(self, key: str, payload: bytes, at: int, live: bool, on_write) -> None:
         valid = self.writer.write(key, payload, at)

@@ -14,7 +14,9 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from messages.recording import RecordingWriter
 
+from dmosim.launch import local
 from dmosim.launch.host import AgentStreams
 from dmosim.launch.local import groups, wait_for_run
 from dmosim.launch.mesh import router_names, spread
@@ -43,6 +45,34 @@ def test_an_agent_that_does_not_leave_after_the_run_has_failed():
         roles.start("mg1", STAYS)
         roles.start("dmo", DONE)
         assert wait(roles) == (["mg1"], [])
+
+
+
+# A recorder that ignores SIGTERM: it has written what it will write and stays (as one stuck in Zenoh's teardown).
+STUCK = [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('ready', "
+                               "flush=True); time.sleep(120)"]
+
+
+@pytest.mark.parametrize("finished", [True, False])
+def test_a_recorder_that_does_not_leave_is_killed_and_its_file_decides_whether_the_recording_is_whole(
+        tmp_path, monkeypatch, finished):
+    monkeypatch.setattr(local, "RECORDER_STOP_S", 0.5)
+    path = tmp_path / "day.mcap"
+    writer = RecordingWriter(path, "stuck")
+    writer.start({}, [])
+    writer.write("dmosim/stuck/dmo/clock", b"{}", 1)
+    writer.close() if finished else writer.flush()
+    said: list[str] = []
+    with Roles() as roles:
+        role = roles.start("recorder", STUCK, log=tmp_path / "recorder.log")
+        wait_for_line(role.log, "ready", 30, lambda: role.process.poll() is None)  # SIGTERM ignored from now on
+        failure = local._stop_recorder(roles, SimpleNamespace(say=said.append), [], path)
+        assert role.process.poll() is not None  # killed, not left behind
+    if finished:
+        assert failure is None
+        assert said and said[0].startswith("the recorder finished its file but then ")
+    else:
+        assert failure.startswith("did not finish its file within 0.5 s of being stopped") and not said
 
 
 # --- roles forked from a pre-loaded host (dmosim run --hosting fork) ------------------------------------------
