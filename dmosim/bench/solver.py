@@ -1,37 +1,60 @@
-"""The solver: Benders decomposition against the extensive form in plain HiGHS, side by side in one run.
+"""The solver: every route of the stochastic schedule side by side in one run, over several scenario seeds.
 
-For each scenario count, the same instance (paper case, seeded scenarios) is solved by both routes to the same
-target gap; the extensive form gets a time cap, and whatever gap it has certified by then is reported. Both
-schedules go through the independent checker. Peak memory is the resident high-water mark of the process
-(the Benders subproblem workers report their own).
+For each scenario count and seed, the same instance (paper case, seeded scenarios) is solved by each route (Benders,
+the decomposition in one SCIP tree when PySCIPOpt is installed, the extensive form) to the same target gap under the
+same time cap; a route that hits the cap reports the gap it certified by then. Every schedule goes through the
+independent checker. The summary is the median over the seeds: one scenario set's path through the masters is not
+the route's speed (docs/solver.md, "One machine, two paths"). Each run's time is split into the branch-and-bound
+tree (Benders' MILP masters, SCIP's tree, the extensive form's HiGHS solve), the scenario subproblems and building.
+Peak memory is the resident high-water mark of the process and of the subproblem workers.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import resource
+import statistics
 import time
 
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.instance import make_instance
-from microgrid_agent.solvers.benders import solve_decomposed
 from microgrid_agent.solvers.extensive import SolveError
+from microgrid_agent.solvers.routes import check_available
 from scenarios.case import load_case
 
 from ..arguments import gap, nonneg_float, positive_int
-from ..console import progress
+from ..console import UsageError, progress
+
+TIMED_ROUTES = ("benders", "tree", "extensive")
+SHARES = ("tree_share", "subproblems_share", "build_share")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenarios", type=positive_int, nargs="+", default=[10, 20, 50, 100],
                         help="scenario counts to time (default: 10 20 50 100)")
+    parser.add_argument("--routes", nargs="+", choices=TIMED_ROUTES, metavar="ROUTE",
+                        help=f"routes to time, of {', '.join(TIMED_ROUTES)} (default: every one this installation "
+                             "has; tree needs PySCIPOpt)")
     parser.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
     parser.add_argument("--gap", type=gap, default=0.005, help="relative MIP gap (default: 0.005)")
-    parser.add_argument("--cap", type=nonneg_float, default=600.0, help="time cap of each solve, seconds")
+    parser.add_argument("--cap", type=nonneg_float, default=600.0,
+                        help="time cap of each solve, seconds (default: 600)")
     parser.add_argument("--workers", type=positive_int, default=2,
-                        help="processes for the Benders subproblems (default: 2)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the scenarios (default: 0)")
-    parser.add_argument("--skip-extensive", action="store_true", help="time the decomposition only")
+                        help="processes for the scenario subproblems of the decomposed routes (default: 2)")
+    parser.add_argument("--seed", type=int, default=0, help="the first scenario seed (default: 0)")
+    parser.add_argument("--seeds", type=positive_int, default=3,
+                        help="scenario seeds per count, from --seed on; the summary is their median (default: 3)")
+
+
+def routes_of(named: list[str] | None) -> list[str]:
+    """The routes to time: those ``named`` (each must be installed), else every installed one."""
+    if named is None:
+        return [r for r in TIMED_ROUTES if r != "tree" or importlib.util.find_spec("pyscipopt") is not None]
+    try:
+        return [check_available(r) for r in dict.fromkeys(named)]
+    except ValueError as exc:
+        raise UsageError(f"--routes: {exc}") from None
 
 
 def _peak_mib() -> float:
@@ -40,46 +63,66 @@ def _peak_mib() -> float:
     return max(own, children) / 1024
 
 
-def _row(route: str, schedule, seconds: float, case, scen) -> dict:
-    ok = check_schedule(case, scen, schedule).ok
-    row = {"route": route, "wall_s": seconds, "objective": schedule.objective, "bound": schedule.bound,
-           "gap": schedule.mip_gap, "status": schedule.status, "verified": ok}
+def _row(schedule, seconds: float, case, scen) -> dict:
+    """One solve: its figures, whether the checker accepts it, and where its time went."""
+    row = {"wall_s": seconds, "objective": schedule.objective, "bound": schedule.bound, "gap": schedule.mip_gap,
+           "status": schedule.status, "verified": check_schedule(case, scen, schedule).ok}
     d = schedule.extra.get("decomposition")
     if d:
-        row |= {"iterations": d["iterations"], "s_per_iteration": seconds / max(d["iterations"], 1),
-                "subproblems_share": d["subproblems_s"] / seconds, "master_share": d["master_s"] / seconds,
-                "build_share": d["build_s"] / seconds}
+        row |= {"iterations": d["iterations"], "tree_share": d["master_s"] / seconds,
+                "subproblems_share": d["subproblems_s"] / seconds, "build_share": d["build_s"] / seconds}
+    else:
+        row |= {"tree_share": schedule.timings.solve_s / seconds, "subproblems_share": 0.0,
+                "build_share": schedule.timings.build_s / seconds}
     return row
 
 
+def summary(rows: list[dict]) -> list[dict]:
+    """Per scenario count and route, the median over the seeds that gave a schedule (with their range), and the
+    median wall time over Benders' at the same count."""
+    out = []
+    for n in dict.fromkeys(r["scenarios"] for r in rows):
+        for route in dict.fromkeys(r["route"] for r in rows):
+            runs = [r for r in rows if r["scenarios"] == n and r["route"] == route]
+            solved = [r for r in runs if "wall_s" in r]
+            if not runs:
+                continue
+            line = {"scenarios": n, "route": route, "seeds": len(runs), "solved": len(solved)}
+            if solved:
+                walls = [r["wall_s"] for r in solved]
+                line |= {"median_wall_s": statistics.median(walls), "min_wall_s": min(walls),
+                         "max_wall_s": max(walls), "median_gap": statistics.median(r["gap"] for r in solved),
+                         "verified": all(r["verified"] for r in solved)}
+                if all("iterations" in r for r in solved):
+                    line["median_iterations"] = statistics.median(r["iterations"] for r in solved)
+                line |= {f"median_{k}": statistics.median(r[k] for r in solved) for k in SHARES}
+            out.append(line)
+    for line in out:
+        benders = next((b for b in out if b["scenarios"] == line["scenarios"] and b["route"] == "benders"
+                        and "median_wall_s" in b), None)
+        if benders is not None and "median_wall_s" in line:
+            line["over_benders"] = line["median_wall_s"] / benders["median_wall_s"]
+    return out
+
+
 def run(args) -> dict:
+    routes = routes_of(args.routes)
     case = load_case("paper")
+    seeds = list(range(args.seed, args.seed + args.seeds))
     rows = []
     for n in args.scenarios:
-        inst = make_instance(case, scenarios=n, subperiods=args.subperiods, seed=args.seed)
-        label = f"bench solver, {n} scenarios: "
-        progress(f"{label}benders")
-        start = time.perf_counter()
-        try:
-            benders = solve_decomposed(case, inst.scen, inst.params, gap=args.gap, time_limit=args.cap,
-                                       workers=args.workers, progress=lambda m: progress(label + m))
-            rows.append({"scenarios": n, **_row("benders", benders, time.perf_counter() - start, case, inst.scen)})
-        except SolveError as exc:
-            rows.append({"scenarios": n, "route": "benders", "status": f"failed: {exc}"})
-        if args.skip_extensive:
-            continue
-        progress(f"{label}extensive form (cap {args.cap:g} s)")
-        start = time.perf_counter()
-        try:
-            extensive = inst.solve(gap=args.gap, time_limit=args.cap)
-            rows.append({"scenarios": n, **_row("extensive", extensive, time.perf_counter() - start, case, inst.scen)})
-        except SolveError as exc:
-            rows.append({"scenarios": n, "route": "extensive", "status": f"no incumbent in {args.cap:g} s ({exc})"})
-    ratios = []
-    for n in args.scenarios:
-        pair = {r["route"]: r for r in rows if r["scenarios"] == n and "wall_s" in r}
-        if len(pair) == 2:
-            ratios.append({"scenarios": n, "extensive_over_benders_wall": pair["extensive"]["wall_s"] / pair["benders"]["wall_s"],
-                           "extensive_gap": pair["extensive"]["gap"], "benders_gap": pair["benders"]["gap"]})
-    return {"subperiods": args.subperiods, "target_gap": args.gap, "cap_s": args.cap, "rows": rows,
-            "ratios": ratios, "peak_rss_mib": _peak_mib()}
+        for seed in seeds:
+            inst = make_instance(case, scenarios=n, subperiods=args.subperiods, seed=seed)
+            for route in routes:
+                label = f"bench solver, {n} scenarios, seed {seed}"
+                progress(f"{label}: {route}" + (f" (cap {args.cap:g} s)" if route == "extensive" else ""))
+                start = time.perf_counter()
+                try:
+                    schedule = inst.solve(method=route, workers=args.workers, gap=args.gap, time_limit=args.cap,
+                                          progress=lambda m, label=label: progress(f"{label}: {m}"))
+                    row = _row(schedule, time.perf_counter() - start, case, inst.scen)
+                except SolveError as exc:
+                    row = {"status": f"no schedule in {args.cap:g} s ({exc})"}
+                rows.append({"scenarios": n, "seed": seed, "route": route, **row})
+    return {"subperiods": args.subperiods, "target_gap": args.gap, "cap_s": args.cap, "seeds": seeds,
+            "summary": summary(rows), "rows": rows, "peak_rss_mib": _peak_mib()}

@@ -4,6 +4,7 @@ the expected figures. No timing assertions: the figures themselves belong to the
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import pkgutil
@@ -166,20 +167,44 @@ def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
         agents_reported(result)
 
 
-def test_solver_bench_runs_both_routes_and_verifies_showing_progress(capsys):
+def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_the_median(capsys):
     from dmosim.bench import solver
 
-    args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=0, skip_extensive=False)
+    args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=4, seeds=2, routes=None)
     result = solver.run(args)
-    routes = {r["route"]: r for r in result["rows"]}
-    assert set(routes) == {"benders", "extensive"} and all(r["verified"] for r in routes.values())
-    assert routes["benders"]["bound"] <= routes["extensive"]["objective"] * (1 + 1e-6)
-    assert result["ratios"][0]["scenarios"] == 2
-    # A paper-size run takes most of an hour: each solve announces itself and Benders reports every iteration.
+    assert [(r["seed"], r["route"]) for r in result["rows"]] == [(s, r) for s in (4, 5) for r in solver.TIMED_ROUTES]
+    assert all(r["verified"] for r in result["rows"]) and result["seeds"] == [4, 5]
+    for seed in (4, 5):
+        runs = {r["route"]: r for r in result["rows"] if r["seed"] == seed}
+        for route in ("benders", "tree"):  # each decomposition's certified bound is below the others' schedules
+            assert runs[route]["bound"] <= runs["extensive"]["objective"] * (1 + 1e-6)
+        for r in runs.values():
+            assert 0.99 < sum(r[k] for k in solver.SHARES) <= 1 + 1e-9 or r["route"] == "extensive"
+    lines = {line["route"]: line for line in result["summary"]}
+    assert list(lines) == list(solver.TIMED_ROUTES) and lines["benders"]["over_benders"] == 1.0
+    for route, line in lines.items():
+        walls = sorted(r["wall_s"] for r in result["rows"] if r["route"] == route)
+        assert line["seeds"] == line["solved"] == 2 and line["median_wall_s"] == pytest.approx(sum(walls) / 2)
+        assert (line["min_wall_s"], line["max_wall_s"]) == (walls[0], walls[1])
+    # A paper-size run takes hours: each solve announces itself and the decompositions report every iteration.
     lines = capsys.readouterr().err.splitlines()
-    iterations = [ln for ln in lines if ln.startswith("dmosim: bench solver, 2 scenarios: benders ") and "iteration" in ln]
-    assert len(iterations) == routes["benders"]["iterations"]
-    assert lines.index("dmosim: bench solver, 2 scenarios: extensive form (cap 60 s)") > lines.index(iterations[-1])
+    label = "dmosim: bench solver, 2 scenarios, seed 5: "
+    benders, tree = lines.index(label + "benders"), lines.index(label + "tree")
+    iterations = [ln for ln in lines[benders:tree] if ln.startswith(label + "benders ") and "iteration" in ln]
+    benders_row = next(r for r in result["rows"] if r["seed"] == 5 and r["route"] == "benders")
+    assert len(iterations) == benders_row["iterations"]
+    assert any(ln.startswith(label + "tree: bound ") for ln in lines[tree:])
+    assert lines.index(label + "extensive (cap 60 s)") > tree > benders
+
+
+def test_solver_bench_refuses_a_route_this_installation_lacks(monkeypatch):
+    from dmosim.bench import solver
+    from dmosim.console import UsageError
+
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "pyscipopt" else object())
+    assert solver.routes_of(None) == ["benders", "extensive"]
+    with pytest.raises(UsageError, match="^--routes: method tree needs PySCIPOpt, which is not installed: pip install"):
+        solver.routes_of(["benders", "tree"])
 
 
 def test_clearing_runs_end_to_end(capsys):
