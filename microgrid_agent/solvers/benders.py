@@ -15,6 +15,7 @@ bound. docs/solver.md gives the design and the measurements.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import time
 from dataclasses import dataclass, field
@@ -240,6 +241,17 @@ class Master:
     def first_stage_cost(self, x: np.ndarray) -> float:
         return float(self.cost @ x)
 
+    def expected_cost(self, x: np.ndarray, values: np.ndarray) -> float:
+        """Objective (1) of first stage ``x`` whose scenario recourse costs are ``values``: an upper bound."""
+        return self.first_stage_cost(x) + float(self.probability @ values)
+
+    def cut_at(self, pool: ScenarioPool, x: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """Evaluate ``x`` on the scenario LPs and add its cuts: Q_s(x), the expected cost, the seconds it took."""
+        t0 = time.perf_counter()
+        values, grads = pool.evaluate(x)
+        self.add_cuts(x, values, grads)
+        return values, self.expected_cost(x, values), time.perf_counter() - t0
+
     def add_cuts(self, x: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
         """theta_s - g_s x >= Q_s(x^) - g_s x^ for every scenario s: into the pool, and active in the master."""
         self.pool.add(np.arange(len(values)), values - grads @ x, grads)
@@ -353,12 +365,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
     """Benders decomposition to a certified relative gap; returns the same StochasticSchedule as the extensive form."""
     start = time.perf_counter()
     deadline = start + time_limit if time_limit else None
-    trace = Trace()
-    pool = ScenarioPool(case, scen, params, workers)
-    try:
-        master = Master(case, scen, params)
-        trace.build_s = time.perf_counter() - start
-        pr = scen.probability
+    with decomposition(case, scen, params, workers) as (master, pool, trace):
         report = reporter(progress, trace, start)
         relax(master, pool, trace, deadline, report, gap=gap, lp_tolerance=lp_tolerance,
               max_lp_iterations=max_lp_iterations, stability=stability)
@@ -386,11 +393,8 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                 trace.add("milp", bound, upper, master_s, 0.0)
                 report("integer master, iteration", lower, upper, master_s)
                 break
-            t1 = time.perf_counter()
-            values, grads = pool.evaluate(x)
-            master.add_cuts(x, values, grads)
-            value = master.first_stage_cost(x) + float(pr @ values)
-            trace.add("milp", bound, value, master_s, time.perf_counter() - t1)
+            values, value, sub_s = master.cut_at(pool, x)
+            trace.add("milp", bound, value, master_s, sub_s)
             if value < upper:
                 upper, best = value, x
                 master.remember(x, values)
@@ -401,10 +405,22 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                 status = "time_limit"
                 break
         arrays, costs = pool.dispatch(best)
-    finally:
-        pool.close()
     found = Found(first_stage_values(master.var, best), master.first_stage_cost(best), arrays, costs, lower, status)
     return schedule_of(case, scen, params, found, trace, time.perf_counter() - start, "benders")
+
+
+@contextlib.contextmanager
+def decomposition(case: Case, scen: ScenarioSet, params: Params, workers: int):
+    """The master, the scenario pool on ``workers`` processes and the trace (its build time set) of one decomposed
+    solve; the pool's processes stop on leaving."""
+    start = time.perf_counter()
+    pool = ScenarioPool(case, scen, params, workers)
+    try:
+        master, trace = Master(case, scen, params), Trace()
+        trace.build_s = time.perf_counter() - start
+        yield master, pool, trace
+    finally:
+        pool.close()
 
 
 def reporter(progress, trace: Trace, start: float):
@@ -425,18 +441,14 @@ def relax(master: Master, pool: ScenarioPool, trace: Trace, deadline: float | No
     aside (``Master.prune``). In-out stabilisation (Ben-Ameur and Neto 2007): cuts are taken between the master's
     point and the best point so far, which damps Kelley's zig-zag; the LP bound is the master's, the value at any point
     an upper bound of the LP relaxation. Stops within ``lp_tolerance`` of the LP relaxation's optimum."""
-    pr = master.probability
     core, core_value = None, np.inf
     for _ in range(max_lp_iterations):
         t0 = time.perf_counter()
         x_master, _, bound = master.solve(relaxed=True, gap=gap, time_limit=None)
         master_s = time.perf_counter() - t0
         x = x_master if core is None else stability * x_master + (1 - stability) * core
-        t1 = time.perf_counter()
-        values, grads = pool.evaluate(x)
-        master.add_cuts(x, values, grads)
-        value = master.first_stage_cost(x) + float(pr @ values)
-        trace.add("lp", bound, value, master_s, time.perf_counter() - t1)
+        _, value, sub_s = master.cut_at(pool, x)
+        trace.add("lp", bound, value, master_s, sub_s)
         if value < core_value:
             core, core_value = x, value
         report("LP relaxation, iteration", bound, core_value, master_s)

@@ -29,7 +29,8 @@ from scenarios.generation import ScenarioSet
 
 from ..model import Params
 from ..schedule import StochasticSchedule
-from .benders import Found, Master, ScenarioPool, Trace, apart, first_stage_values, relax, reporter, schedule_of
+from .benders import (Found, Master, ScenarioPool, Trace, apart, decomposition, first_stage_values, relax, reporter,
+                      schedule_of)
 from .extensive import SolveError
 from .routes import SCIP_INSTALL
 
@@ -45,11 +46,7 @@ def solve_tree(case: Case, scen: ScenarioSet, params: Params, *, gap: float = 0.
         raise SolveError(f"the tree method needs PySCIPOpt: {SCIP_INSTALL}") from exc
     start = time.perf_counter()
     deadline = start + time_limit if time_limit else None
-    trace = Trace()
-    pool = ScenarioPool(case, scen, params, workers)
-    try:
-        master = Master(case, scen, params)
-        trace.build_s = time.perf_counter() - start
+    with decomposition(case, scen, params, workers) as (master, pool, trace):
         relax(master, pool, trace, deadline, reporter(progress, trace, start), gap=gap)
         tree = _Tree(pyscipopt, master, pool, trace)
         remaining = None if deadline is None else max(1.0, deadline - time.perf_counter())
@@ -57,8 +54,6 @@ def solve_tree(case: Case, scen: ScenarioSet, params: Params, *, gap: float = 0.
         if tree.best is None:
             raise SolveError(f"the tree found no schedule ({status})")
         arrays, costs = pool.dispatch(tree.best)
-    finally:
-        pool.close()
     best = tree.best
     found = Found(first_stage_values(master.var, best), master.first_stage_cost(best), arrays, costs,
                   min(lower, tree.value), status)
@@ -128,7 +123,7 @@ class _Tree:
             values, grads = np.full(len(self.theta), np.inf), None
         self.evaluation_s += time.perf_counter() - t0
         self.evaluated[key] = values, grads
-        value = self.master.first_stage_cost(x) + float(self.master.probability @ values)
+        value = self.master.expected_cost(x, values)
         if value < self.value:
             self.best, self.value = x.copy(), value
             return values, grads, True
