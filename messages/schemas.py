@@ -119,7 +119,8 @@ class Envelope(_WireModel):
         "the sender's sequence number: 0, 1, 2, ... over all messages of its process (its incarnation), stamped "
         "when sent; a message sent again (not acknowledged) keeps its number. The DMO takes an exact copy of a "
         "message it accepted as that message again (a receipt, nothing more), and refuses another payload under a "
-        "number it has accepted (duplicate) or one older than the latest it accepted (late)"))] = 0
+        "number it has accepted (duplicate) or one 64 or more below the latest it accepted (late); a number below the "
+        "latest but within 64 of it that was not accepted is taken (a message overtaken by a later one)"))] = 0
     sent_at: Annotated[Timestamp, Field(description=(
         "the sender's clock when sending, ns since the Unix epoch, stamped when sent"))] = 0
 

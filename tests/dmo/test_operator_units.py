@@ -12,7 +12,7 @@ from dmo.market.choice import choose
 from dmo.market.settlement import RULES, RULES_VERSION, settle
 from dmo.operator import incidents, outbox
 from dmo.operator.config import DayConfig, draw_islanding
-from dmo.operator.guard import SequenceGuard
+from dmo.operator.guard import REMEMBERED, SequenceGuard
 from dmo.operator.history import DayHistory
 from dmo.operator.incidents import IncidentLog
 from dmo.operator.journal import Journal, restore, traffic
@@ -50,12 +50,14 @@ def test_guard_takes_copies_as_the_message_again_and_refuses_replays_overtaken_a
     guard.admit("mg1", 1)
     for seq in (0, 1, 3):
         assert guard.check("mg1", 1, seq, registration=False) is None
-        guard.accept("mg1", seq, f"sha{seq}")
-    assert guard.again("mg1", 1, 1, "sha1") and not guard.again("mg1", 1, 1, "other")  # a copy, or not
-    assert not guard.again("mg1", 2, 1, "sha1")  # the same bytes are never another process's
+        guard.accept("mg1", seq, sha256(b"%d" % seq))
+    assert guard.again("mg1", 1, 1, sha256(b"1")) and not guard.again("mg1", 1, 1, sha256(b"other"))  # a copy, or not
+    assert not guard.again("mg1", 2, 1, sha256(b"1"))  # the same bytes are never another process's
     assert guard.check("mg1", 1, 1, registration=False)[0] == "duplicate"  # other content under #1: a replay
-    assert guard.check("mg1", 1, 2, registration=False)[0] == "late"  # older than #3, which is accepted
-    assert guard.check("mg1", 1, 4, registration=False) is None and guard.check("mg2", 5, 0, False) is None
+    assert guard.check("mg1", 1, 2, registration=False) is None  # overtaken by #3 and never accepted: new
+    guard.accept("mg1", 3 + REMEMBERED, sha256(b"far"))
+    assert guard.check("mg1", 1, 3, registration=False)[0] == "late"  # too far back to tell whether it was taken
+    assert guard.check("mg1", 1, 4, registration=False) is None and guard.check("mg2", 5, 0, False) is None  # new
     assert guard.locked_out() == []
     # a restarted process (a later incarnation) must register before anything else; an earlier one is stale
     guard.heard("mg1", 2)
@@ -65,7 +67,7 @@ def test_guard_takes_copies_as_the_message_again_and_refuses_replays_overtaken_a
     guard.admit("mg1", 2)  # numbers from 0 again
     assert guard.locked_out() == [] and guard.check("mg1", 2, 0, registration=False) is None
     assert guard.check("mg1", 1, 4, registration=False)[0] == "stale"
-    assert not guard.again("mg1", 1, 1, "sha1")  # what the old process sent is not taken again either
+    assert not guard.again("mg1", 1, 1, sha256(b"1"))  # what the old process sent is not taken again either
     guard.heard("mg9", 7)  # a stranger that spoke and was never admitted is not of the market
     assert guard.locked_out() == []
 
@@ -75,10 +77,13 @@ def test_the_guard_remembers_a_bounded_window_of_accepted_messages(monkeypatch):
     guard = SequenceGuard()
     guard.admit("mg1", 1)
     for seq in range(10):
-        guard.accept("mg1", seq, f"sha{seq}")
-    assert guard.again("mg1", 1, 9, "sha9") and guard.again("mg1", 1, 6, "sha6")
-    assert not guard.again("mg1", 1, 5, "sha5") and guard.check("mg1", 1, 5, registration=False)[0] == "late"
+        guard.accept("mg1", seq, sha256(b"%d" % seq))
+    assert guard.again("mg1", 1, 9, sha256(b"9")) and guard.again("mg1", 1, 6, sha256(b"6"))
+    assert not guard.again("mg1", 1, 5, sha256(b"5")) and guard.check("mg1", 1, 5, registration=False)[0] == "late"
     assert len(guard.accepted["mg1"]) == 4
+    storage = guard.accepted["mg1"]
+    guard.accept("mg1", 10, sha256(b"10"))  # in the storage allocated when the process was admitted
+    assert guard.accepted["mg1"] is storage and len(storage) == 4 and guard.again("mg1", 1, 10, sha256(b"10"))
 
 
 # --- incidents ---------------------------------------------------------------------------------------------------
@@ -113,7 +118,7 @@ def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
     as_received = encode(bid).replace(b'"hours":', b'"hours" :')  # the bytes as they came, not re-encoded
     journal.accepted("dmosim/run1/agent/mg1/bid", as_received)
     journal.clock("realtime", 3)
-    journal.accepted("dmosim/run1/agent/mg2/meter", encode(meter("mg2", hour=3, seq=2)))
+    journal.accepted("dmosim/run1/agent/mg2/meter", encode(meter("mg2", hour=3, seq=1 + REMEMBERED)))
     journal.incident(IncidentLog().add("mg1", "realtime", 3, "late: no meter report for hour 3 by the deadline"))
     journal.rejected("duplicate")
     journal.close()
@@ -205,8 +210,8 @@ def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_surv
 @pytest.mark.parametrize("phase", ["registration", "bidding", "scheduling", "realtime", "settlement"])
 def test_a_restarted_agent_with_the_same_case_and_limits_rejoins_whatever_the_dmo_saw_of_its_presence(phase):
     state = DayState(registered={"mg1": registration()}, phase=phase, hour=4 if phase == "realtime" else None)
-    state.count_accepted(registration(), "sha0")
-    state.guard.accept("mg1", 7, "sha7")
+    state.count_accepted(registration(), sha256(b"0"))
+    state.guard.accept("mg1", 7, sha256(b"7"))
     assert rejoin_refusal(state, registration(seq=3))[0] == "duplicate"  # the same process registering again
     assert rejoin_refusal(state, registration(case="other", incarnation=2))[0] == "invalid"
     assert rejoin_refusal(state, registration(cap=11.0, incarnation=2))[0] == "invalid"
