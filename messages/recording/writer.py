@@ -12,9 +12,10 @@ import collections
 import datetime as _dt
 import json
 import os
+import tempfile
 import time
 from pathlib import Path
-from typing import Iterable, Mapping
+from typing import BinaryIO, Iterable, Mapping
 
 from mcap.data_stream import RecordBuilder
 from mcap.records import ChunkIndex
@@ -55,6 +56,7 @@ class RecordingWriter:
         self._pending_bytes = 0
         self._chunk_opened = time.monotonic()
         self._closed = False
+        self._spill = tempfile.TemporaryFile()  # noqa: SIM115  (closed by close()) the closed chunks' indexes
 
     def start(self, metadata: Mapping[str, str] | None = None,
               attachments: Iterable[tuple[str, str, bytes]] = ()) -> None:
@@ -154,7 +156,7 @@ class RecordingWriter:
         """Close the open chunk and hand everything written to the OS (not fsync: a killed process loses
         nothing the OS has; a power cut is another matter)."""
         self._mcap.flush()
-        _compact_last_chunk_index(self._mcap)
+        _spill_last_chunk_index(self._mcap, self._spill)
         self._pending = self._pending_bytes = 0
         self._chunk_opened = time.monotonic()
 
@@ -167,6 +169,7 @@ class RecordingWriter:
             self._mcap.finish()
         finally:
             self._file.close()
+            self._spill.close()
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -176,26 +179,31 @@ class RecordingWriter:
 
 
 class WrittenChunkIndex:
-    """A chunk index kept as the bytes the summary section will hold, which is how mcap's writer writes it.
+    """A closed chunk's index kept on disk as the bytes the summary section will hold (which is how mcap's writer
+    writes it), read back when the summary is written.
 
     The writer keeps every chunk's index until the summary (it needs them there); as a ``ChunkIndex`` an index holds
-    a dict of the chunk's channels, about 100 bytes each, as bytes 10. Chunks close every second, so over a week
-    of 100 agents the dicts made a large part of what the recorder's memory gained (docs/benchmarks.md, "week")."""
+    a dict of the chunk's channels, about 100 bytes each, as bytes 10, and chunks close every second: over a week of
+    100 agents the indexes grew the recorder by about 0.5 MiB a day in memory (docs/benchmarks.md, "week"). Here
+    memory keeps where the bytes are in a scratch file (``spill``), about 60 bytes a chunk."""
 
-    __slots__ = ("record",)
+    __slots__ = ("spill", "offset", "length")
 
-    def __init__(self, index: ChunkIndex):
+    def __init__(self, index: ChunkIndex, spill: BinaryIO):
         builder = RecordBuilder()
         index.write(builder)
-        self.record = builder.end()
+        record = builder.end()
+        self.spill, self.offset, self.length = spill, spill.seek(0, os.SEEK_END), len(record)
+        spill.write(record)
 
     def write(self, stream: RecordBuilder) -> None:
-        stream.write(self.record)
+        self.spill.seek(self.offset)
+        stream.write(self.spill.read(self.length))
 
 
-def _compact_last_chunk_index(writer: Writer) -> None:
-    """The index of the chunk ``writer`` closed last, as a ``WrittenChunkIndex`` (the list is mcap's own, private:
-    tests/messages/test_recording.py checks it is still there and what the summary reads back)."""
+def _spill_last_chunk_index(writer: Writer, spill: BinaryIO) -> None:
+    """The index of the chunk ``writer`` closed last, as a ``WrittenChunkIndex`` in ``spill`` (the list is mcap's own,
+    private: tests/messages/test_recording.py checks it is still there and what the summary reads back)."""
     indexes = getattr(writer, "_Writer__chunk_indices", None)
     if indexes and isinstance(indexes[-1], ChunkIndex):
-        indexes[-1] = WrittenChunkIndex(indexes[-1])
+        indexes[-1] = WrittenChunkIndex(indexes[-1], spill)
