@@ -47,8 +47,9 @@ def summarise(result: dict, compute: dict[str, list[dict]], cores: int) -> dict:
                      "compute_s": round(totals["compute_s"], 2), "overhead_pct": round(totals["overhead_pct"], 2),
                      "per_hour_ms": round(totals["per_hour_ms"], 1), "incidents": len(day["incidents"])})
     memory = result.get("memory_mib", {})
-    first, last = (memory.get(str(d["day"]), {}) for d in (days[0], days[-1]))
-    roles = [role_memory(name, first[name], last[name]) for name in sorted(set(first) & set(last))]
+    by_day = [memory.get(str(d["day"]), {}) for d in days]
+    roles = [role_memory(name, [m.get(name, {}) for m in by_day])
+             for name in sorted(set(by_day[0]) & set(by_day[-1]))]
     recorded = result.get("recorded", {})
     agent_days = len(result["agents"]) * len(days)
     return {
@@ -58,18 +59,29 @@ def summarise(result: dict, compute: dict[str, list[dict]], cores: int) -> dict:
             "last_day_s / first_day_s": round(days[-1]["day_s"] / days[0]["day_s"], 3),
             "mean overhead_pct": round(sum(d["overhead_pct"] for d in days) / len(days), 2),
             "max rss_mib last / first day (any role)": max((r["rss_ratio"] for r in roles), default=None),
+            "max rss_mib last / second day (any role)": max((r["rss_ratio_from_day_2"] for r in roles
+                                                              if "rss_ratio_from_day_2" in r), default=None),
             "max peak_mib last / first day (any role)": max((r["peak_ratio"] for r in roles), default=None),
             "recording bytes per agent-day": round(recorded.get("bytes", 0) / agent_days) if agent_days else None,
         },
     }
 
 
-def role_memory(name: str, first: dict, last: dict) -> dict:
-    """One role's memory on the first and the last day (``memory_mib`` of each): its resident, peak and, where the
-    kernel gives it, proportional memory, each with its ratio last / first."""
+def role_memory(name: str, days: list[dict]) -> dict:
+    """One role's memory over the days (``memory_mib`` of each): its resident, peak and, where the kernel gives it,
+    proportional memory on the first and the last day, each with its ratio last / first; its resident memory on
+    every day (``rss_by_day_mib``, None where not sampled), and the ratio of the last day's to the second's
+    (``rss_ratio_from_day_2``): the first day's sample comes before any settlement, so a role that only fills its
+    allocator's working set over the first days and then holds it shows there, and one that grows with the days
+    shows in both."""
+    first, last = days[0], days[-1]
     row = {"role": name}
     for what in ("rss", "peak", "pss"):
         a, b = first.get(f"{what}_mib"), last.get(f"{what}_mib")
         if a is not None and b is not None:
             row |= {f"{what}_first_mib": a, f"{what}_last_mib": b, f"{what}_ratio": round(b / a, 3)}
+    row["rss_by_day_mib"] = [d.get("rss_mib") for d in days]
+    second = days[1].get("rss_mib") if len(days) > 2 else None
+    if second and last.get("rss_mib") is not None:
+        row["rss_ratio_from_day_2"] = round(last["rss_mib"] / second, 3)
     return row

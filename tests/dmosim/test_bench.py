@@ -133,19 +133,26 @@ def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_w
                "settlement": 0.0}
     day = lambda d: {"day": d, "market_day": f"2026-07-0{d}", "phase_s": phase_s, "incidents": []}  # noqa: E731
     entry = lambda d, kind, wall: {"kind": kind, "hour": None, "day": d, "wall_s": wall, "cpu_s": wall}  # noqa: E731
-    compute = {"mg1": [entry(1, "call_for_bids", 0.5), entry(1, "award", 1.0), entry(2, "award", 1.8)]}
+    compute = {"mg1": [entry(1, "call_for_bids", 0.5), entry(1, "award", 1.0), entry(2, "award", 1.8),
+                       entry(3, "award", 1.2)]}
     memory = {"1": {"dmo": {"rss_mib": 90.0, "peak_mib": 100.0, "pss_mib": 60.0},
                     "mg1": {"rss_mib": 200.0, "peak_mib": 250.0, "pss_mib": None}},
-              "2": {"dmo": {"rss_mib": 91.8, "peak_mib": 110.0, "pss_mib": 61.2},
+              "2": {"dmo": {"rss_mib": 90.9, "peak_mib": 105.0, "pss_mib": 61.0},
+                    "mg1": {"rss_mib": 200.5, "peak_mib": 250.0, "pss_mib": None}},
+              "3": {"dmo": {"rss_mib": 91.8, "peak_mib": 110.0, "pss_mib": 61.2},
                     "mg1": {"rss_mib": 201.0, "peak_mib": 250.0, "pss_mib": None}}}
-    result = {"agents": ["mg1"], "days": [day(1), day(2)], "memory_mib": memory, "recorded": {"bytes": 20_000}}
+    result = {"agents": ["mg1"], "days": [day(1), day(2), day(3)], "memory_mib": memory,
+              "recorded": {"bytes": 30_000}}
     report = summarise(result, compute, cores=2)
-    assert [d["compute_s"] for d in report["days"]] == [1.5, 1.8]  # each day its own entries only
+    assert [d["compute_s"] for d in report["days"]] == [1.5, 1.8, 1.2]  # each day its own entries only
     assert report["days"][0]["overhead_pct"] == pytest.approx(100 * (5.4 - 1.5) / 5.4, abs=0.01)
     assert {r["role"]: (r["rss_ratio"], r["peak_ratio"]) for r in report["memory"]} == {"dmo": (1.02, 1.1),
                                                                                         "mg1": (1.005, 1.0)}
     assert report["memory"][0]["pss_ratio"] == 1.02 and "pss_ratio" not in report["memory"][1]  # none: no smaps
+    assert report["memory"][0]["rss_by_day_mib"] == [90.0, 90.9, 91.8]
+    assert [r["rss_ratio_from_day_2"] for r in report["memory"]] == [1.01, 1.002]
     assert report["ratios"]["max rss_mib last / first day (any role)"] == 1.02
+    assert report["ratios"]["max rss_mib last / second day (any role)"] == 1.01
     assert report["ratios"]["max peak_mib last / first day (any role)"] == 1.1
     assert report["ratios"]["recording bytes per agent-day"] == 10_000
 
