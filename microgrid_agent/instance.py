@@ -10,7 +10,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet, make_scenarios
 
 from .model import Params
-from .schedule import StochasticSchedule
+from .schedule import FirstStage, StochasticSchedule
 from .solvers.extensive import solve
 from .solvers.routes import resolve_method
 
@@ -21,18 +21,22 @@ class Instance:
     scen: ScenarioSet
     params: Params
 
-    def solve(self, method: str = "extensive", workers: int = 2, progress=None, **options) -> StochasticSchedule:
+    def solve(self, method: str = "extensive", workers: int = 2, progress=None, start: FirstStage | None = None,
+              **options) -> StochasticSchedule:
         """The extensive form (reference), the Benders decomposition, or the decomposition in one tree (or "auto": by
-        scenario count); each certifies its gap. ``progress(message)`` hears of each Benders iteration (the extensive form reports
-        through HiGHS's own log, ``verbose``)."""
+        scenario count); each certifies its gap. ``progress(message)`` hears of each Benders iteration (the extensive
+        form reports through HiGHS's own log, ``verbose``). ``start``, a first stage (the day before's), is the
+        Benders search's first incumbent if feasible; the other routes do without (docs/solver.md, "Starting from
+        the day before")."""
         route = resolve_method(method, self.scen.S)
         if route in ("benders", "tree"):
+            known = {k: v for k, v in options.items() if k in ("gap", "time_limit")}
             if route == "benders":
-                from .solvers.benders import solve_decomposed as decomposed  # noqa: PLC0415
-            else:
-                from .solvers.tree import solve_tree as decomposed  # noqa: PLC0415
-            return decomposed(self.case, self.scen, self.params, workers=workers, progress=progress,
-                              **{k: v for k, v in options.items() if k in ("gap", "time_limit")})
+                from .solvers.benders import solve_decomposed  # noqa: PLC0415
+                return solve_decomposed(self.case, self.scen, self.params, workers=workers, progress=progress,
+                                        start=start, **known)
+            from .solvers.tree import solve_tree  # noqa: PLC0415
+            return solve_tree(self.case, self.scen, self.params, workers=workers, progress=progress, **known)
         return solve(self.case, self.scen, self.params, **options)
 
 

@@ -36,15 +36,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--routes", nargs="+", choices=TIMED_ROUTES, metavar="ROUTE",
                         help=f"routes to time, of {', '.join(TIMED_ROUTES)} (default: every one this installation "
                              "has; tree needs PySCIPOpt)")
+    add_solve_flags(parser)
+    parser.add_argument("--seed", type=int, default=0, help="the first scenario seed (default: 0)")
+    parser.add_argument("--seeds", type=positive_int, default=3,
+                        help="scenario seeds per count, from --seed on; the summary is their median (default: 3)")
+
+
+def add_solve_flags(parser: argparse.ArgumentParser) -> None:
+    """How each solve of a solver benchmark is set: sub-periods, gap, time cap, subproblem workers."""
     parser.add_argument("--subperiods", type=positive_int, default=6, help="metering sub-periods per hour (default: 6)")
     parser.add_argument("--gap", type=gap, default=0.005, help="relative MIP gap (default: 0.005)")
     parser.add_argument("--cap", type=nonneg_float, default=600.0,
                         help="time cap of each solve, seconds (default: 600)")
     parser.add_argument("--workers", type=positive_int, default=2,
                         help="processes for the scenario subproblems of the decomposed routes (default: 2)")
-    parser.add_argument("--seed", type=int, default=0, help="the first scenario seed (default: 0)")
-    parser.add_argument("--seeds", type=positive_int, default=3,
-                        help="scenario seeds per count, from --seed on; the summary is their median (default: 3)")
 
 
 def routes_of(named: list[str] | None) -> list[str]:

@@ -43,6 +43,7 @@ from scenarios.horizon import HOURS
 
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
+from ..schedule import FirstStage
 from .delivery import Delivery
 from .realtime import Operator
 from .slots import computing
@@ -99,6 +100,7 @@ class MicrogridAgent:
         self.asked = 0  # messages the agent asked the DMO for (it had heard nothing for a while) and handled
         self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
         self._ahead: list = []  # messages of a later market day than the one being run, kept for it
+        self._first_stage: FirstStage | None = None  # of the latest schedule: the next day's solve starts from it
         self._start_day()
 
     def _start_day(self) -> None:
@@ -394,7 +396,8 @@ class MicrogridAgent:
         scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=day_seed(c.seed, self.day))
         params = award_params(award)
         schedule = Instance(self.case, scen, params).solve(method=c.method, workers=c.workers, gap=c.gap,
-                                                           time_limit=c.time_limit)
+                                                           time_limit=c.time_limit, start=self._first_stage)
+        self._first_stage = schedule.first  # the next day's solve starts from it
         realised = sample(self.case, 1, k, island_hours=0, seed=day_seed(c.seed, self.day) + 1000)
         self.operator = Operator(self.case, first_stage_of(schedule), params.p_sch, params.penalty, k, realised,
                                  forecast_scenario(self.case, k), deviation_cost=params.deviation_cost)

@@ -16,7 +16,7 @@ import numpy as np
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
-from ..schedule import StochasticSchedule
+from ..schedule import FirstStage, StochasticSchedule
 from .grid import balance, grid_transfer
 from .index import Index
 from .loads import load_dispatch, load_states
@@ -93,3 +93,10 @@ def first_stage_of(schedule: StochasticSchedule) -> dict[str, np.ndarray]:
     """The first-stage decisions of a schedule by model variable name, as ``build``'s ``fixed`` takes them."""
     f = schedule.first
     return {"I": f.commitment, "u": f.discharging, "v": f.charging, "z": f.load_on}
+
+
+def first_stage_variables(first: FirstStage) -> dict[str, np.ndarray]:
+    """Every first-stage variable of ``first`` by model name (``FIRST_STAGE``), start-ups and shut-downs included:
+    what a decomposed solve takes as its start."""
+    return {"I": first.commitment, "y": first.startup, "w": first.shutdown, "u": first.discharging,
+            "v": first.charging, "z": first.load_on}

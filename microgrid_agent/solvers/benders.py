@@ -28,8 +28,8 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, dp_plus_of, first_stage_constraints, recourse,
-                     second_stage_constraints, startup_cost, variables)
+from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, dp_plus_of, first_stage_constraints,
+                     first_stage_variables, recourse, second_stage_constraints, startup_cost, variables)
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
 from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
@@ -312,9 +312,26 @@ class Master:
         bound = objective if relaxed else info.mip_dual_bound
         return (x if relaxed else np.rint(x)), objective, bound
 
-    def remember(self, x: np.ndarray, values: np.ndarray) -> None:
-        """The best integer x so far and its scenario costs: the next MILP starts from it."""
-        self.incumbent = (self.last.copy(), x, values)
+    def completion(self, x: np.ndarray) -> np.ndarray | None:
+        """The master's columns at first stage ``x`` (every other column at its LP optimum given ``x``), or None if
+        ``x`` breaks one of the master's first-stage constraints: a start from elsewhere (another day's first stage)
+        made a MILP start the master's own solutions are."""
+        lp = self.h.getLp()
+        lower, upper = np.asarray(lp.col_lower_)[self.x_cols], np.asarray(lp.col_upper_)[self.x_cols]
+        kind = highspy.HighsVarType.kContinuous
+        self.h.changeColsIntegrality(len(self.binary), self.binary, np.array([kind] * len(self.binary)))
+        fix_columns(self.h, self.x_cols, x)
+        self.h.setOptionValue("objective_bound", INF)
+        self.h.run()
+        ok = self.h.getModelStatus() == highspy.HighsModelStatus.kOptimal
+        col = np.asarray(self.h.getSolution().col_value) if ok else None
+        self.h.changeColsBounds(len(self.x_cols), self.x_cols, lower, upper)
+        return col
+
+    def remember(self, x: np.ndarray, values: np.ndarray, col: np.ndarray | None = None) -> None:
+        """The best integer x so far and its scenario costs: the next MILP starts from it (its columns ``col``, by
+        default the last master solution's)."""
+        self.incumbent = ((self.last if col is None else col).copy(), x, values)
 
     def _start(self) -> highspy.HighsSolution:
         # theta_s = Q_s(x) satisfies every cut at x (cuts under-estimate Q_s), so this start is feasible.
@@ -361,15 +378,22 @@ class Trace:
 
 def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: float = 0.005,
                      time_limit: float | None = None, workers: int = 2, lp_tolerance: float = 1e-3,
-                     max_lp_iterations: int = 100, stability: float = 0.5, progress=None) -> StochasticSchedule:
-    """Benders decomposition to a certified relative gap; returns the same StochasticSchedule as the extensive form."""
-    start = time.perf_counter()
-    deadline = start + time_limit if time_limit else None
+                     max_lp_iterations: int = 100, stability: float = 0.5, progress=None,
+                     start: FirstStage | None = None) -> StochasticSchedule:
+    """Benders decomposition to a certified relative gap; returns the same StochasticSchedule as the extensive form.
+    ``start``: a first stage (another schedule's, e.g. the day before's), evaluated once the LP phase ends: if the
+    master's first-stage constraints allow it, it is the first incumbent (an upper bound, the first MILP master's
+    cutoff and its start)."""
+    began = time.perf_counter()
+    deadline = began + time_limit if time_limit else None
     with decomposition(case, scen, params, workers) as (master, pool, trace):
-        report = reporter(progress, trace, start)
+        report = reporter(progress, trace, began)
         relax(master, pool, trace, deadline, report, gap=gap, lp_tolerance=lp_tolerance,
               max_lp_iterations=max_lp_iterations, stability=stability)
         lower, upper, best = -np.inf, np.inf, None
+        if start is not None:
+            upper, best = begin_from(master, pool, trace, first_stage_vector(case, first_stage_variables(start)))
+            report("start, iteration", trace.rows[-1]["lower_bound"], upper, 0.0)
 
         def master_solve():
             # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
@@ -406,7 +430,23 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                 break
         arrays, costs = pool.dispatch(best)
     found = Found(first_stage_values(master.var, best), master.first_stage_cost(best), arrays, costs, lower, status)
-    return schedule_of(case, scen, params, found, trace, time.perf_counter() - start, "benders")
+    return schedule_of(case, scen, params, found, trace, time.perf_counter() - began, "benders")
+
+
+def begin_from(master: Master, pool: ScenarioPool, trace: Trace, x: np.ndarray) -> tuple[float, np.ndarray | None]:
+    """A first stage from elsewhere as the search's first incumbent: (its expected cost, x) if the master's
+    first-stage constraints allow it, else (inf, None) and nothing changes. Its cuts go in either way (valid at any
+    x). The trace gets a row ``start`` with the start's value as its upper bound, or ``start_set_aside`` with the
+    LP phase's last bounds."""
+    bound = trace.rows[-1]["lower_bound"]
+    col = master.completion(x)
+    if col is None:
+        trace.add("start_set_aside", bound, trace.rows[-1]["upper_bound"], 0.0, 0.0)
+        return np.inf, None
+    values, value, sub_s = master.cut_at(pool, x)
+    master.remember(x, values, col)
+    trace.add("start", bound, value, 0.0, sub_s)
+    return value, x
 
 
 @contextlib.contextmanager

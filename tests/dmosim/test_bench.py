@@ -204,6 +204,28 @@ def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_
     assert lines.index(label + "extensive (cap 60 s)") > tree > benders
 
 
+@pytest.mark.slow
+def test_start_bench_solves_each_day_both_ways_from_the_day_befores_cold_schedule(capsys):
+    assert main(["bench", "start", "--scenarios", "2", "--subperiods", "1", "--days", "3", "--gap", "0.01",
+                 "--workers", "1", "--seed", "4", "--json"]) == 0
+    printed = capsys.readouterr()
+    out = json.loads(printed.out)
+    assert [r["day"] for r in out["rows"]] == [1, 2, 3] and "started_s" not in out["rows"][0]
+    for row in out["rows"][1:]:
+        # to the same gap both ways; never worse than the start it took
+        assert row["started_objective"] == pytest.approx(row["cold_objective"], rel=0.011)
+        assert row["start_value"] is None or row["started_objective"] <= row["start_value"] * (1 + 1e-9)
+        assert row["started_over_cold"] == pytest.approx(row["started_s"] / row["cold_s"])
+    summary = out["summary"]
+    assert summary["days started"] == 2 and summary["verified"]
+    assert summary["seconds saved in all"] == pytest.approx(sum(r["cold_s"] - r["started_s"] for r in out["rows"][1:]))
+    # the two ways alternate their order, so that neither always runs second
+    lines = printed.err.splitlines()
+    said = [ln.rsplit(": ", 1)[1] for ln in lines if re.fullmatch(r"dmosim: bench start, day \d of 3: \w+", ln)]
+    assert any(": started: benders start, iteration" in ln for ln in lines)  # and every iteration on the way
+    assert said == ["cold", "started", "cold", "cold", "started"]
+
+
 def test_solver_bench_refuses_a_route_this_installation_lacks(monkeypatch):
     from dmosim.bench import solver
     from dmosim.console import UsageError

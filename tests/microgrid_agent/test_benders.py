@@ -17,7 +17,7 @@ from microgrid_agent.solvers.benders import (
     solve_decomposed,
 )
 from microgrid_agent.instance import make_instance
-from microgrid_agent.model import DeviationCost, variables
+from microgrid_agent.model import DeviationCost, first_stage_variables, variables
 from microgrid_agent.solvers.relaxation import group_means, group_relaxation, islanding_groups
 from microgrid_agent.solvers.extensive import SolveError, solve
 from scenarios.case import HOURS, load_case
@@ -192,3 +192,26 @@ def test_benders_agrees_with_the_extensive_form_when_the_award_must_be_taken(sma
     # this microgrid can absorb its award in every sub-period: P_M = P_sch wherever connected, nothing refused
     assert np.abs(schedule.dispatch.p_m - award)[connected].max() < 1e-6
     assert schedule.take_award and schedule.cost.penalty == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.slow
+def test_a_start_from_another_day_is_the_first_incumbent_and_one_the_master_forbids_is_set_aside(small):
+    """The day before's first stage, evaluated once the LP phase ends, is the search's first upper bound (its
+    expected cost on today's scenarios, as the extensive form fixed to it gives it); a start that breaks a
+    first-stage constraint changes nothing. Either way the answer is certified within the gap."""
+    yesterday = make_instance(small.case, scenarios=3, sample_size=3, subperiods=2, seed=5, island_hours=1)
+    start = yesterday.solve(gap=0.01).first
+    reference = small.solve(gap=1e-6)
+    its_cost = solve(small.case, small.scen, small.params, fixed=first_stage_variables(start), gap=1e-9).objective
+    forbidden = replace(start, startup=np.zeros_like(start.startup), commitment=np.ones_like(start.commitment))
+    forbidden = replace(forbidden, shutdown=np.ones_like(start.shutdown))  # shut down while committed all day
+    for first, taken in ((start, True), (forbidden, False)):
+        schedule = solve_decomposed(small.case, small.scen, small.params, gap=GAP, workers=1, start=first)
+        rows = schedule.extra["trace"]
+        phases = [r["phase"] for r in rows]
+        at = phases.index("start" if taken else "start_set_aside")
+        assert set(phases[:at]) == {"lp"} and set(phases[at + 1:]) == {"milp"}
+        assert (rows[at]["upper_bound"] == pytest.approx(its_cost, rel=1e-6)) == taken
+        check_schedule(small.case, small.scen, schedule).raise_if_failed()
+        assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
+        assert schedule.objective <= its_cost * (1 + 1e-9)  # never worse than where it started
