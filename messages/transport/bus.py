@@ -41,6 +41,13 @@ Entry = tuple[str, bytes, int]                            # (key, payload, ns): 
 Answer = Callable[[str, str], Iterable[Entry]]            # (key expression asked, parameters) -> replies
 
 
+# What a process that listens (the DMO, a router) accepts at once: sessions, handshakes under way, and how long one
+# may take. Sized for fleets of thousands joining together on a busy machine (docs/hosts.md).
+MAX_SESSIONS = 10_000
+ACCEPT_PENDING = 2_000
+ACCEPT_TIMEOUT_S = 60.0
+
+
 @dataclass(frozen=True)
 class BusConfig:
     """How to reach the other processes. The same three endpoint settings as the Zenoh examples (``mode``,
@@ -52,6 +59,10 @@ class BusConfig:
 
     ``connect_timeout_s`` is how long opening waits for a ``connect`` endpoint to answer, retrying, so an agent
     may be started before its DMO or router; past it, opening fails (a client's Zenoh default is to fail at once).
+    It also bounds the session's handshake (Zenoh's default gives up after 10 s, which a router that hundreds of
+    agents join at once on a busy machine can take). A process that listens takes up to ``MAX_SESSIONS``
+    sessions and ``ACCEPT_PENDING`` handshakes at once, each given ``ACCEPT_TIMEOUT_S`` (Zenoh's defaults, 1,000,
+    100 and 10 s, refused agents of a fleet of 1,000 joining three routers; docs/hosts.md).
 
     With explicit endpoints, multicast scouting is off and the scouting delay 0: the process connects where
     it is told at once and never meets a stranger's run. Without a config file, shared memory is off
@@ -96,7 +107,12 @@ class BusConfig:
             # A killed peer is noticed when its link closes; a frozen one only when its lease expires.
             settings.append(("transport/link/tx/lease", str(round(self.lease_s * 1000))))
         if self.connect and self.connect_timeout_s is not None:
-            settings.append(("connect/timeout_ms", str(round(self.connect_timeout_s * 1000))))
+            timeout_ms = str(round(self.connect_timeout_s * 1000))
+            settings += [("connect/timeout_ms", timeout_ms), ("transport/unicast/open_timeout", timeout_ms)]
+        if self.listen:
+            settings += [("transport/unicast/max_sessions", str(MAX_SESSIONS)),
+                         ("transport/unicast/accept_pending", str(ACCEPT_PENDING)),
+                         ("transport/unicast/accept_timeout", str(round(ACCEPT_TIMEOUT_S * 1000)))]
         for key, value in settings + list(self.overrides):
             try:
                 config.insert_json5(key, value)

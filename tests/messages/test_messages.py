@@ -15,6 +15,7 @@ from messages import (HOURS, KINDS, MAX_PAYLOAD_BYTES, SCHEMA_VERSION, SCHEMAS, 
                       SettlementStatement, StatementLine, check_route, decode, encode, json_schema, make_receipt,
                       make_rejection, new_run_id, parse_key, sender_matches_key)
 from messages.transport import BusConfig
+from messages.transport.bus import ACCEPT_PENDING, ACCEPT_TIMEOUT_S, MAX_SESSIONS
 from messages.schemas import (MAX_BUSES, ACCheck, AgentDay, AgentTotals, HandlingTime, MessageCounts, MidnightUnit,
                               NetworkHour)
 
@@ -382,6 +383,17 @@ def test_bus_config():
         BusConfig(mode="server")
     with pytest.raises(ValueError):
         BusConfig(overrides=[("no/such/setting", "1")]).to_zenoh()
+
+
+def test_a_listener_takes_a_fleet_joining_at_once_and_a_client_waits_its_timeout_for_the_handshake_too():
+    """Zenoh's defaults (1,000 sessions, 100 handshakes under way, 10 s each; a client's handshake 10 s whatever
+    its connect timeout) refused agents of a fleet of 1,000 joining three routers on two cores."""
+    unicast = lambda config: json.loads(config.to_zenoh().get_json("transport/unicast"))  # noqa: E731
+    listener = unicast(BusConfig(mode="router", listen=["tcp/127.0.0.1:0"]))
+    assert (listener["max_sessions"], listener["accept_pending"]) == (MAX_SESSIONS, ACCEPT_PENDING)
+    assert listener["accept_timeout"] == ACCEPT_TIMEOUT_S * 1000 and MAX_SESSIONS > 1000
+    client = unicast(BusConfig(mode="client", connect=["tcp/127.0.0.1:7447"], connect_timeout_s=75))
+    assert client["open_timeout"] == 75_000 and client["max_sessions"] == 1000  # a client accepts nobody
 
 
 def test_a_config_file_of_ones_own_keeps_zenohs_shared_memory(tmp_path):
