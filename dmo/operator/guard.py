@@ -106,7 +106,7 @@ class SequenceGuard:
     def accept(self, sender: str, seq: int, sha256: str) -> None:
         """From now on a copy of this message is ``again``, another payload under its number a ``duplicate``."""
         self.last[sender] = max(seq, self.last.get(sender, seq))
-        if sender not in self.accepted:  # a DMO restored from its journal takes back what it accepted
+        if sender not in self.accepted:  # accepted without a registration admitting its process first
             self.accepted[sender] = Remembered()
         self.accepted[sender].keep(seq, sha256)
 

@@ -89,10 +89,12 @@ def build(case: Case, scen: ScenarioSet, params: Params, fixed: dict[str, np.nda
     return Model(problem, v, case, scen, params, terms)
 
 
+FIXABLE = ("I", "u", "v", "z")  # the first-stage decisions ``build``'s ``fixed`` pins; y and w follow from I
+
+
 def first_stage_of(schedule: StochasticSchedule) -> dict[str, np.ndarray]:
     """The first-stage decisions of a schedule by model variable name, as ``build``'s ``fixed`` takes them."""
-    f = schedule.first
-    return {"I": f.commitment, "u": f.discharging, "v": f.charging, "z": f.load_on}
+    return {name: value for name, value in first_stage_variables(schedule.first).items() if name in FIXABLE}
 
 
 def first_stage_variables(first: FirstStage) -> dict[str, np.ndarray]:
