@@ -27,7 +27,8 @@ from scenarios.horizon import HOURS, per_subperiod
 
 from ..model import DeviationCost, Params
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings, energy_weight, start_indicators
-from ..solvers.extensive import SolveError, solve
+from ..solvers.extensive import SolveError
+from ..solvers.rolling import RollingLP
 
 @dataclass(frozen=True)
 class HourResult:
@@ -103,8 +104,6 @@ class Operator:
         self.realised, self.forecast, self.time_limit = realised, forecast, time_limit
         G, R, Dn, N = len(case.units), len(case.renewables), len(case.loads), HOURS * self.K
         self.first = self._first_stage(first_stage)
-        self._fixed = {"I": self.first.commitment, "u": self.first.discharging, "v": self.first.charging,
-                       "z": self.first.load_on}
         # What is done is pinned: the second-stage variables that carry the day's state. dP+ is only a cost,
         # recomputed from P_M (and with an infinite penalty the model fixes it to 0, which a pinned positive part
         # where islanded would contradict).
@@ -112,6 +111,8 @@ class Operator:
                       "C": np.zeros((1, N)), "D": np.zeros((Dn, N)), "PM": np.zeros((1, N)), "LS": np.zeros((1, N))}
         self._connected = np.ones(N)
         self._hours: list[HourResult] = []
+        self._lp = RollingLP(case, Params(self.p_sch, self.penalty, deviation_cost=self.deviation_cost), self.first,
+                             forecast)
 
     def _first_stage(self, given: dict) -> FirstStage:
         case = self.case
@@ -181,12 +182,10 @@ class Operator:
                 raise ValueError(f"connected must be {self.K} booleans (one per sub-period), got {c!r}")
         self._connected[n0:n1] = np.concatenate(conns).astype(float)
         scen = self._scenario(n1)
-        params = Params(self.p_sch, self.penalty, deviation_cost=self.deviation_cost)
         bounds = None if room is None else self._envelope(n0, n1, room)
 
         def solved(pm_bounds):
-            return solve(self.case, scen, params, gap=1e-9, time_limit=self.time_limit, fixed=self._fixed,
-                         pinned=(n0, self._done), pm_bounds=pm_bounds)
+            return self._lp.solve(scen, pinned=(n0, self._done), pm_bounds=pm_bounds, time_limit=self.time_limit)
 
         infeasible = False
         try:

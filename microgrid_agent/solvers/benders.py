@@ -4,8 +4,8 @@ First stage x = (I, y, w, u, v, z): hourly binaries of units, start-ups/shut-dow
 Given x, each scenario is an LP (objective (1) without start-up costs, constraints (2)-(5), (8)-(9), (11)-(12),
 (15)-(16), (18)-(21)); curtailment and spill make it feasible for every x the master allows, because the master
 carries the scenario-independent storage and load constraints itself (inside its relaxation). The scenario LPs
-are compiled once from the same cvxpy model as the extensive form (scenario data as Parameters), kept alive in
-HiGHS, and re-solved warm as x changes: their optimal value Q_s(x) is convex in x and the reduced costs of the
+are compiled once from the same cvxpy model as the extensive form (scenario data as Parameters: scenario_lp.py),
+kept alive in HiGHS, and re-solved warm as x changes: their optimal value Q_s(x) is convex in x and the reduced costs of the
 fixed x columns are a subgradient, so theta_s >= Q_s(x^) + g_s (x - x^) is a valid cut. The master (first stage, an hourly Jensen
 relaxation of the second stage (relaxation.py), and theta per scenario) is first solved as an LP until its cuts
 describe the LP relaxation, then, with the cuts slack there set aside, as a MILP.
@@ -28,54 +28,26 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from ..model import (FIRST_STAGE, SECOND_STAGE, Index, Params, dp_plus_of, first_stage_constraints,
-                     first_stage_variables, recourse, second_stage_constraints, startup_cost, variables)
+from ..model import (FIRST_STAGE, Params, dp_plus_of, first_stage_constraints, first_stage_variables, startup_cost,
+                     variables)
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
 from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
 from .relaxation import group_relaxation, relaxed
-
-
-@dataclass
-class _OneScenario:
-    """One scenario's data as cvxpy Parameters, so the compiled LP is re-used for every scenario."""
-
-    subperiods: int
-    load: cp.Parameter
-    renewable: cp.Parameter
-    connected: cp.Parameter
-    probability: np.ndarray = field(default_factory=lambda: np.ones(1))
-    S: int = 1
-
-    def set(self, scen: ScenarioSet, s: int) -> None:
-        self.load.value = scen.load[s:s + 1]
-        # a case without renewables has none to set; its parameter is one row the model never reads
-        self.renewable.value = scen.renewable[:, s] if len(scen.renewable) else np.zeros(self.renewable.shape)
-        self.connected.value = scen.connected[s:s + 1]
+from .scenario_lp import ScenarioLP
 
 
 class Subproblems:
     """The scenario LPs of a subset of scenarios, each a live HiGHS model (warm re-solves)."""
 
     def __init__(self, case: Case, scen: ScenarioSet, params: Params, indices):
-        K, N, R = scen.subperiods, scen.N, len(case.renewables)
-        one = _OneScenario(K, cp.Parameter((1, N)), cp.Parameter((max(R, 1), N)), cp.Parameter((1, N)))
-        v = variables(case, 1, N, first_stage="continuous", params=params)
-        terms = recourse(case, one, params, Index(1, K), v)  # start-ups are first-stage: the master carries them
-        constraints = second_stage_constraints(case, one, params, Index(1, K), v)
-        problem = cp.Problem(cp.Minimize(sum(terms.values())), constraints)
+        self.lp = ScenarioLP(case, params, scen.subperiods, scen.N)
         self.indices = list(indices)
         self.models: dict[int, highspy.Highs] = {}
         for s in self.indices:
-            one.set(scen, s)
-            data, self.columns = compile_problem(problem)
+            data, self.columns = self.lp.compile(scen, s)
             self.models[s] = highs_model(data, integer=False)
-        self.var, self.terms = v, terms
-        # The master's x, laid out as first_stage_values reads it; a first-stage variable the scenario LP does not
-        # meet (the start-up indicators, once ramps are scaled by the commitment) has a zero subgradient.
-        first = [v[n] for n in FIRST_STAGE if n in v]
-        self.x_held = np.concatenate([np.full(var.size, self.columns.holds(var)) for var in first])
-        self.x_cols = np.concatenate([self.columns.of(var) for var in first if self.columns.holds(var)])
+        self.x_held, self.x_cols = self.lp.first_stage(self.columns)
 
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Q_s(x) and a subgradient per scenario of this subset."""
@@ -88,18 +60,10 @@ class Subproblems:
 
     def dispatch(self, x: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Second-stage values (name -> (subset, *shape)) and cost terms (name -> (subset,)) at x."""
-        out = {n: [] for n in SECOND_STAGE if n in self.var and self.columns.holds(self.var[n])}
-        costs = {n: [] for n in self.terms}
-        for s in self.indices:
-            col = np.asarray(self._solve(s, x).getSolution().col_value)
-            for var in self.var.values():  # every variable of the LP, so that each cost term has its value
-                if self.columns.holds(var):
-                    var.value = self.columns.value(var, col)
-            for name in out:
-                out[name].append(self.var[name].value)
-            for name, term in self.terms.items():
-                costs[name].append(float(term.value))
-        return {n: np.array(v) for n, v in out.items()}, {n: np.array(v) for n, v in costs.items()}
+        read = [self.lp.read(self.columns, np.asarray(self._solve(s, x).getSolution().col_value))
+                for s in self.indices]
+        return ({n: np.array([a[n] for a, _ in read]) for n in read[0][0]},
+                {n: np.array([c[n] for _, c in read]) for n in read[0][1]})
 
     def _solve(self, s: int, x: np.ndarray) -> highspy.Highs:
         h = self.models[s]
@@ -545,19 +509,24 @@ def _dispatch(case: Case, scen: ScenarioSet, params: Params, arrays: dict[str, n
 def schedule_of(case: Case, scen: ScenarioSet, params: Params, found: Found, trace: Trace, total: float,
                 method: str) -> StochasticSchedule:
     """The schedule of what a decomposed search (``method``) found, in ``total`` seconds."""
+    summary = trace.summary()
+    timings = Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"], total_s=total)
+    return found_schedule(case, scen, params, found, timings,
+                          {"method": method, "decomposition": summary, "trace": trace.rows})
+
+
+def found_schedule(case: Case, scen: ScenarioSet, params: Params, found: Found, timings: Timings,
+                   extra: dict | None = None) -> StochasticSchedule:
+    """The schedule of a first stage and its dispatch in every scenario (``found``)."""
     pieces, Dn, pr = found.first, len(case.loads), scen.probability
     first = FirstStage(commitment=pieces["I"], startup=pieces["y"], shutdown=pieces["w"],
                        discharging=pieces.get("u", np.zeros(HOURS)), charging=pieces.get("v", np.zeros(HOURS)),
                        load_on=pieces.get("z", np.zeros((Dn, HOURS))))
     expected = {name: float(pr @ values) for name, values in found.costs.items()}
     cost = CostBreakdown(startup=found.startup, **expected)
-    summary = trace.summary()
     return StochasticSchedule(status=found.status, objective=cost.total, bound=min(found.lower, cost.total),
                               cost=cost, first=first, dispatch=_dispatch(case, scen, params, found.arrays),
                               probability=pr.copy(), subperiods=scen.subperiods, penalty=params.penalty,
                               cost_convention=params.cost_convention, take_award=params.take_award,
-                              timings=Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"],
-                                              total_s=total),
-                              unit_names=tuple(u.name for u in case.units),
-                              load_names=tuple(d.name for d in case.loads),
-                              extra={"method": method, "decomposition": summary, "trace": trace.rows})
+                              timings=timings, unit_names=tuple(u.name for u in case.units),
+                              load_names=tuple(d.name for d in case.loads), extra=extra or {})

@@ -48,16 +48,11 @@ def highs_model(data: dict, integer: bool = True) -> highspy.Highs:
     """A HiGHS instance holding cvxpy's conic data: rows A x = b (zero cone) then A x <= b (nonneg cone)."""
     A = data["A"].tocsc()
     m, n = A.shape
-    zero = data["dims"].zero
     lp = highspy.HighsLp()
     lp.num_col_, lp.num_row_ = n, m
     lp.col_cost_ = np.asarray(data["c"], float)
-    lb, ub = data["lower_bounds"], data["upper_bounds"]
-    lp.col_lower_ = np.full(n, -INF) if lb is None else np.asarray(lb, float)
-    lp.col_upper_ = np.full(n, INF) if ub is None else np.asarray(ub, float)
-    b = np.asarray(data["b"], float)
-    lp.row_lower_ = np.concatenate([b[:zero], np.full(m - zero, -INF)])
-    lp.row_upper_ = b
+    lp.col_lower_, lp.col_upper_ = column_bounds(data)
+    lp.row_lower_, lp.row_upper_ = row_bounds(data)
     lp.a_matrix_.format_ = highspy.MatrixFormat.kColwise
     lp.a_matrix_.start_, lp.a_matrix_.index_, lp.a_matrix_.value_ = A.indptr, A.indices, A.data
     binaries = list(data["bool_vars_idx"]) + list(data["int_vars_idx"])
@@ -73,6 +68,20 @@ def highs_model(data: dict, integer: bool = True) -> highspy.Highs:
     h.setOptionValue("output_flag", False)
     h.passModel(lp)
     return h
+
+
+def column_bounds(data: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The columns' lower and upper bounds in cvxpy's data (infinite where it gives none)."""
+    n = data["A"].shape[1]
+    lb, ub = data["lower_bounds"], data["upper_bounds"]
+    return (np.full(n, -INF) if lb is None else np.asarray(lb, float),
+            np.full(n, INF) if ub is None else np.asarray(ub, float))
+
+
+def row_bounds(data: dict) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' lower and upper bounds: cvxpy's equalities (its zero cone) first, then its A x <= b."""
+    b, zero = np.asarray(data["b"], float), data["dims"].zero
+    return np.concatenate([b[:zero], np.full(len(b) - zero, -INF)]), b
 
 
 def fix_columns(h: highspy.Highs, cols: np.ndarray, values: np.ndarray) -> None:

@@ -13,6 +13,7 @@ from microgrid_agent.agent.realtime import Operator
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.model import DeviationCost, Params, first_stage_of
 from microgrid_agent.solvers.extensive import solve
+from microgrid_agent.solvers.rolling import RollingLP
 from scenarios.case import load_case
 from scenarios.days import carry_over, day_seed
 from scenarios.generation import make_scenarios, sample
@@ -231,3 +232,46 @@ def test_an_hour_that_cannot_keep_its_envelope_is_operated_without_it(case, firs
     np.testing.assert_array_equal(got.p_m, wanted.p_m)
     with pytest.raises(ValueError, match="room"):
         held.operate_hour(2, [True], room=-0.1)
+
+
+# --- the rolling LP, compiled once (solvers/rolling.py) ------------------------------------------------------------
+
+DISPATCH = ("p_unit", "p_renewable", "p_storage", "soc", "d_load", "p_m", "load_shed", "dp_plus")
+PINNED = {"P": "p_unit", "Pr": "p_renewable", "Pst": "p_storage", "C": "soc", "D": "d_load", "PM": "p_m",
+          "LS": "load_shed"}
+
+
+def test_each_hours_lp_is_the_extensive_form_and_depends_on_that_hours_data_alone(case, first_stage):
+    """Hour by hour (islanded sub-periods and an envelope among them), the rolling LP's plan costs what cvxpy's
+    extensive form costs with the same first stage, past and envelope; a fresh LP given the same hour plans the
+    same, bit for bit (an agent restarted mid-day operates as one that was not); and an LP whose compiled matrix
+    no longer matches takes the model anew and plans the same too."""
+    k, n = 2, 24 * 2
+    op = swinging(case, first_stage, k)
+    params = Params(SWING, PENALTY)
+    done = {"P": np.zeros((len(case.units), n)), "Pr": np.zeros((len(case.renewables), n)),
+            "Pst": np.zeros((1, n)), "C": np.zeros((1, n)), "D": np.zeros((len(case.loads), n)),
+            "PM": np.zeros((1, n)), "LS": np.zeros((1, n))}
+    connection = {3: [False, False], 4: [True, False]}
+    for hour in range(1, 7):
+        n0, n1 = (hour - 1) * k, hour * k
+        room = 0.5 if hour in (5, 6) else None
+        result = op.operate_hour(hour, connection.get(hour, [True] * k), room)
+        bounds = None
+        if result.room is not None:
+            limit = case.grid.p_m_max
+            bounds = (n0, np.full(k, max(SWING[hour - 1] - room, -limit)), np.full(k, min(SWING[hour - 1] + room, limit)))
+        past = {name: value.copy() for name, value in done.items()}
+        reference = solve(case, result.plan_scenario, params, gap=1e-9, fixed=first_stage, pinned=(n0, past),
+                          pm_bounds=bounds)
+        assert result.plan.objective == pytest.approx(reference.objective, rel=1e-7), hour
+        fresh = RollingLP(case, params, op.first, result.plan_scenario)
+        stale = RollingLP(case, params, op.first, result.plan_scenario)
+        stale._data = {**stale._data, "c": stale._data["c"] + 1.0}  # as if the model's data had reached it
+        for again in (fresh, stale):
+            plan = again.solve(result.plan_scenario, pinned=(n0, past), pm_bounds=bounds)
+            for field in DISPATCH:
+                np.testing.assert_array_equal(getattr(plan.dispatch, field), getattr(result.plan.dispatch, field))
+        for name, field in PINNED.items():
+            done[name][:, n0:n1] = np.asarray(getattr(result, field)).reshape(-1, k)
+    assert any(not h.connected.all() for h in op.hours) and any(h.room is not None for h in op.hours)

@@ -513,7 +513,9 @@ def test_the_dmo_and_an_agent_restarted_in_the_same_hour_and_across_midnight_loc
     """The DMO and mg1 killed and started again in the same hour, on day 1 at hour 10 and again at hour 24 (the
     new mg1 rejoins in day 1's last hour, its settlement, or day 2's bidding): each resumed DMO takes mg1's new
     process back, mg1 takes part in all of day 2, and the run says it can be trusted (exit 0)."""
-    faults = ["restart:dmo:10", "restart:mg1:10", "restart:dmo:24", "restart:mg1:24"]
+    # each hour's grid state half a second late: an hour lasts long enough for a restarted mg1 to start (seconds)
+    # and rejoin in day 1, where its hours otherwise take milliseconds
+    faults = ["restart:dmo:10", "restart:mg1:10", "restart:dmo:24", "restart:mg1:24", "delay:dmo/grid:0.5"]
     argv = dmosim("run", "--agents", "2", "--subperiods", "1", "--days", "2", *TINY, *DEADLINES[:-1], "10",
                   "--out", str(tmp_path), "--json", "--quiet", "--seed", "2",
                   *[flag for f in faults for flag in ("--fault", f)])

@@ -9,7 +9,7 @@ import signal
 import subprocess
 import threading
 
-from dmosim.launch.processes import Roles, free_port, wait_listening
+from dmosim.launch.processes import Roles, free_port, wait_for_line, wait_listening
 from messages import new_run_id
 from messages.transport import Bus, BusConfig
 from messages.recording import content_signature, read_recording
@@ -43,7 +43,9 @@ def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path):
         def on_clock(key, msg, at):
             if msg.phase == "bidding":
                 reached["bidding"].set()  # every agent has registered
-            if msg.phase == "realtime" and msg.hour == 12:
+            if msg.phase == "realtime" and msg.hour == 12 and not reached["noon"].is_set():
+                for agent in ("mg1", "mg2"):  # the afternoon waits until the late recorders record (an hour takes ms)
+                    roles.roles[agent].process.send_signal(signal.SIGSTOP)
                 reached["noon"].set()
             if msg.phase == "settlement":
                 reached["summary"].set()
@@ -53,12 +55,20 @@ def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path):
             watch.subscribe(watch.keys.clock(), on_clock)
             for i, agent in enumerate(("mg1", "mg2")):
                 roles.start(agent, dmosim("agent", *common, "--id", agent, "--connect", endpoint, "--seed", str(i),
-                                          "--auth-dir", str(auth), *TINY), log=tmp_path / f"{agent}.log", env=ENV)
+                                          "--auth-dir", str(auth), "--lease", "120", *TINY),
+                            log=tmp_path / f"{agent}.log", env=ENV)
             assert reached["bidding"].wait(300), (tmp_path / "dmo.log").read_text()[-3000:]
             record(roles, "bidding")
             assert reached["noon"].wait(600), (tmp_path / "dmo.log").read_text()[-3000:]
-            record(roles, "noon")
-            record(roles, "blind", "--no-backfill")
+            try:
+                record(roles, "noon")
+                record(roles, "blind", "--no-backfill")
+                for name in ("noon", "blind"):
+                    wait_for_line(tmp_path / f"{name}.log", r"INFO recording ", 120,
+                                  lambda name=name: roles.roles[name].process.poll() is None)
+            finally:
+                for agent in ("mg1", "mg2"):
+                    roles.roles[agent].process.send_signal(signal.SIGCONT)
             assert reached["summary"].wait(300)
         assert roles.roles["dmo"].process.wait(timeout=120) == 0, (tmp_path / "dmo.log").read_text()[-3000:]
         for name in recordings:
