@@ -21,6 +21,7 @@ import time
 
 from messages import MeterReport, Registration, decode, encode, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
+from messages.schemas import AgentDay
 from messages.recording import Player, RecordedMessage, Recording
 from messages.transport import Bus
 
@@ -47,6 +48,7 @@ class AsDmo:
         self.registration: Registration | None = None
         self.meter: dict[int, tuple[float, ...]] = {}
         self.answered: set[str] = set()
+        self.realised: set[str] = set()  # the market day of the agent's realised day, once taken
         self.incidents: list[str] = []
         self.rejected = 0
         self.phase, self.hour = "registration", None
@@ -132,6 +134,8 @@ class AsDmo:
             self.answered.add("registration")
         elif isinstance(msg, MeterReport):
             self.meter[msg.hour - 1] = msg.p_m_mw
+        elif isinstance(msg, AgentDay):
+            self.realised.add(msg.market_day)
         else:
             self.answered.add(msg.kind)
 
@@ -146,6 +150,9 @@ class AsDmo:
         refusal = acceptance.check_registered(msg, registered)
         if refusal or isinstance(msg, Registration):
             return refusal
+        if isinstance(msg, AgentDay):  # taken in the day's last hour and its settlement, as the DMO takes it
+            return acceptance.check_agent_day(msg, self.day.market_day, self.day.market_day, self.phase, self.hour,
+                                              self.realised)
         if self.phase == "realtime" and isinstance(msg, MeterReport):
             return acceptance.check_meter_report(msg, self.hour, self.day.terms.subperiods, self.meter,
                                                  self.registration, self.grid)

@@ -77,6 +77,14 @@ def test_the_replayed_dmo_refuses_what_the_live_one_refuses():
     assert driver.refusal(schedule) is None
     driver.answered.add("schedule")
     assert driver.refusal(schedule) == acceptance.repeated("schedule", "mg1")
+    # the agent's realised day, as the DMO takes it: from the day's last hour, once (a fast agent's comes before
+    # the replayed day is over)
+    for phase, hour in (("realtime", 23), ("realtime", HOURS), ("settlement", None)):
+        driver.phase, driver.hour = phase, hour
+        assert driver.refusal(agent_day(DAY)) == acceptance.check_agent_day(agent_day(DAY), DAY, DAY, phase, hour, ())
+    assert driver.refusal(agent_day(DAY)) is None
+    driver.realised.add(DAY)
+    assert driver.refusal(agent_day(DAY))[0] == "duplicate"
 
 
 @pytest.mark.parametrize("excess", [0.0, READING_TOLERANCE_MW / 2, READING_TOLERANCE_MW, 2 * READING_TOLERANCE_MW,

@@ -370,7 +370,10 @@ def start_day(roles: Roles, tmp: Path, run_id: str, recorded: bool = False):
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     common = ["--run-id", run_id, "--market-day", DAY]
+    # each hour's grid state half a second late: the day is still in real time when the flood and the replays of
+    # hours 3 and 6 come (its hours otherwise take milliseconds)
     roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", str(len(AGENTS)), "--subperiods", "1",
+                              "--fault", "delay:dmo/grid:0.5",
                               "--result", str(tmp / "result.json"), *DEADLINES, "--insecure",  # hostile peers join
                               *(["--await-recorder", "60"] if recorded else [])), log=tmp / "dmo.log", env=ENV)
     wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
