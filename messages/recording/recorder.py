@@ -56,7 +56,9 @@ class Recorder:
 
     def __init__(self, bus, writer: RecordingWriter, announce: bool = True):
         self.bus, self.writer, self.announce = bus, writer, announce
-        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        # A Queue, not a SimpleQueue: CPython 3.11's SimpleQueue.get(timeout) blocks for good when a signal handler
+        # (SIGTERM's, which stops the recorder) runs past the wait's deadline, as it may on a loaded machine
+        self._queue: queue.Queue = queue.Queue()
         self._subscription = None
         self._token = None
         self._live: collections.Counter | None = None  # (key, payload) received live while backfilling

@@ -648,3 +648,26 @@ def test_what_the_recorder_remembers_to_catch_up_is_bounded_by_the_keys_not_the_
     assert len(recorder.seen) <= SEEN_PER_KEY * len(dmo_keys) < came / 4, (len(recorder.seen), came)
     assert all((key, latest[key]) in recorder.seen for key in dmo_keys)
     assert (dmo_keys[0], b"{}") not in recorder.seen
+
+
+def test_the_recorder_stops_on_a_signal_whose_handler_runs_late(tmp_path):
+    """SIGTERM's handler sets the recorder's stop; on a loaded machine it may run after the writing loop's wait for
+    the next payload should have ended. The loop still sees the stop and the file is finished (a queue whose timed
+    get blocked for good then left a CI run's recorder stuck until its 30 s watchdog)."""
+    run_id = new_run_id()
+    writer = RecordingWriter(tmp_path / "late.mcap", run_id)
+    writer.start({}, [])
+    recorder = Recorder(SimpleNamespace(keys=Keys(run_id)), writer)
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGUSR1, lambda *_: (stop.set(), time.sleep(0.15)))  # a late handler
+    threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGUSR1)).start()
+    rescue = threading.Timer(5.0, recorder._queue.put, ((f"{Keys(run_id).prefix}/dmo/clock", b"{}", 0, True),))
+    rescue.start()  # a loop that missed the stop is woken by a payload, so that this test fails instead of hanging
+    began = time.monotonic()
+    try:
+        recorder.run(stop)
+    finally:
+        rescue.cancel()
+        signal.signal(signal.SIGUSR1, previous)
+    assert time.monotonic() - began < 2.0
+    assert read_recording(tmp_path / "late.mcap").complete
