@@ -67,9 +67,11 @@ class ScenarioLP:
         return held, cols
 
     def read(self, columns: Columns, col: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-        """A solution's second-stage values by name and its cost terms by name."""
+        """A solution's second-stage values by name and its cost terms by name. Values are taken as the solver gives
+        them, within its feasibility tolerance of their bounds (as cvxpy takes a solution: ``save_value``; setting
+        ``value`` refuses a stored energy 1e-9 above its capacity)."""
         for var in self.var.values():  # every variable of the LP, so that each cost term has its value
             if columns.holds(var):
-                var.value = columns.value(var, col)
+                var.save_value(columns.value(var, col))
         arrays = {n: self.var[n].value for n in SECOND_STAGE if n in self.var and columns.holds(self.var[n])}
         return arrays, {name: float(term.value) for name, term in self.terms.items()}

@@ -275,3 +275,17 @@ def test_each_hours_lp_is_the_extensive_form_and_depends_on_that_hours_data_alon
         for name, field in PINNED.items():
             done[name][:, n0:n1] = np.asarray(getattr(result, field)).reshape(-1, k)
     assert any(not h.connected.all() for h in op.hours) and any(h.room is not None for h in op.hours)
+
+
+def test_a_solution_within_the_solvers_tolerance_of_a_bound_is_read_as_given(case, first_stage):
+    """HiGHS returns values within its feasibility tolerance (1e-7) of their bounds: a stored energy 1e-9 above the
+    capacity is read as given (a day of a 100-agent fleet failed on it), and the cost terms read it too."""
+    op = swinging(case, first_stage)
+    lp = op._lp
+    plan = op.operate_hour(1, [True])
+    col = np.asarray(lp.h.getSolution().col_value).copy()
+    stored = lp.columns.of(lp.lp.var["C"])
+    col[stored[-1]] = case.storage.c_max + 1e-9
+    arrays, costs = lp.lp.read(lp.columns, col)
+    assert arrays["C"][0, -1] == case.storage.c_max + 1e-9
+    assert math.isclose(sum(costs.values()), plan.plan.cost.total - plan.plan.cost.startup, rel_tol=1e-9)
