@@ -185,7 +185,8 @@ class Bus:
             log.info("connecting to %s%s", ", ".join(self.config.connect), "" if self.config.connect_timeout_s is None
                      else f" (waiting up to {self.config.connect_timeout_s:g} s for an answer)")
         try:
-            self._session = zenoh.open(self.config.to_zenoh())
+            with _OPENING:
+                self._session = zenoh.open(self.config.to_zenoh())
         except zenoh.ZError as err:
             if self.config.connect and "Unable to connect" in str(err):
                 waited = "" if self.config.connect_timeout_s is None else f" within {self.config.connect_timeout_s:g} s"
@@ -491,6 +492,11 @@ def _quietly(action: Callable[[], object], what: str) -> None:
     except Exception:
         log.debug("could not %s", what, exc_info=True)
 
+
+# A process opens its sessions one at a time. The agents forked ten to a process (dmosim run --hosting fork) would
+# otherwise all shake hands at once: a thousand TLS handshakes at once on 2 cores left an agent unconnected after
+# its 60 s while 849 others had registered (docs/benchmarks.md).
+_OPENING = threading.Lock()
 
 # A session with a callback subscriber owns a non-daemon thread, so a process that forgets to close it hangs
 # at exit: Python joins that thread before running atexit hooks. threading's own exit hook runs before the
