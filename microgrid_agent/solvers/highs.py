@@ -30,8 +30,12 @@ class Columns:
     def of(self, var: cp.Variable) -> np.ndarray:
         return np.arange(self.offsets[var.id], self.offsets[var.id] + var.size, dtype=np.int32)
 
+    def shaped(self, var: cp.Variable) -> np.ndarray:
+        """``var``'s columns in its own shape."""
+        return self.of(var).reshape(var.shape, order="F")
+
     def value(self, var: cp.Variable, x: np.ndarray) -> np.ndarray:
-        return np.asarray(x)[self.of(var)].reshape(var.shape, order="F")
+        return np.asarray(x)[self.shaped(var)]
 
 
 def compile_problem(problem: cp.Problem) -> tuple[dict, Columns]:

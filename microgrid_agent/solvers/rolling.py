@@ -20,11 +20,11 @@ import numpy as np
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
-from ..model import Params, first_stage_variables
+from ..model import Params, first_stage_variables, startup_cost
 from ..schedule import FirstStage, StochasticSchedule, Timings
 from .benders import Found, first_stage_vector, found_schedule
 from .extensive import SolveError
-from .highs import Columns, column_bounds, highs_model, row_bounds
+from .highs import column_bounds, highs_model, row_bounds
 from .scenario_lp import ScenarioLP
 
 
@@ -39,8 +39,7 @@ class RollingLP:
         self.h, self._data = highs_model(data, integer=False), data
         held, cols = self.lp.first_stage(self.columns)
         self._fixed = cols, first_stage_vector(case, first_stage_variables(first))[held]
-        self.startup = float(np.sum(case.unit_array("startup_cost") @ first.startup
-                                    + case.unit_array("shutdown_cost") @ first.shutdown)) if case.units else 0.0
+        self.startup = float(startup_cost(case, first_stage_variables(first)).value)
         self._unbooked_s = time.perf_counter() - start  # the compile, counted in the first solve's build time
 
     def solve(self, scen: ScenarioSet, pinned: tuple[int, dict[str, np.ndarray]] | None = None,
@@ -77,8 +76,7 @@ class RollingLP:
                               Timings(build_s=build_s, solve_s=end - built, total_s=build_s + end - built))
 
     def _column_bounds(self, data: dict, pinned, pm_bounds) -> tuple[np.ndarray, np.ndarray]:
-        lower, upper = column_bounds(data)
-        lower, upper = lower.copy(), upper.copy()
+        lower, upper = (bound.copy() for bound in column_bounds(data))
         cols, x = self._fixed
         lower[cols] = upper[cols] = x
         if pinned is not None and pinned[0] > 0:
@@ -86,18 +84,13 @@ class RollingLP:
             for name, value in values.items():
                 var = self.lp.var.get(name)
                 if var is not None and self.columns.holds(var):
-                    past = _columns(self.columns, var)[:, :n0]
+                    past = self.columns.shaped(var)[:, :n0]
                     lower[past] = upper[past] = np.asarray(value, float).reshape(var.shape)[:, :n0]
         if pm_bounds is not None:
             n0, low, high = pm_bounds
-            now = _columns(self.columns, self.lp.var["PM"])[:, n0:n0 + len(low)]
+            now = self.columns.shaped(self.lp.var["PM"])[:, n0:n0 + len(low)]
             lower[now], upper[now] = np.asarray(low, float)[None, :], np.asarray(high, float)[None, :]
         return lower, upper
-
-
-def _columns(columns: Columns, var) -> np.ndarray:
-    """A variable's columns in its own shape."""
-    return columns.of(var).reshape(var.shape, order="F")
 
 
 def _same_matrix(a: dict, b: dict) -> bool:
