@@ -41,7 +41,9 @@ class DayConfig:
     fixed_awards: tuple[float, ...] | None = None
     price_floor: float = PRICE_FLOOR
     price_cap: float = PRICE_CAP
-    linger_s: float = 5.0  # after the summary, how long to wait for the agents to leave before closing
+    # After the last summary, how long at most to wait for the agents to leave before closing (None: as long as an
+    # hour's reports get, hour_s: a thousand agents' last realised days come in tens of seconds on 2 cores)
+    linger_s: float | None = None
     journal: str | None = None  # where the DMO journals its day, to resume it if it is restarted
     resume_wait_s: float = 30.0  # a resumed DMO waits this long for its agents to reconnect
     days: int = 1

@@ -485,11 +485,12 @@ class MarketDay:
 
     def _linger(self) -> None:
         """Stay until the live agents have left (they leave once they have the summary and what they sent is
-        receipted), at most ``linger_s``: the DMO is the agents' router, and closing at once could cut off the
-        summary still on its way. What agents send meanwhile is decided and receipted as in settlement: a realised
-        day of the last day is still taken."""
+        receipted), at most ``linger_s`` (the hour deadline unless set): the DMO is the agents' router, and closing
+        at once could cut off the summary still on its way. What agents send meanwhile is decided and receipted as
+        in settlement: a realised day of the last day is still taken."""
         waiting = set(self.state.live())
-        deadline = time.monotonic() + self.config.linger_s
+        c = self.config
+        deadline = time.monotonic() + (c.hour_s if c.linger_s is None else c.linger_s)
         accept = intake.out_of_phase(self.state)
         while waiting and (left := deadline - time.monotonic()) > 0:
             try:
