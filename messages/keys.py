@@ -12,7 +12,8 @@ a per-process key prefix. Everything sits under one run prefix, so concurrent ru
 
 The DMO answers queries (``get``) on any key of its run: with no parameters, the latest message it published on
 each matching key (a late agent asks ``dmo/clock`` where the day stands); with the parameter ``history``, every
-payload it sent or received on the matching keys, in order (a late recorder asks for ``**?history``).
+payload it sent or received on the matching keys, in order (a late recorder asks for ``**?history``), and with
+``since=NS`` as well only those it saw at or after NS (a recorder checks each day for what it lacks).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from .schemas import Envelope
 
 ROOT = "dmosim"
 HISTORY = "history"  # the query parameter that asks the DMO for the whole traffic of its day, not the latest
+SINCE = "since"  # with ``history``: only what the DMO saw at or after this time (ns since the Unix epoch)
 RUN_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 _RUN_ID = re.compile(RUN_ID_PATTERN)
 

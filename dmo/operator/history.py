@@ -17,7 +17,7 @@ from collections.abc import Iterator
 
 import zenoh
 
-from messages.keys import HISTORY, parse_key
+from messages.keys import HISTORY, SINCE, parse_key
 from messages.transport.bus import Entry
 
 from .journal import Journal, traffic, traffic_entry
@@ -53,18 +53,21 @@ class DayHistory:
             self._latest[entry[0]] = entry
 
     def answer(self, key_expr: str, parameters: str) -> list[Entry]:
-        """The replies to a query: with ``history`` among the parameters every entry on a matching key, in order;
-        otherwise the latest message the DMO published on each matching key."""
+        """The replies to a query: with ``history`` among the parameters every entry on a matching key, in order,
+        and with ``since=NS`` too only those seen at or after NS; otherwise the latest message the DMO published on
+        each matching key. A ``since`` that is not a whole number of nanoseconds is a ValueError (an error reply)."""
         asked, matches = zenoh.KeyExpr(key_expr), {}
+        given = dict(p.split("=", 1) if "=" in p else (p, "") for p in parameters.split(";") if p)
 
         def matching(key: str) -> bool:
             if key not in matches:
                 matches[key] = asked.intersects(zenoh.KeyExpr(key))
             return matches[key]
 
-        if HISTORY in (p.split("=", 1)[0] for p in parameters.split(";") if p):
+        if HISTORY in given:
+            since = _nanoseconds(given.get(SINCE, "0"))
             with self._lock:
-                return [e for e in traffic(self._lines()) if matching(e[0])]
+                return [e for e in traffic(self._lines()) if e[2] >= since and matching(e[0])]
         with self._lock:
             latest = list(self._latest.values())
         return sorted((e for e in latest if matching(e[0])), key=lambda e: e[2])
@@ -75,6 +78,12 @@ class DayHistory:
         self._scratch.seek(0)
         lines = [json.loads(line) for line in self._scratch]  # leaves the file at its end, for the next record
         return iter(lines)
+
+
+def _nanoseconds(text: str) -> int:
+    if not text.isdigit():
+        raise ValueError(f"{SINCE}={text!r}: not a time in whole nanoseconds since the Unix epoch")
+    return int(text)
 
 
 def _published_by_dmo(key: str) -> bool:

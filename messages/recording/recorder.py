@@ -1,6 +1,7 @@
 """The recorder's loop: every payload under one run prefix, as it arrived, valid or not, into a RecordingWriter;
 for a recorder that joins late, what the run said before it joined, asked of the DMO (``backfill``); and what the
-network lost on the way to it, asked of the DMO as the day goes on (``catch up``)."""
+network lost on the way to it, asked of the DMO as the day goes on (``catch up``): the latest of the DMO's own
+messages on each clock, and everything the DMO sent or received on each day summary."""
 
 from __future__ import annotations
 
@@ -12,36 +13,44 @@ import threading
 import time
 from typing import Callable
 
-from ..keys import HISTORY, parse_key
+from ..keys import HISTORY, SINCE, parse_key
 from ..schemas import DMO
 from ..transport.heap import return_free_memory
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
-CATCH_UP_KINDS = ("clock", "day_summary")  # a DMO message of these kinds: time to ask it for what this recorder lacks
-IN_FLIGHT_S = 2.0  # what the DMO sent this recently may still be on its way: not yet taken as lost
-# Payloads of the DMO's remembered per key: catching up asks for the latest on each key, which is the last one that
-# came on it, or one still missing; a few more cover those a delay fault made come out of order.
-SEEN_PER_KEY = 8
+LATEST_KINDS = ("clock",)  # a DMO message of these kinds: time to ask it for the latest on each of its keys
+HISTORY_KINDS = ("day_summary",)  # ... of these: time to ask it for its traffic since the last such check
+IN_FLIGHT_S = 2.0  # what the DMO sent or saw this recently may still be on its way: not yet taken as lost
+HISTORY_TIMEOUT_S = 60.0  # a day's traffic of a thousand agents is a few hundred thousand replies
+CLOSING_WAIT_S = 15.0  # how long a stopping recorder lets a check under way finish (dmosim run gives it 60 s)
 
 
-class LatestSeen:
-    """The last ``SEEN_PER_KEY`` payloads of the DMO's queued on each of its keys (their digests): what catching up
-    compares the DMO's answers with. Bounded by the keys, however long the run."""
+class Seen:
+    """Digests of the payloads queued for the file in the current window and the one before it: what catching up
+    compares the DMO's answers with. A window ends at each check of the DMO's history, which covers everything
+    the DMO saw up to a cutoff; what came before the previous window was checked then. So memory holds about
+    two days of digests, however long the run."""
 
     def __init__(self):
-        self._by_key: dict[str, collections.deque[bytes]] = {}
+        self._current: set[bytes] = set()
+        self._previous: set[bytes] = set()
+        self.since = 0  # the DMO's history is checked from this time on (ns): what came before was checked
 
     def add(self, key: str, payload: bytes) -> None:
-        self._by_key.setdefault(key, collections.deque(maxlen=SEEN_PER_KEY)).append(_digest(payload))
+        self._current.add(_digest(key, payload))
 
     def __contains__(self, item: tuple[str, bytes]) -> bool:
-        key, payload = item
-        return _digest(payload) in self._by_key.get(key, ())
+        digest = _digest(*item)
+        return digest in self._current or digest in self._previous
+
+    def checked_until(self, cutoff: int) -> None:
+        """The DMO's history before ``cutoff`` (ns) is in the file: start the next window there."""
+        self._previous, self._current, self.since = self._current, set(), cutoff
 
     def __len__(self) -> int:
         """Payloads remembered."""
-        return sum(len(digests) for digests in self._by_key.values())
+        return len(self._current) + len(self._previous)
 
 
 class Recorder:
@@ -65,9 +74,11 @@ class Recorder:
         self._live_lock = threading.Lock()
         self.backfilled = 0
         self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
-        self.seen = LatestSeen()  # the DMO's payloads queued, the latest of each key
+        self.seen = Seen()  # the payloads queued in the current catch-up window and the one before
         self._summary = bus.keys.summary()  # once a day's summary is written, the memory the day used goes back
         self._wake = threading.Event()
+        self._history_due = False  # a day summary came: check the DMO's history, not only its latest
+        self._closing = False
         self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
         self.last_written_ns = 0     # recorder kept up with (its sustained rate is messages / span)
@@ -91,42 +102,74 @@ class Recorder:
         with self._live_lock:
             if self._live is not None:
                 self._live[key, payload] += 1
-            self._saw(parsed, key, payload)
-        self._queue.put((key, payload, at, True))
-        if self._catching_up is not None and parsed is not None and parsed.kind in CATCH_UP_KINDS:
-            self._wake.set()
-
-    def _saw(self, parsed, key: str, payload: bytes) -> None:
-        """Note a payload of the DMO's (what catching up asks it for) as queued; the caller holds the lock."""
-        if parsed is not None and parsed.role == DMO:
             self.seen.add(key, payload)
+        self._queue.put((key, payload, at, True))
+        if self._catching_up is not None and parsed is not None and parsed.role == DMO:
+            if parsed.kind in HISTORY_KINDS:
+                self._history_due = True
+                self._wake.set()
+            elif parsed.kind in LATEST_KINDS:
+                self._wake.set()
 
     def _catch_up_loop(self) -> None:
-        """On each clock and day summary of the DMO's, ask it for the latest message on each of its keys and queue
-        those that never arrived here (Zenoh delivers once; a message the network lost would be missing from the
-        recording, though its agent asked the DMO for it again). Off Zenoh's threads: a query must not block one."""
-        while self._subscription is not None:
+        """On each clock of the DMO's, ask it for the latest message on each of its keys, and on each day summary
+        for everything it sent or received since the last summary, and queue what never arrived here. Zenoh
+        delivers once: a message the network lost on the way here (an agent's registration behind a router link
+        that went down, an award its agent alone asked for again) would be missing from the recording. Off
+        Zenoh's threads: a query must not block one."""
+        while not self._closing:
             if not self._wake.wait(timeout=0.5):
                 continue
             self._wake.clear()
+            history, self._history_due = self._history_due, False
             try:
-                self.caught_up += self._catch_up()
+                self.caught_up += self._check_history() if history else self._catch_up()
             except Exception:  # the DMO may be gone: what is missing stays missing, the recording goes on
                 log.debug("catching up failed", exc_info=True)
-            return_free_memory()  # the answer, the latest on every key of the DMO's (awards, statements), is gone
+            return_free_memory()  # the answer (the latest on every key of the DMO's, or a day's traffic) is gone
 
     def _catch_up(self) -> int:
-        added, now = 0, time.time_ns()
-        for key, payload, at in self.bus.fetch(self.bus.keys.everything(), timeout_s=5.0):
+        """The latest of the DMO's messages on each of its keys that never came, sent in the current window and
+        not in the last ``IN_FLIGHT_S``."""
+        since, recent = self.seen.since, time.time_ns() - IN_FLIGHT_S * 1e9
+        answer = self.bus.fetch(self.bus.keys.everything(), timeout_s=5.0)
+        added = self._queue_missing(e for e in answer if e[2] is not None and since <= e[2] < recent)
+        if added:
+            log.info("caught up on %d message(s) of the DMO's the network lost on the way here", added)
+        return added
+
+    def _check_history(self) -> int:
+        """Everything the DMO sent or received since the last check that never came here: what it saw in the last
+        ``IN_FLIGHT_S`` may still be on its way, so it is looked at again that much later; then the window moves
+        on to the last time the DMO's answer holds."""
+        since = self.seen.since
+        answer = [e for e in self.bus.fetch(f"{self.bus.keys.everything()}?{HISTORY};{SINCE}={since}",
+                                            HISTORY_TIMEOUT_S) if e[2] is not None]
+        if not answer:  # nobody answered (a day summary is in any answer): the window stays where it was
+            return 0
+        recent = time.time_ns() - IN_FLIGHT_S * 1e9
+        added = self._queue_missing(e for e in answer if e[2] < recent)
+        late = [e for e in answer if e[2] >= recent]
+        if late and not self._closing:
+            time.sleep(IN_FLIGHT_S)
+        added += self._queue_missing(late)
+        self.seen.checked_until(max(e[2] for e in answer) + 1)
+        if added:
+            log.info("caught up on %d message(s) the DMO sent or received since the last day summary that never "
+                     "came here", added)
+        return added
+
+    def _queue_missing(self, entries) -> int:
+        """Queue, with the DMO's time, each entry not queued before; return how many."""
+        added = 0
+        for key, payload, at in entries:
             with self._live_lock:
-                missing = at is not None and now - at > IN_FLIGHT_S * 1e9 and (key, payload) not in self.seen
+                missing = (key, payload) not in self.seen
                 if missing:
                     self.seen.add(key, payload)
             if missing:
                 self._queue.put((key, payload, at, False))
                 added += 1
-        if added:
-            log.info("caught up on %d message(s) the network lost on the way here", added)
         return added
 
     def _backfill(self, timeout_s: float) -> int:
@@ -141,7 +184,7 @@ class Recorder:
                 live[key, payload] -= 1
                 continue
             with self._live_lock:
-                self._saw(_parsed(key), key, payload)
+                self.seen.add(key, payload)
             self._queue.put((key, payload, at or time.time_ns(), False))
             added += 1
         if added:
@@ -166,6 +209,7 @@ class Recorder:
                     self._write(*item, on_write)
                 writer.tick()
         finally:  # the file first: nothing of Zenoh's (undeclaring, closing) stands between the run and its footer
+            self._finish_catching_up()
             while True:
                 try:
                     item = q.get_nowait()
@@ -174,6 +218,15 @@ class Recorder:
                 self._write(*item, on_write)
             writer.close()
             self.stop()
+
+    def _finish_catching_up(self) -> None:
+        """Let a check of the DMO's history under way end (its answer may hold the last registrations the file
+        lacks), for at most ``CLOSING_WAIT_S``; then no new one starts."""
+        self._closing = True
+        thread = self._catching_up
+        if thread is not None and thread is not threading.current_thread():
+            self._wake.set()
+            thread.join(CLOSING_WAIT_S)
 
     def _write(self, key: str, payload: bytes, at: int, live: bool, on_write) -> None:
         valid = self.writer.write(key, payload, at)
@@ -201,8 +254,11 @@ class Recorder:
             subscription.close()
 
 
-def _digest(payload: bytes) -> bytes:
-    return hashlib.sha256(payload).digest()
+def _digest(key: str, payload: bytes) -> bytes:
+    digest = hashlib.blake2b(key.encode(), digest_size=16)
+    digest.update(b"\0")
+    digest.update(payload)
+    return digest.digest()
 
 
 def _parsed(key: str):

@@ -403,7 +403,8 @@ class Bus:
     def serve(self, pattern: str, answer: Answer) -> Subscription:
         """Answer queries on keys matching ``pattern``: ``answer(key_expr, parameters)`` gives the replies, each
         (key, payload, ns); the time travels as the reply's attachment, 8 bytes big-endian. A reply whose key
-        does not intersect the query's is skipped (Zenoh refuses it)."""
+        does not intersect the query's is skipped (Zenoh refuses it). A query ``answer`` refuses with a ValueError
+        (a bad parameter) gets an error reply saying why."""
         def on_query(query: zenoh.Query) -> None:
             try:
                 asked = str(query.key_expr)
@@ -411,6 +412,9 @@ class Bus:
                     if zenoh.KeyExpr(asked).intersects(zenoh.KeyExpr(key)):
                         query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON,
                                     attachment=int(at).to_bytes(8, "big"))
+            except ValueError as err:
+                log.warning("%s: refused a query on %s: %s", self.name, query.selector, err)
+                query.reply_err(str(err))
             except Exception:
                 with self._state_lock:
                     self._handler_errors += 1

@@ -200,6 +200,9 @@ def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_surv
         assert history.answer(f"{p}/**", "") == [entries[2], entries[4], entries[5]], how  # the DMO's, in time order
         assert history.answer(f"{p}/**", "history") == entries, how  # everything, payloads as they came
         assert history.answer(f"{p}/agent/*/bid", "history;since=0") == [entries[3]], how
+        assert history.answer(f"{p}/**", "history;since=4") == entries[3:], how  # what it saw from then on
+        with pytest.raises(ValueError, match="since='-1': not a time in whole nanoseconds"):
+            history.answer(f"{p}/**", "history;since=-1")
         assert history.answer(f"{p}/dmo/award/mg1", "") == [entries[4]], how
     again.close()
     assert traffic(again.entries) == entries

@@ -36,7 +36,7 @@ from messages.transport import Bus, BusConfig
 from messages.keys import Keys, key_pattern, new_run_id
 from messages.recording import INVALID_KEY, RecordingWriter, content_signature, read_recording, select
 from messages.recording import writer as writer_module
-from messages.recording.recorder import SEEN_PER_KEY, Recorder
+from messages.recording.recorder import Recorder
 from messages.recording.writer import WrittenChunkIndex
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -633,21 +633,76 @@ def test_the_recorder_catches_up_on_what_the_network_lost_on_its_way(tmp_path):
     assert sum(m.kind == "clock" for m in rec.messages) == 1  # what came live is not caught up again
 
 
-def test_what_the_recorder_remembers_to_catch_up_is_bounded_by_the_keys_not_the_days():
-    """The DMO's payloads the recorder notes as they come (to tell what catching up must add) are the last few of each
-    key, however many days the run has, and the latest on each key is still known as come."""
+def test_what_the_recorder_remembers_to_catch_up_is_two_days_not_the_run():
+    """The payloads the recorder notes as they come (to tell what catching up must add) are those since the DMO's
+    history was checked the day before: each day summary's check moves the window on, however many days the run
+    has, and a payload that came just before a check is still known as come."""
     run_id = new_run_id()
-    recorder = Recorder(SimpleNamespace(keys=Keys(run_id)), writer=None)
-    latest: dict[str, bytes] = {}
+    answers: list = []
+    bus = SimpleNamespace(keys=Keys(run_id), fetch=lambda selector, timeout_s: answers.pop(0))
+    recorder = Recorder(bus, writer=None)
+    per_day = []
     for day in range(1, 8):
-        for key, payload in synthetic_day(run_id, 3, 1, market_day=f"2026-07-0{day}", seed=day):
+        entries = [(key, payload, time.time_ns() - 10**10)  # as the DMO saw them, 10 s ago
+                   for key, payload in synthetic_day(run_id, 3, 1, market_day=f"2026-07-0{day}", seed=day)]
+        for key, payload, _ in entries:
             recorder._received(key, payload, time.time_ns())  # as the subscription delivers it
-            latest[key] = payload
-    dmo_keys = [key for key in latest if "/dmo/" in key]
-    came = recorder._queue.qsize()  # every payload of the week, to be written
-    assert len(recorder.seen) <= SEEN_PER_KEY * len(dmo_keys) < came / 4, (len(recorder.seen), came)
-    assert all((key, latest[key]) in recorder.seen for key in dmo_keys)
-    assert (dmo_keys[0], b"{}") not in recorder.seen
+        answers.append(entries)
+        per_day.append(len(entries))
+        held = len(recorder.seen)  # this day's and the day before's
+        assert held == sum(per_day[-2:])
+        assert recorder._check_history() == 0  # everything came
+        assert recorder.seen.since == max(at for _, _, at in entries) + 1
+        assert all((key, payload) in recorder.seen for key, payload, _ in entries)
+    assert recorder._queue.qsize() == sum(per_day)  # every payload of the week, to be written, none twice
+    assert held < sum(per_day) / 3
+
+
+def test_on_each_day_summary_the_recorder_checks_the_dmos_traffic_since_the_last_and_records_what_never_came(
+        tmp_path):
+    """An agent's registration the DMO received but the recorder never did (a router link went down between them)
+    is recorded from the DMO's history on the day summary, with the DMO's time; what came live is not again, and
+    the next check asks only for what the DMO saw after the last time the first answer held."""
+    run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
+    day = synthetic_day(run_id, 2, 1)
+    lost, came, summary = (next(e for e in day if e[0].endswith(k)) for k in ("/agent/mg2/register",
+                                                                                "/agent/mg1/register", "/dmo/summary"))
+    seen_at = time.time_ns() - 10 * 10**9
+    history = [(lost[0], lost[1], seen_at), (came[0], came[1], seen_at + 1), (summary[0], summary[1], seen_at + 2)]
+    asked: list[str] = []
+
+    def answer(key: str, parameters: str) -> list:
+        asked.append(parameters)
+        return history if "since=" in parameters else []  # nothing was said before the recorder joined
+
+    with Bus(run_id, "dmo", BusConfig(mode="router", listen=[endpoint])) as dmo:
+        dmo.serve(dmo.keys.everything(), answer)
+        with Bus(run_id, "recorder", BusConfig(mode="client", connect=[endpoint]), announce=False) as bus:
+            recorder = Recorder(bus, RecordingWriter(tmp_path / "checked.mcap", run_id))
+            recorder.writer.start({}, [])
+            assert recorder.start() == 0  # joined before anything was said
+            stop = threading.Event()
+            loop = threading.Thread(target=recorder.run, args=(stop,))
+            loop.start()
+            try:
+                assert dmo.wait_for_subscribers(summary[0], 10)
+                dmo.publish_raw(came[0], came[1])  # arrives; the other registration was lost on its way
+                dmo.publish_raw(summary[0], summary[1])
+                deadline = time.monotonic() + 30
+                while recorder.seen.since == 0 and time.monotonic() < deadline:
+                    stop.wait(0.1)
+                dmo.publish_raw(summary[0], summary[1])  # the next day's check
+                while sum("since" in a for a in asked) < 2 and time.monotonic() < deadline:
+                    stop.wait(0.1)
+            finally:
+                stop.set()
+                loop.join(30)
+    rec = read_recording(tmp_path / "checked.mcap")
+    assert recorder.caught_up == 1
+    assert [(m.relative_key, m.log_time) for m in rec.messages if m.kind == "registration"] == [
+        ("agent/mg1/register", rec.messages[0].log_time), ("agent/mg2/register", seen_at)]
+    assert sum(m.kind == "day_summary" for m in rec.messages) == 2  # what came live is not caught up again
+    assert [a for a in asked if "since" in a] == ["history;since=0", f"history;since={seen_at + 3}"]
 
 
 def test_the_recorder_stops_on_a_signal_whose_handler_runs_late(tmp_path):

@@ -141,6 +141,25 @@ def test_a_failing_handler_neither_crashes_nor_stops_the_receiver(net):
     assert dmo.stats()["handler_errors"] == 1
 
 
+def test_a_query_with_a_bad_parameter_gets_an_error_reply_saying_why(net, caplog):
+    """A query the answerer refuses with a ValueError (a bad parameter from any client) gets an error reply naming
+    it, in one line on each side, and is no handler error; a good query is answered after it."""
+    dmo, agent, _, _ = net
+
+    def answer(key: str, parameters: str):
+        if parameters:
+            raise ValueError(f"{parameters!r}: not a parameter of this answer")
+        return [(dmo.keys.clock(), b"{}", 7)]
+
+    dmo.serve(dmo.keys.everything(), answer)
+    with caplog.at_level("INFO", logger="messages.transport.bus"):
+        assert agent.fetch(f"{agent.keys.clock()}?since=x") == []
+        assert agent.fetch(agent.keys.clock()) == [(agent.keys.clock(), b"{}", 7)]
+    assert "'since=x': not a parameter of this answer" in caplog.text  # the error reply the asker logs
+    assert [r.levelname for r in caplog.records if "refused a query" in r.getMessage()] == ["WARNING"]
+    assert dmo.stats()["handler_errors"] == 0
+
+
 def test_presence_join_and_leave(net):
     dmo, _, _, client = net
     events: queue.Queue = queue.Queue()
