@@ -226,11 +226,12 @@ class MicrogridAgent:
             return self.statement is None
         return isinstance(msg, DaySummary) and self.summary is None
 
-    def _latest(self, keys: list[str]) -> list:
-        """The DMO's latest valid message of this run on each of ``keys`` (none where it answers nothing)."""
+    def _latest(self, keys: list[str], timeout_s: float | None = None) -> list:
+        """The DMO's latest valid message of this run on each of ``keys`` (none where it answers nothing), each
+        answer waited for ``timeout_s`` (``ANSWER_S`` unless given)."""
         out = []
         for key in keys:
-            for found, payload, _ in self.bus.fetch(key, timeout_s=2.0):
+            for found, payload, _ in self.bus.fetch(key, timeout_s=timeout_s or ANSWER_S):
                 try:
                     msg = decode(payload, expected_kind=parse_key(found).kind)
                     check_route(found, msg, self.bus.keys.run_id)
@@ -245,11 +246,17 @@ class MicrogridAgent:
         """Ask the DMO for its clock (docs/protocol.md, "Asking the DMO") until it answers, at most ``idle_s``: its
         answer gives the run's token, which every message carries, and where the run is. An agent started, or
         restarted, after the run began joins its current day."""
-        deadline = time.monotonic() + self.config.idle_s
-        while not (clocks := self._latest([self.bus.keys.clock()])):
+        deadline, wait = time.monotonic() + self.config.idle_s, ANSWER_S
+        while True:
+            asked = time.monotonic()
+            if clocks := self._latest([self.bus.keys.clock()], wait):
+                break
             if time.monotonic() >= deadline:
                 raise AgentTimeout(f"{self.id}: the DMO did not answer for {self.config.idle_s:g} s")
-            time.sleep(ASK_AFTER_S / 4)  # a DMO not up yet answers nothing, at once
+            if time.monotonic() - asked >= wait:  # it is there but busy (a thousand agents joining): wait longer
+                wait = min(2 * wait, ASK_AT_MOST_S)
+            else:
+                time.sleep(ASK_AFTER_S / 4)  # a DMO not up yet answers nothing, at once
         clock = clocks[0]
         self.bus.run_token = clock.run
         self.days, self.market_day = clock.days, clock.market_day  # the DMO's day, whatever we were told
@@ -491,6 +498,7 @@ MAX_AHEAD = 1000  # messages of the next day kept while this one ends (the DMO s
 RECEIPTS_WAIT_S = 5.0
 ASK_AFTER_S = 1.0     # silence after which the agent asks the DMO for what it waits for ...
 ASK_AT_MOST_S = 8.0   # ... then at doubling intervals up to this
+ANSWER_S = 2.0        # how long the DMO's answer is waited for; joining, doubled up to ASK_AT_MOST_S while it is busy
 
 
 def _terms(award: Award) -> dict:

@@ -204,6 +204,8 @@ def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_surv
         with pytest.raises(ValueError, match="since='-1': not a time in whole nanoseconds"):
             history.answer(f"{p}/**", "history;since=-1")
         assert history.answer(f"{p}/dmo/award/mg1", "") == [entries[4]], how
+        assert history.answer(f"{p}/dmo/award/*", "") == [entries[4], entries[5]], how
+        assert history.answer(f"{p}/dmo/award/mg3", "") == [], how  # a key the DMO never published on
     again.close()
     assert traffic(again.entries) == entries
 
