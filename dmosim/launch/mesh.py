@@ -13,6 +13,11 @@ from pathlib import Path
 from .processes import Roles, dmosim_command, free_port, wait_for_line, wait_listening
 
 ROUTER_START_S = 60.0  # for a router to listen, and for one that connects to the first to report its link up
+# The lease each router announces: how long the others wait, after its last sign of life, to take its link as down.
+# The routers share this machine's cores with the agents: with Zenoh's 10 s, a thousand agents starting on 2 cores
+# left the links of the mesh silent long enough to expire, and each expiry withdrew every agent behind the link (334
+# incidents) and lost what was on it. A router killed is seen at once, its connections closing, whatever the lease.
+ROUTER_LEASE_S = 60.0
 
 
 def router_names(n: int) -> list[str]:
@@ -32,7 +37,7 @@ def start_routers(roles: Roles, names: list[str], scheme: str, run_id: str, auth
     for i, name in enumerate(names):
         relay = ["--user", name, "--connect", at[0]] if i else []
         roles.start(name, dmosim_command("router", "--run-id", run_id, "--auth-dir", str(auth), "--listen", at[i],
-                                         *relay), log=logs / f"{name}.log")
+                                         "--lease", repr(ROUTER_LEASE_S), *relay), log=logs / f"{name}.log")
     for i, name in enumerate(names):
         alive = roles.roles[name].process.poll
         wait_listening(int(at[i].rsplit(":", 1)[1]), ROUTER_START_S, lambda poll=alive: poll() is None)
