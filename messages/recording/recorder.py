@@ -5,12 +5,14 @@ messages on each clock, and everything the DMO sent or received on each day summ
 
 from __future__ import annotations
 
+import bisect
 import collections
 import hashlib
 import logging
 import queue
 import threading
 import time
+from array import array
 from typing import Callable
 
 from ..keys import HISTORY, SINCE, parse_key
@@ -29,12 +31,13 @@ CLOSING_WAIT_S = 15.0  # how long a stopping recorder lets a check under way fin
 class Seen:
     """Digests of the payloads queued for the file in the current window and the one before it: what catching up
     compares the DMO's answers with. A window ends at each check of the DMO's history, which covers everything
-    the DMO saw up to a cutoff; what came before the previous window was checked then. So memory holds about
-    two days of digests, however long the run."""
+    the DMO saw up to a cutoff; what came before the previous window was checked then. The current window's are
+    16-byte digests in a set; the previous window's, looked up less, 8 bytes each in a sorted array, so what a
+    day leaves behind for the next is a tenth of what it held (a recorder's memory does not step up after day 1)."""
 
     def __init__(self):
         self._current: set[bytes] = set()
-        self._previous: set[bytes] = set()
+        self._previous = array("Q")
         self.since = 0  # the DMO's history is checked from this time on (ns): what came before was checked
 
     def add(self, key: str, payload: bytes) -> None:
@@ -42,11 +45,16 @@ class Seen:
 
     def __contains__(self, item: tuple[str, bytes]) -> bool:
         digest = _digest(*item)
-        return digest in self._current or digest in self._previous
+        if digest in self._current:
+            return True
+        short = _short(digest)
+        at = bisect.bisect_left(self._previous, short)
+        return at < len(self._previous) and self._previous[at] == short
 
     def checked_until(self, cutoff: int) -> None:
         """The DMO's history before ``cutoff`` (ns) is in the file: start the next window there."""
-        self._previous, self._current, self.since = self._current, set(), cutoff
+        self._previous = array("Q", sorted(map(_short, self._current)))
+        self._current, self.since = set(), cutoff
 
     def __len__(self) -> int:
         """Payloads remembered."""
@@ -252,6 +260,10 @@ class Recorder:
         subscription, self._subscription = self._subscription, None
         if subscription is not None:
             subscription.close()
+
+
+def _short(digest: bytes) -> int:
+    return int.from_bytes(digest[:8], "little")
 
 
 def _digest(key: str, payload: bytes) -> bytes:

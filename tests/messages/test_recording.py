@@ -654,6 +654,7 @@ def test_what_the_recorder_remembers_to_catch_up_is_two_days_not_the_run():
         assert recorder._check_history() == 0  # everything came
         assert recorder.seen.since == max(at for _, _, at in entries) + 1
         assert all((key, payload) in recorder.seen for key, payload, _ in entries)
+        assert (entries[0][0], b"never sent") not in recorder.seen
     assert recorder._queue.qsize() == sum(per_day)  # every payload of the week, to be written, none twice
     assert held < sum(per_day) / 3
 
