@@ -36,6 +36,15 @@ def solve(
     ``fixed``, ``pinned`` and ``pm_bounds`` are as in ``model.build``."""
     start = time.perf_counter()
     model = build(case, scen, params, fixed, pinned, pm_bounds)
+    return solve_model(model, start, gap=gap, time_limit=time_limit, verbose=verbose)
+
+
+def solve_model(model: Model, start: float, *, gap: float = 0.005, time_limit: float | None = None,
+                verbose: bool = False) -> StochasticSchedule:
+    """Solve a built model (``solve``); its timings count from ``start`` (``time.perf_counter``). A model whose
+    problem holds cvxpy Parameters is solved again after their values change without being compiled again
+    (cvxpy keeps its compiled program): the bidding model at each price level (agent/bidding.py)."""
+    case, scen, params = model.case, model.scen, model.params
     options = {"mip_rel_gap": gap}
     if time_limit is not None:
         options["time_limit"] = float(time_limit)

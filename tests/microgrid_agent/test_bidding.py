@@ -14,6 +14,7 @@ from messages.schemas import MAX_BID_STEPS
 from microgrid_agent.agent.bidding import (DEFAULT_MULTIPLIERS, bid_curve, curve_of, hour_steps, monotone,
                                            price_response)
 from microgrid_agent.checker import check_schedule
+from microgrid_agent.solvers.extensive import solve
 from scenarios.case import load_case
 from scenarios.generation import clipped_mean, forecast_scenario, sample
 
@@ -55,6 +56,15 @@ def test_award_at_every_price_level_is_its_quantity(case, response):
     curve = curve_of(response)
     for k in range(len(response.multipliers)):
         np.testing.assert_allclose(cleared(curve, response.prices[k]), response.quantity[k], atol=TOL)
+
+
+def test_each_price_level_solved_on_one_compiled_model_costs_what_a_model_built_at_that_price_costs(case, response):
+    """The six price levels share one model whose grid energy term a Parameter scales; each solve is the one a
+    model built at its price gives, within the gap (1e-4); the fixture's checker priced each one's energy at its
+    own price."""
+    for schedule, params in zip(response.schedules, response.params):
+        alone = solve(case, response.scenario, params, gap=1e-4)
+        assert schedule.objective == pytest.approx(alone.objective, rel=2e-4)
 
 
 def test_quantity_is_non_increasing_in_price(response):
