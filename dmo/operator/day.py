@@ -37,7 +37,7 @@ from ..market.settlement import DayTotals, Statement, accepted_day
 from . import feeder, intake, outbox, rejoin
 from .config import DayConfig
 from .finished import FinishedDays
-from .history import DayHistory
+from .history import DayHistory, asks_history
 from .journal import Journal, restore
 from .state import DayState
 
@@ -391,7 +391,7 @@ class MarketDay:
                            payload=True)
         self.bus.watch_presence(lambda name: self.events.put(("join", name)),
                                 lambda name: self.events.put(("leave", name)))
-        self.bus.serve(self.bus.keys.everything(), self.history.answer)
+        self.bus.serve(self.bus.keys.everything(), self.history.answer, slow=asks_history)
 
     def _traffic(self, key: str, payload: bytes, at: int) -> None:
         """Every payload sent or received (the bus's tap, on Zenoh's threads too): kept for late joiners."""

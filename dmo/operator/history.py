@@ -58,7 +58,7 @@ class DayHistory:
         and with ``since=NS`` too only those seen at or after NS; otherwise the latest message the DMO published on
         each matching key. A ``since`` that is not a whole number of nanoseconds is a ValueError (an error reply)."""
         asked, matches = zenoh.KeyExpr(key_expr), {}
-        given = dict(p.split("=", 1) if "=" in p else (p, "") for p in parameters.split(";") if p)
+        given = _parameters(parameters)
 
         def matching(key: str) -> bool:
             if key not in matches:
@@ -88,6 +88,16 @@ class DayHistory:
 # thousands of keys (awards, statements, receipts) for each of them had it answer too late, and asking again made
 # it later still.
 _WILD = re.compile(r"[*$]")
+
+
+def asks_history(parameters: str) -> bool:
+    """Whether a query's parameters ask for the traffic, not the latest: an answer that takes long
+    (``Bus.serve``'s ``slow``)."""
+    return HISTORY in _parameters(parameters)
+
+
+def _parameters(parameters: str) -> dict[str, str]:
+    return dict(p.split("=", 1) if "=" in p else (p, "") for p in parameters.split(";") if p)
 
 
 def _nanoseconds(text: str) -> int:

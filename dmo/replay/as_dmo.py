@@ -29,7 +29,7 @@ from ..market import acceptance
 from ..market.acceptance import Refusal
 from ..market.choice import ChosenRule
 from ..market.settlement import accepted_day
-from ..operator.history import DayHistory
+from ..operator.history import DayHistory, asks_history
 from ..operator.outbox import day_summary
 from .resettle import RecordedDay, as_message, recorded_rule
 
@@ -63,7 +63,7 @@ class AsDmo:
     def run(self, stop: threading.Event) -> dict:
         self.bus.subscribe(self.bus.keys.agent_all(self.agent), lambda k, m, t, p: self.events.put(("msg", k, m, p)),
                            payload=True)
-        self.bus.serve(self.bus.keys.everything(), self.history.answer)
+        self.bus.serve(self.bus.keys.everything(), self.history.answer, slow=asks_history)
         with self.player:
             for clock, messages in self.steps:
                 if stop.is_set():

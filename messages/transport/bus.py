@@ -400,12 +400,20 @@ class Bus:
 
     # --- queries ---------------------------------------------------------------------------------------
 
-    def serve(self, pattern: str, answer: Answer) -> Subscription:
+    def serve(self, pattern: str, answer: Answer, slow: Callable[[str], bool] | None = None) -> Subscription:
         """Answer queries on keys matching ``pattern``: ``answer(key_expr, parameters)`` gives the replies, each
         (key, payload, ns); the time travels as the reply's attachment, 8 bytes big-endian. A reply whose key
         does not intersect the query's is skipped (Zenoh refuses it). A query ``answer`` refuses with a ValueError
-        (a bad parameter) gets an error reply saying why."""
+        (a bad parameter) gets an error reply saying why. A query whose parameters ``slow`` says are slow to answer
+        is answered on a thread of its own: Zenoh hands a queryable its queries one at a time, and a day's
+        traffic of a thousand agents (a few hundred thousand replies) held up every agent's query behind it."""
         def on_query(query: zenoh.Query) -> None:
+            if slow is not None and slow(str(query.parameters)):
+                threading.Thread(target=answering, args=(query,), name="answering", daemon=True).start()
+            else:
+                answering(query)
+
+        def answering(query: zenoh.Query) -> None:
             try:
                 asked = str(query.key_expr)
                 for key, payload, at in answer(asked, str(query.parameters)):

@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -158,6 +159,33 @@ def test_a_query_with_a_bad_parameter_gets_an_error_reply_saying_why(net, caplog
     assert "'since=x': not a parameter of this answer" in caplog.text  # the error reply the asker logs
     assert [r.levelname for r in caplog.records if "refused a query" in r.getMessage()] == ["WARNING"]
     assert dmo.stats()["handler_errors"] == 0
+
+
+@pytest.mark.parametrize("slow_apart", [True, False])
+def test_a_query_slow_to_answer_holds_up_no_other(net, slow_apart):
+    """A query ``serve`` is told is slow (the DMO's history of a day) is answered on a thread of its own: the
+    latest on a key is answered while it is still being worked on. Answered in turn, the other waits behind it."""
+    dmo, agent, _, _ = net
+    working, release, answered = threading.Event(), threading.Event(), queue.Queue()
+
+    def answer(key: str, parameters: str):
+        if parameters == "history":
+            working.set()
+            release.wait(10)
+            return [(dmo.keys.clock(), b"[]", 1)]
+        return [(dmo.keys.clock(), b"{}", 2)]
+
+    dmo.serve(dmo.keys.everything(), answer, slow=(lambda p: p == "history") if slow_apart else None)
+    history = threading.Thread(target=lambda: answered.put(agent.fetch(f"{agent.keys.clock()}?history", 15)))
+    history.start()
+    try:
+        assert working.wait(10)  # the history query is being answered
+        latest = agent.fetch(agent.keys.clock(), timeout_s=2.0)
+    finally:
+        release.set()
+        history.join(20)
+    assert latest == ([(agent.keys.clock(), b"{}", 2)] if slow_apart else [])
+    assert answered.get(timeout=1) == [(agent.keys.clock(), b"[]", 1)]
 
 
 def test_presence_join_and_leave(net):
