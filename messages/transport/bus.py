@@ -170,6 +170,7 @@ class Bus:
         self._published = 0
         self._received = 0
         self._handler_errors = 0
+        self._answering: set[threading.Thread] = set()  # answering a slow query (serve)
         self._rejected: collections.Counter[str] = collections.Counter()
         self.faults = faults
         # called with every payload this bus puts on the wire (after faults) and every one it receives (before it
@@ -212,6 +213,10 @@ class Bus:
             self.faults.cancel()
         for subscription in list(self._subscriptions):
             subscription.close()
+        with self._state_lock:
+            answering, self._answering = self._answering, set()
+        for thread in answering:  # a thread left in Zenoh's code at interpreter exit aborts the process
+            thread.join(ANSWERING_STOP_S)
         with self._send_lock:
             publishers, self._publishers = list(self._publishers.values()), {}
         for publisher in publishers:
@@ -409,7 +414,10 @@ class Bus:
         traffic of a thousand agents (a few hundred thousand replies) held up every agent's query behind it."""
         def on_query(query: zenoh.Query) -> None:
             if slow is not None and slow(str(query.parameters)):
-                threading.Thread(target=answering, args=(query,), name="answering", daemon=True).start()
+                thread = threading.Thread(target=answering, args=(query,), name="answering", daemon=True)
+                with self._state_lock:
+                    self._answering = {t for t in self._answering if t.is_alive()} | {thread}
+                thread.start()
             else:
                 answering(query)
 
@@ -417,6 +425,8 @@ class Bus:
             try:
                 asked = str(query.key_expr)
                 for key, payload, at in answer(asked, str(query.parameters)):
+                    if self._session is None:  # closing: the asker gets what was sent (close() waits for this)
+                        break
                     if zenoh.KeyExpr(asked).intersects(zenoh.KeyExpr(key)):
                         query.reply(key, payload, encoding=zenoh.Encoding.APPLICATION_JSON,
                                     attachment=int(at).to_bytes(8, "big"))
@@ -504,6 +514,8 @@ def _quietly(action: Callable[[], object], what: str) -> None:
     except Exception:
         log.debug("could not %s", what, exc_info=True)
 
+
+ANSWERING_STOP_S = 10.0  # how long closing waits for a slow query's answer to stop (it stops at its next reply)
 
 # A process opens its sessions one at a time. The agents forked ten to a process (dmosim run --hosting fork) would
 # otherwise all shake hands at once: a thousand TLS handshakes at once on 2 cores left an agent unconnected after

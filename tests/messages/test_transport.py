@@ -10,6 +10,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -186,6 +187,29 @@ def test_a_query_slow_to_answer_holds_up_no_other(net, slow_apart):
         history.join(20)
     assert latest == ([(agent.keys.clock(), b"{}", 2)] if slow_apart else [])
     assert answered.get(timeout=1) == [(agent.keys.clock(), b"[]", 1)]
+
+
+def test_closing_stops_a_slow_answer_at_its_next_reply_and_waits_for_it(net):
+    """A bus closing while it answers a slow query stops the answer at its next reply and waits for that thread
+    before closing its session (a DMO that exited with the thread still in Zenoh's code was aborted)."""
+    dmo, agent, _, _ = net
+    started, got, sent = threading.Event(), queue.Queue(), []
+
+    def answer(key: str, parameters: str):
+        for n in range(1000):
+            sent.append(n)
+            yield dmo.keys.clock(), b"{}", n
+            started.set()
+            time.sleep(0.01)  # a long answer: ten seconds in all
+
+    dmo.serve(dmo.keys.everything(), answer, slow=lambda p: True)
+    asking = threading.Thread(target=lambda: got.put(agent.fetch(f"{agent.keys.clock()}?history", 20)))
+    asking.start()
+    assert started.wait(10)
+    dmo.close()
+    assert not [t for t in threading.enumerate() if t.name == "answering"]  # stopped before the session closed
+    asking.join(20)
+    assert len(sent) < 1000 and len(got.get(timeout=1)) < len(sent) + 1
 
 
 def test_presence_join_and_leave(net):
