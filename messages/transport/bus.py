@@ -415,9 +415,9 @@ class Bus:
         def on_query(query: zenoh.Query) -> None:
             if slow is not None and slow(str(query.parameters)):
                 thread = threading.Thread(target=answering, args=(query,), name="answering", daemon=True)
-                with self._state_lock:
+                with self._state_lock:  # started under the lock: close() joins only threads that have started
                     self._answering = {t for t in self._answering if t.is_alive()} | {thread}
-                thread.start()
+                    thread.start()
             else:
                 answering(query)
 
