@@ -40,7 +40,8 @@ def main() -> None:
     inbox: queue.Queue = queue.Queue()
 
     with zenoh.open(config) as session:
-        session.liveliness().declare_token(f"{prefix}/alive/{args.id}")  # the DMO tracks our presence
+        # the DMO tracks our presence by this token: kept, since a token Zenoh no longer holds is undeclared
+        token = session.liveliness().declare_token(f"{prefix}/alive/{args.id}")  # noqa: F841
         mine = ("clock", "call_for_bids", "grid", f"award/{args.id}", f"statement/{args.id}", "summary",
                 f"receipt/{args.id}")
         for topic in mine:

@@ -488,7 +488,8 @@ class MarketDay:
         receipted), at most ``linger_s`` (the hour deadline unless set): the DMO is the agents' router, and closing
         at once could cut off the summary still on its way. What agents send meanwhile is decided and receipted as
         in settlement: a realised day of the last day is still taken."""
-        waiting = set(self.state.live())
+        # an agent whose presence the DMO cannot see (a client that declares no liveliness token) is not waited for
+        waiting = set(self.state.live()) & self.bus.present(timeout_s=PRESENCE_CHECK_S)
         c = self.config
         deadline = time.monotonic() + (c.hour_s if c.linger_s is None else c.linger_s)
         accept = intake.out_of_phase(self.state)

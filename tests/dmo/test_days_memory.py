@@ -40,6 +40,9 @@ class LoopbackAgents:
     def subscribe(self, *args, **kwargs):
         pass
 
+    def present(self, timeout_s: float = 1.0) -> set[str]:
+        return set(AGENTS)  # each scripted agent is there until it leaves (a "leave" event)
+
     def watch_presence(self, *args, **kwargs):
         pass
 
