@@ -95,7 +95,7 @@ def price_response(case: Case, iso_price: Sequence[float], subperiods: int = 1,
     award = np.full(HOURS, case.grid.p_m_max)
     params, schedules, raw = [], [], []
     started = time.perf_counter()  # the first model's timings include building it
-    for _, model in priced(case, scen, award, iso, ms):
+    for model in priced(case, scen, award, iso, ms):
         schedule = solve_model(model, started, gap=gap, time_limit=time_limit)
         started = time.perf_counter()
         params.append(model.params)
@@ -107,7 +107,7 @@ def price_response(case: Case, iso_price: Sequence[float], subperiods: int = 1,
 
 
 def priced(case: Case, scen: ScenarioSet, award: np.ndarray, iso: np.ndarray,
-           multipliers: tuple[float, ...]) -> Iterator[tuple[float, Model]]:
+           multipliers: tuple[float, ...]) -> Iterator[Model]:
     """The expected-value model at each multiplier m, built once: its grid energy term is scaled by a Parameter
     set to m, so cvxpy compiles the model for the first price and only re-applies the Parameter for the others
     (a bid's six models compiled one by one took about 60% of its time)."""
@@ -118,7 +118,7 @@ def priced(case: Case, scen: ScenarioSet, award: np.ndarray, iso: np.ndarray,
     for m in multipliers:
         scale.value = m
         params = Params(p_sch=award, penalty=0.0, import_price=m * iso)
-        yield m, dataclasses.replace(base, problem=problem, params=params, terms=terms)
+        yield dataclasses.replace(base, problem=problem, params=params, terms=terms)
 
 
 def hour_steps(prices: np.ndarray, quantity: np.ndarray) -> tuple[BidStep, ...]:

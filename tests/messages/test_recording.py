@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import collections
+import contextlib
 import datetime
 import json
 import os
@@ -600,33 +601,43 @@ def test_the_same_configuration_and_seed_record_the_same_contents(day, tmp_path)
     assert content_signature(first) == content_signature(second)
 
 
-def test_the_recorder_catches_up_on_what_the_network_lost_on_its_way(tmp_path):
-    """A message of the DMO's that never reached the recorder (the agent it was for asked again and alone got the
-    answer) is asked of the DMO on its next clock and recorded, with the DMO's time; one that came is not again."""
-    run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
-    day = synthetic_day(run_id, 1, 1)
-    lost, clock = (next(e for e in day if e[0].endswith(k)) for k in ("/dmo/award/mg1", "/dmo/clock"))
-    sent_at = time.time_ns() - 10 * 10**9
-    latest = [(lost[0], lost[1], sent_at), (clock[0], clock[1], sent_at)]  # what the DMO answers: it sent both
-    done = threading.Event()
+@contextlib.contextmanager
+def recorder_beside_a_dmo(tmp_path, name: str, run_id: str, answer):
+    """A DMO bus answering queries with ``answer(key, parameters)`` and a recorder that joined before anything was
+    said, writing ``name`` under ``tmp_path`` on its own thread; the recorder is stopped when the block ends."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     with Bus(run_id, "dmo", BusConfig(mode="router", listen=[endpoint])) as dmo:
-        dmo.serve(dmo.keys.everything(), lambda key, parameters: [] if "history" in parameters else latest)
+        dmo.serve(dmo.keys.everything(), answer)
         with Bus(run_id, "recorder", BusConfig(mode="client", connect=[endpoint]), announce=False) as bus:
-            recorder = Recorder(bus, RecordingWriter(tmp_path / "caught.mcap", run_id))
+            recorder = Recorder(bus, RecordingWriter(tmp_path / name, run_id))
             recorder.writer.start({}, [])
             assert recorder.start() == 0  # joined before anything was said
             stop = threading.Event()
             loop = threading.Thread(target=recorder.run, args=(stop,))
             loop.start()
             try:
-                assert dmo.wait_for_subscribers(clock[0], 10)
-                dmo.publish_raw(clock[0], clock[1])  # arrives; the award was lost on its way
-                deadline = time.monotonic() + 30
-                while recorder.caught_up < 1 and time.monotonic() < deadline:
-                    done.wait(0.1)
+                yield dmo, recorder
             finally:
                 stop.set()
                 loop.join(30)
+
+
+def test_the_recorder_catches_up_on_what_the_network_lost_on_its_way(tmp_path):
+    """A message of the DMO's that never reached the recorder (the agent it was for asked again and alone got the
+    answer) is asked of the DMO on its next clock and recorded, with the DMO's time; one that came is not again."""
+    run_id = new_run_id()
+    day = synthetic_day(run_id, 1, 1)
+    lost, clock = (next(e for e in day if e[0].endswith(k)) for k in ("/dmo/award/mg1", "/dmo/clock"))
+    sent_at = time.time_ns() - 10 * 10**9
+    latest = [(lost[0], lost[1], sent_at), (clock[0], clock[1], sent_at)]  # what the DMO answers: it sent both
+    done = threading.Event()
+    with recorder_beside_a_dmo(tmp_path, "caught.mcap", run_id,
+                               lambda key, parameters: [] if "history" in parameters else latest) as (dmo, recorder):
+        assert dmo.wait_for_subscribers(clock[0], 10)
+        dmo.publish_raw(clock[0], clock[1])  # arrives; the award was lost on its way
+        deadline = time.monotonic() + 30
+        while recorder.caught_up < 1 and time.monotonic() < deadline:
+            done.wait(0.1)
     rec = read_recording(tmp_path / "caught.mcap")
     assert recorder.caught_up == 1
     assert [(m.relative_key, m.log_time) for m in rec.messages if m.kind == "award"] == [("dmo/award/mg1", sent_at)]
@@ -664,7 +675,7 @@ def test_on_each_day_summary_the_recorder_checks_the_dmos_traffic_since_the_last
     """An agent's registration the DMO received but the recorder never did (a router link went down between them)
     is recorded from the DMO's history on the day summary, with the DMO's time; what came live is not again, and
     the next check asks only for what the DMO saw after the last time the first answer held."""
-    run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
+    run_id = new_run_id()
     day = synthetic_day(run_id, 2, 1)
     lost, came, summary = (next(e for e in day if e[0].endswith(k)) for k in ("/agent/mg2/register",
                                                                                 "/agent/mg1/register", "/dmo/summary"))
@@ -676,28 +687,17 @@ def test_on_each_day_summary_the_recorder_checks_the_dmos_traffic_since_the_last
         asked.append(parameters)
         return history if "since=" in parameters else []  # nothing was said before the recorder joined
 
-    with Bus(run_id, "dmo", BusConfig(mode="router", listen=[endpoint])) as dmo:
-        dmo.serve(dmo.keys.everything(), answer)
-        with Bus(run_id, "recorder", BusConfig(mode="client", connect=[endpoint]), announce=False) as bus:
-            recorder = Recorder(bus, RecordingWriter(tmp_path / "checked.mcap", run_id))
-            recorder.writer.start({}, [])
-            assert recorder.start() == 0  # joined before anything was said
-            stop = threading.Event()
-            loop = threading.Thread(target=recorder.run, args=(stop,))
-            loop.start()
-            try:
-                assert dmo.wait_for_subscribers(summary[0], 10)
-                dmo.publish_raw(came[0], came[1])  # arrives; the other registration was lost on its way
-                dmo.publish_raw(summary[0], summary[1])
-                deadline = time.monotonic() + 30
-                while recorder.seen.since == 0 and time.monotonic() < deadline:
-                    stop.wait(0.1)
-                dmo.publish_raw(summary[0], summary[1])  # the next day's check
-                while sum("since" in a for a in asked) < 2 and time.monotonic() < deadline:
-                    stop.wait(0.1)
-            finally:
-                stop.set()
-                loop.join(30)
+    done = threading.Event()
+    with recorder_beside_a_dmo(tmp_path, "checked.mcap", run_id, answer) as (dmo, recorder):
+        assert dmo.wait_for_subscribers(summary[0], 10)
+        dmo.publish_raw(came[0], came[1])  # arrives; the other registration was lost on its way
+        dmo.publish_raw(summary[0], summary[1])
+        deadline = time.monotonic() + 30
+        while recorder.seen.since == 0 and time.monotonic() < deadline:
+            done.wait(0.1)
+        dmo.publish_raw(summary[0], summary[1])  # the next day's check
+        while sum("since" in a for a in asked) < 2 and time.monotonic() < deadline:
+            done.wait(0.1)
     rec = read_recording(tmp_path / "checked.mcap")
     assert recorder.caught_up == 1
     assert [(m.relative_key, m.log_time) for m in rec.messages if m.kind == "registration"] == [
