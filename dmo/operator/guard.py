@@ -106,9 +106,7 @@ class SequenceGuard:
     def accept(self, sender: str, seq: int, sha256: str) -> None:
         """From now on a copy of this message is ``again``, another payload under its number a ``duplicate``."""
         self.last[sender] = max(seq, self.last.get(sender, seq))
-        if sender not in self.accepted:  # accepted without a registration admitting its process first
-            self.accepted[sender] = Remembered()
-        self.accepted[sender].keep(seq, sha256)
+        self.accepted[sender].keep(seq, sha256)  # its process was admitted first (``admit``)
 
     def locked_out(self) -> list[str]:
         """Agents of the market a later process of which spoke and was not admitted (its rejoin was refused, or never
