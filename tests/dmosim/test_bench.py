@@ -67,7 +67,7 @@ def test_fleet_sums_every_process_of_the_run_and_resettles_its_recording(capsys)
     assert math.isclose(row["per_agent_mib"], row["total_gib"] * 1024 / 2, abs_tol=3)
     assert row["resettled_identically"] and 0 < row["solving_pct"] <= 100
     assert 0 < row["registration_s"] and 0 < row["clearing_s"] and row["day_s"] < row["wall_s"]
-    assert out["goal"]["agents"] == 2 and not out["goal"]["met"]  # the goal is a fleet of 200
+    assert out["goal"] == {}  # the goals are for a fleet of 200, judged on that fleet's row alone
 
 
 @pytest.mark.slow
