@@ -324,7 +324,9 @@ class Found:
 
 @dataclass
 class Trace:
-    """Where the time went: per iteration (phase, lower bound, upper bound, master s, subproblem s)."""
+    """Where the time went: per row (phase, lower bound, upper bound, master s, subproblem s). A row is an
+    iteration (``lp``, ``milp``, ``tree``) or a start evaluated between them (``start``, ``start_set_aside``: no
+    master solved, not counted in ``iterations``)."""
 
     rows: list = field(default_factory=list)
     build_s: float = 0.0
@@ -336,7 +338,7 @@ class Trace:
     def summary(self) -> dict:
         master = sum(r["master_s"] for r in self.rows)
         sub = sum(r["subproblems_s"] for r in self.rows)
-        return {"iterations": len(self.rows), "lp_iterations": sum(r["phase"] == "lp" for r in self.rows),
+        return {"iterations": sum(not r["phase"].startswith("start") for r in self.rows), "lp_iterations": sum(r["phase"] == "lp" for r in self.rows),
                 "build_s": self.build_s, "master_s": master, "subproblems_s": sub}
 
 
@@ -415,16 +417,19 @@ def begin_from(master: Master, pool: ScenarioPool, trace: Trace, x: np.ndarray) 
 
 @contextlib.contextmanager
 def decomposition(case: Case, scen: ScenarioSet, params: Params, workers: int):
-    """The master, the scenario pool on ``workers`` processes and the trace (its build time set) of one decomposed
-    solve; the pool's processes stop on leaving."""
+    """The master, the scenario pool on ``workers`` processes and the trace of one decomposed solve; the pool's
+    processes stop on leaving. The trace's build time counts building, and starting and stopping the pool."""
     start = time.perf_counter()
     pool = ScenarioPool(case, scen, params, workers)
+    trace = Trace()
     try:
-        master, trace = Master(case, scen, params), Trace()
+        master = Master(case, scen, params)
         trace.build_s = time.perf_counter() - start
         yield master, pool, trace
     finally:
+        stop = time.perf_counter()
         pool.close()
+        trace.build_s += time.perf_counter() - stop
 
 
 def reporter(progress, trace: Trace, start: float):

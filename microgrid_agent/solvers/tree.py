@@ -48,7 +48,9 @@ def solve_tree(case: Case, scen: ScenarioSet, params: Params, *, gap: float = 0.
     deadline = start + time_limit if time_limit else None
     with decomposition(case, scen, params, workers) as (master, pool, trace):
         relax(master, pool, trace, deadline, reporter(progress, trace, start), gap=gap)
+        built = time.perf_counter()
         tree = _Tree(pyscipopt, master, pool, trace)
+        trace.build_s += time.perf_counter() - built  # the master as a SCIP model
         remaining = None if deadline is None else max(1.0, deadline - time.perf_counter())
         lower, status = tree.solve(gap, remaining, progress, start)
         if tree.best is None:

@@ -211,6 +211,7 @@ def test_a_start_from_another_day_is_the_first_incumbent_and_one_the_master_forb
         phases = [r["phase"] for r in rows]
         at = phases.index("start" if taken else "start_set_aside")
         assert set(phases[:at]) == {"lp"} and set(phases[at + 1:]) == {"milp"}
+        assert schedule.extra["decomposition"]["iterations"] == len(rows) - 1  # the start solved no master
         assert (rows[at]["upper_bound"] == pytest.approx(its_cost, rel=1e-6)) == taken
         check_schedule(small.case, small.scen, schedule).raise_if_failed()
         assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
