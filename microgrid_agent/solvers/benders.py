@@ -359,7 +359,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
         lower, upper, best = -np.inf, np.inf, None
         if start is not None:
             upper, best = begin_from(master, pool, trace, first_stage_vector(case, first_stage_variables(start)))
-            report("start, iteration", trace.rows[-1]["lower_bound"], upper, 0.0)
+            report("start after iteration", trace.rows[-1]["lower_bound"], upper, 0.0)
 
         def master_solve():
             # Early MILP masters only steer the search: solve them to a fraction of the current gap, and to
@@ -437,7 +437,7 @@ def reporter(progress, trace: Trace, start: float):
 
     def report(what: str, lb: float, ub: float, master_s: float) -> None:
         if progress:
-            progress(f"benders {what} {len(trace.rows)}: bound {lb:,.2f}, best {ub:,.2f} "
+            progress(f"benders {what} {trace.summary()['iterations']}: bound {lb:,.2f}, best {ub:,.2f} "
                      f"({apart(lb, ub):.2%} apart), master {master_s:.1f} s, "
                      f"{time.perf_counter() - start:.0f} s in all")
 

@@ -222,7 +222,9 @@ def test_start_bench_solves_each_day_both_ways_from_the_day_befores_cold_schedul
     # the two ways alternate their order, so that neither always runs second
     lines = printed.err.splitlines()
     said = [ln.rsplit(": ", 1)[1] for ln in lines if re.fullmatch(r"dmosim: bench start, day \d of 3: \w+", ln)]
-    assert any(": started: benders start, iteration" in ln for ln in lines)  # and every iteration on the way
+    numbers = [(m[1], int(m[2])) for ln in lines if (m := re.search(r": started: benders (.+) (\d+): bound", ln))]
+    at = next(i for i, (what, _) in enumerate(numbers) if what == "start after iteration")  # and every iteration
+    assert numbers[at + 1] == ("integer master, iteration", numbers[at][1] + 1)  # the start is not an iteration
     assert said == ["cold", "started", "cold", "cold", "started"]
 
 
