@@ -10,11 +10,14 @@ or without ``zenoh.ext``; a DMO resumed from its journal answers with the traffi
 
 from __future__ import annotations
 
+import bisect
 import json
+import os
 import re
 import tempfile
 import threading
-from collections.abc import Iterator
+from array import array
+from collections.abc import Iterable, Iterator
 
 import zenoh
 
@@ -30,33 +33,50 @@ class DayHistory:
     The traffic is kept on disk, not in memory, so that the DMO does not grow with the days of a run: in the
     journal when the DMO keeps one (which also brings back the traffic of a DMO restarted on it), else in a
     temporary file of the same lines that goes with the process. Memory holds only the latest message the DMO
-    published on each of its keys, which is bounded by the agents, not the days."""
+    published on each of its keys, which is bounded by the agents, not the days, and a mark every ``MARK_EVERY``
+    lines of traffic (where it starts in the file, and the latest time before it) so that a question about the
+    traffic since some time reads the file from there, not from the run's start (16 bytes per mark)."""
 
     def __init__(self, journal: Journal | None = None):
         self._journal = journal
-        self._scratch = None if journal else tempfile.TemporaryFile("w+", encoding="utf-8")  # noqa: SIM115
+        self._scratch = None if journal else tempfile.TemporaryFile()  # noqa: SIM115
+        self._size = 0  # the scratch file's
         self._latest: dict[str, Entry] = {}
         self._lock = threading.Lock()
+        self._mark_at, self._mark_ns = array("q"), array("q")  # where each mark is, and the latest ns before it
+        self._recorded = 0
+        self._latest_ns = -1
         for entry in traffic(journal.entries if journal else ()):
             self._keep_latest(entry)
+            self._latest_ns = max(self._latest_ns, entry[2])
 
     def record(self, key: str, payload: bytes, at: int) -> None:
         entry = (key, bytes(payload), at)
         with self._lock:
             self._keep_latest(entry)
             if self._journal is not None:
-                self._journal.traffic(*entry)
+                offset = self._journal.traffic(*entry)
             else:
-                self._scratch.write(json.dumps(traffic_entry(*entry), separators=(",", ":")) + "\n")
+                line = (json.dumps(traffic_entry(*entry), separators=(",", ":")) + "\n").encode()
+                offset = self._size
+                self._scratch.write(line)
+                self._scratch.flush()
+                self._size += len(line)
+            if self._recorded % MARK_EVERY == 0:
+                self._mark_at.append(offset)
+                self._mark_ns.append(self._latest_ns)  # never decreasing: a running maximum
+            self._recorded += 1
+            self._latest_ns = max(self._latest_ns, at)
 
     def _keep_latest(self, entry: Entry) -> None:
         if _published_by_dmo(entry[0]):
             self._latest[entry[0]] = entry
 
-    def answer(self, key_expr: str, parameters: str) -> list[Entry]:
+    def answer(self, key_expr: str, parameters: str) -> Iterable[Entry]:
         """The replies to a query: with ``history`` among the parameters every entry on a matching key, in order,
-        and with ``since=NS`` too only those seen at or after NS; otherwise the latest message the DMO published on
-        each matching key. A ``since`` that is not a whole number of nanoseconds is a ValueError (an error reply)."""
+        and with ``since=NS`` too only those seen at or after NS, read from the file as they are replied (a day's
+        traffic is never all in memory at once); otherwise the latest message the DMO published on each matching
+        key. A ``since`` that is not a whole number of nanoseconds is a ValueError (an error reply)."""
         asked, matches = zenoh.KeyExpr(key_expr), {}
         given = _parameters(parameters)
 
@@ -67,20 +87,44 @@ class DayHistory:
 
         if HISTORY in given:
             since = _nanoseconds(given.get(SINCE, "0"))
-            with self._lock:
-                return [e for e in traffic(self._lines()) if e[2] >= since and matching(e[0])]
+            return (e for e in traffic(map(json.loads, self._lines_since(since))) if e[2] >= since and matching(e[0]))
         with self._lock:
             if not _WILD.search(key_expr):  # one key (an agent asking for the clock or its award): no scan
                 return [self._latest[key_expr]] if key_expr in self._latest else []
             latest = list(self._latest.values())
         return sorted((e for e in latest if matching(e[0])), key=lambda e: e[2])
 
-    def _lines(self) -> Iterator[dict]:
-        if self._journal is not None:
-            return self._journal.lines()
-        self._scratch.seek(0)
-        lines = [json.loads(line) for line in self._scratch]  # leaves the file at its end, for the next record
-        return iter(lines)
+    def _lines_since(self, since: int) -> Iterator[bytes]:
+        """The file's lines from the last mark before which all traffic is older than ``since`` (from the start if
+        none) to the last line recorded, read a chunk at a time and without holding up ``record``."""
+        with self._lock:
+            before = bisect.bisect_left(self._mark_ns, since)  # marks before which everything is older than since
+            start = self._mark_at[before - 1] if before else 0
+            end = self._journal.size if self._journal is not None else self._size
+        if self._journal is None:
+            yield from _lines(self._scratch.fileno(), start, end)
+            return
+        fd = os.open(self._journal.path, os.O_RDONLY)
+        try:
+            yield from _lines(fd, start, end)
+        finally:
+            os.close(fd)
+
+
+def _lines(fd: int, start: int, end: int, chunk: int = 1 << 16) -> Iterator[bytes]:
+    """The lines of an open file between two offsets of line starts, read ``chunk`` bytes at a time with
+    ``os.pread`` (which leaves the file's position, where its writer appends, alone)."""
+    rest = b""
+    while start < end:
+        data = os.pread(fd, min(chunk, end - start), start)
+        if not data:
+            break
+        start += len(data)
+        *lines, rest = (rest + data).split(b"\n")
+        yield from lines
+
+
+MARK_EVERY = 1000  # lines of traffic between two marks: a day of 100 agents is about 9,000
 
 
 # What makes a key expression match more than itself (Zenoh's wildcards and its $* sub-chunk wildcard). Asked for

@@ -28,27 +28,37 @@ class Journal:
     def __init__(self, path: str | Path, run_id: str, market_day: str):
         self.path, self.head = Path(path), {"journal": 1, "run_id": run_id, "market_day": market_day}
         self.entries: list[dict] = []
+        whole = 0  # bytes of the whole lines read back
         if self.path.exists():
-            lines = self.path.read_text(errors="replace").splitlines()
+            *lines, _ = self.path.read_bytes().split(b"\n")  # the last piece: b"", or a line cut by the kill
             try:
                 same = bool(lines) and json.loads(lines[0]) == self.head
             except ValueError:
                 same = False
+            whole = len(lines[0]) + 1 if same else 0
             for line in lines[1:] if same else ():
                 try:
                     self.entries.append(json.loads(line))
-                except ValueError:  # a line cut by the kill: the ones before it stand
+                except ValueError:  # cut by the kill: the lines before it stand
                     break
-        self._file = open(self.path, "a" if self.entries else "w", buffering=1)  # noqa: SIM115  (closed by close)
+                whole += len(line) + 1
+        self._file = open(self.path, "ab" if self.entries else "wb")  # noqa: SIM115  (closed by close)
+        self._file.truncate(whole if self.entries else 0)  # what follows is written after whole lines
+        self.size = whole if self.entries else 0  # bytes of whole lines in the file: each line reaches the OS whole
         self._lock = threading.Lock()  # traffic is written from Zenoh's threads, the rest from the DMO's
         if not self.entries:
             self.write(self.head)
 
-    def write(self, entry: dict) -> None:
-        line = json.dumps(entry, separators=(",", ":")) + "\n"
+    def write(self, entry: dict) -> int:
+        """Append ``entry`` as a line; the offset at which it starts."""
+        line = (json.dumps(entry, separators=(",", ":")) + "\n").encode()
         with self._lock:
+            at = self.size
             if not self._file.closed:
                 self._file.write(line)
+                self._file.flush()
+                self.size += len(line)
+            return at
 
     def clock(self, phase: str, hour: int | None, day: int = 1, market_day: str | None = None) -> None:
         self.write({"clock": phase, "hour": hour, "day": day, "market_day": market_day})
@@ -66,16 +76,10 @@ class Journal:
     def rejected(self, code: str) -> None:
         self.write({"rejected": code})
 
-    def traffic(self, key: str, payload: bytes, at: int) -> None:
-        self.write(traffic_entry(key, payload, at))
+    def traffic(self, key: str, payload: bytes, at: int) -> int:
+        """Append a payload sent or received; the offset of its line."""
+        return self.write(traffic_entry(key, payload, at))
 
-    def lines(self) -> Iterator[dict]:
-        """Every entry written so far, read back from the file (this run's and day's: the head is skipped)."""
-        with open(self.path, encoding="utf-8", errors="replace") as f:
-            next(f, None)
-            for line in f:
-                if line.endswith("\n"):  # a line still being written is not read
-                    yield json.loads(line)
 
     def close(self) -> None:
         with self._lock:
@@ -130,6 +134,6 @@ def traffic_entry(key: str, payload: bytes, at: int) -> dict:
     return {"traffic": key, "at": at, "payload": base64.b64encode(payload).decode("ascii")}
 
 
-def traffic(entries: Iterable[dict]) -> list[tuple[str, bytes, int]]:
+def traffic(entries: Iterable[dict]) -> Iterator[tuple[str, bytes, int]]:
     """The traffic among journal entries, as (key, payload, ns) in the order it happened."""
-    return [(e["traffic"], base64.b64decode(e["payload"]), e["at"]) for e in entries if "traffic" in e]
+    return ((e["traffic"], base64.b64decode(e["payload"]), e["at"]) for e in entries if "traffic" in e)
