@@ -150,18 +150,22 @@ class Recorder:
         """Everything the DMO sent or received since the last check that never came here: what it saw in the last
         ``IN_FLIGHT_S`` may still be on its way, so it is looked at again that much later; then the window moves
         on to the last time the DMO's answer holds."""
-        since = self.seen.since
-        answer = [e for e in self.bus.fetch(f"{self.bus.keys.everything()}?{HISTORY};{SINCE}={since}",
-                                            HISTORY_TIMEOUT_S) if e[2] is not None]
-        if not answer:  # nobody answered (a day summary is in any answer): the window stays where it was
+        since, recent = self.seen.since, time.time_ns() - IN_FLIGHT_S * 1e9
+        added, late, latest = 0, [], None
+        for entry in self.bus.replies(f"{self.bus.keys.everything()}?{HISTORY};{SINCE}={since}", HISTORY_TIMEOUT_S):
+            if entry[2] is None:
+                continue
+            latest = entry[2] if latest is None else max(latest, entry[2])
+            if entry[2] < recent:  # each reply as it comes: a day's traffic is never held here whole
+                added += self._queue_missing((entry,))
+            else:
+                late.append(entry)
+        if latest is None:  # nobody answered (a day summary is in any answer): the window stays where it was
             return 0
-        recent = time.time_ns() - IN_FLIGHT_S * 1e9
-        added = self._queue_missing(e for e in answer if e[2] < recent)
-        late = [e for e in answer if e[2] >= recent]
         if late and not self._closing:
             time.sleep(IN_FLIGHT_S)
         added += self._queue_missing(late)
-        self.seen.checked_until(max(e[2] for e in answer) + 1)
+        self.seen.checked_until(latest + 1)
         if added:
             log.info("caught up on %d message(s) the DMO sent or received since the last day summary that never "
                      "came here", added)

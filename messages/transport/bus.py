@@ -17,7 +17,7 @@ import threading
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import zenoh
 
@@ -449,16 +449,18 @@ class Bus:
     def fetch(self, selector: str, timeout_s: float = 5.0) -> list[tuple[str, bytes, int | None]]:
         """Query ``selector`` (a key expression of this run, with ``?parameters`` if any) and return every reply
         as (key, payload, ns or None), in the order they came; none if nobody answers."""
+        return list(self.replies(selector, timeout_s))
+
+    def replies(self, selector: str, timeout_s: float = 5.0) -> Iterator[tuple[str, bytes, int | None]]:
+        """``fetch``'s replies one at a time, as they come: a day's traffic need not be in memory at once."""
         self._own(selector.split("?", 1)[0])
-        out = []
         for reply in self.session.get(selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE):
             sample = reply.ok
             if sample is None:
                 log.info("%s: an error reply to %s: %s", self.name, selector, reply.err)
                 continue
             at = sample.attachment.to_bytes() if sample.attachment is not None else b""
-            out.append((str(sample.key_expr), sample.payload.to_bytes(), int.from_bytes(at, "big") if at else None))
-        return out
+            yield str(sample.key_expr), sample.payload.to_bytes(), int.from_bytes(at, "big") if at else None
 
     # --- presence ----------------------------------------------------------------------------------------
 

@@ -650,7 +650,7 @@ def test_what_the_recorder_remembers_to_catch_up_is_two_days_not_the_run():
     has, and a payload that came just before a check is still known as come."""
     run_id = new_run_id()
     answers: list = []
-    bus = SimpleNamespace(keys=Keys(run_id), fetch=lambda selector, timeout_s: answers.pop(0))
+    bus = SimpleNamespace(keys=Keys(run_id), replies=lambda selector, timeout_s: iter(answers.pop(0)))
     recorder = Recorder(bus, writer=None)
     per_day = []
     for day in range(1, 8):
@@ -668,6 +668,22 @@ def test_what_the_recorder_remembers_to_catch_up_is_two_days_not_the_run():
         assert (entries[0][0], b"never sent") not in recorder.seen
     assert recorder._queue.qsize() == sum(per_day)  # every payload of the week, to be written, none twice
     assert held < sum(per_day) / 3
+
+
+def test_the_recorder_queues_what_never_came_as_each_reply_of_the_dmos_traffic_comes():
+    """A day's traffic of a thousand agents is a few hundred thousand replies: the recorder takes each as it comes,
+    not the whole answer first."""
+    run_id = new_run_id()
+    entries = [(key, payload, time.time_ns() - 10**10) for key, payload in synthetic_day(run_id, 2, 1)]
+    recorder = None
+
+    def replies(selector, timeout_s):
+        for queued, entry in enumerate(entries):
+            assert recorder._queue.qsize() == queued  # the ones before are queued already
+            yield entry
+
+    recorder = Recorder(SimpleNamespace(keys=Keys(run_id), replies=replies), writer=None)
+    assert recorder._check_history() == len(entries) == recorder._queue.qsize()
 
 
 def test_on_each_day_summary_the_recorder_checks_the_dmos_traffic_since_the_last_and_records_what_never_came(
