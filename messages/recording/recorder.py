@@ -1,7 +1,7 @@
 """The recorder's loop: every payload under one run prefix, as it arrived, valid or not, into a RecordingWriter;
 for a recorder that joins late, what the run said before it joined, asked of the DMO (``backfill``); and what the
-network lost on the way to it, asked of the DMO as the day goes on (``catch up``): the latest of the DMO's own
-messages on each clock, and everything the DMO sent or received on each day summary."""
+network lost on the way to it, asked of the DMO on each day summary (``catch up``): everything the DMO sent or
+received since the last."""
 
 from __future__ import annotations
 
@@ -21,8 +21,7 @@ from ..transport.heap import return_free_memory
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
-LATEST_KINDS = ("clock",)  # a DMO message of these kinds: time to ask it for the latest on each of its keys
-HISTORY_KINDS = ("day_summary",)  # ... of these: time to ask it for its traffic since the last such check
+HISTORY_KINDS = ("day_summary",)  # a DMO message of these kinds: time to ask it for its traffic since the last check
 IN_FLIGHT_S = 2.0  # what the DMO sent or saw this recently may still be on its way: not yet taken as lost
 HISTORY_TIMEOUT_S = 60.0  # a day's traffic of a thousand agents is a few hundred thousand replies
 CLOSING_WAIT_S = 15.0  # how long a stopping recorder lets a check under way finish (dmosim run gives it 60 s)
@@ -84,8 +83,7 @@ class Recorder:
         self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
         self.seen = Seen()  # the payloads queued in the current catch-up window and the one before
         self._summary = bus.keys.summary()  # once a day's summary is written, the memory the day used goes back
-        self._wake = threading.Event()
-        self._history_due = False  # a day summary came: check the DMO's history, not only its latest
+        self._wake = threading.Event()  # a day summary came: check the DMO's history
         self._closing = False
         self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
@@ -112,39 +110,24 @@ class Recorder:
                 self._live[key, payload] += 1
             self.seen.add(key, payload)
         self._queue.put((key, payload, at, True))
-        if self._catching_up is not None and parsed is not None and parsed.role == DMO:
-            if parsed.kind in HISTORY_KINDS:
-                self._history_due = True
-                self._wake.set()
-            elif parsed.kind in LATEST_KINDS:
-                self._wake.set()
+        if (self._catching_up is not None and parsed is not None and parsed.role == DMO
+                and parsed.kind in HISTORY_KINDS):
+            self._wake.set()
 
     def _catch_up_loop(self) -> None:
-        """On each clock of the DMO's, ask it for the latest message on each of its keys, and on each day summary
-        for everything it sent or received since the last summary, and queue what never arrived here. Zenoh
-        delivers once: a message the network lost on the way here (an agent's registration behind a router link
-        that went down, an award its agent alone asked for again) would be missing from the recording. Off
-        Zenoh's threads: a query must not block one."""
+        """On each day summary of the DMO's, ask it for everything it sent or received since the last, and queue what
+        never arrived here. Zenoh delivers once: a message the network lost on the way here (an agent's
+        registration behind a router link that went down, an award its agent alone asked for again) would be
+        missing from the recording. Off Zenoh's threads: a query must not block one."""
         while not self._closing:
-            if not self._wake.wait(timeout=0.5):
+            if not self._wake.wait(timeout=0.5) or self._closing:  # closing wakes it to end, not to check
                 continue
             self._wake.clear()
-            history, self._history_due = self._history_due, False
             try:
-                self.caught_up += self._check_history() if history else self._catch_up()
+                self.caught_up += self._check_history()
             except Exception:  # the DMO may be gone: what is missing stays missing, the recording goes on
                 log.debug("catching up failed", exc_info=True)
-            return_free_memory()  # the answer (the latest on every key of the DMO's, or a day's traffic) is gone
-
-    def _catch_up(self) -> int:
-        """The latest of the DMO's messages on each of its keys that never came, sent in the current window and
-        not in the last ``IN_FLIGHT_S``."""
-        since, recent = self.seen.since, time.time_ns() - IN_FLIGHT_S * 1e9
-        answer = self.bus.fetch(self.bus.keys.everything(), timeout_s=5.0)
-        added = self._queue_missing(e for e in answer if e[2] is not None and since <= e[2] < recent)
-        if added:
-            log.info("caught up on %d message(s) of the DMO's the network lost on the way here", added)
-        return added
+            return_free_memory()  # what the check used is gone
 
     def _check_history(self) -> int:
         """Everything the DMO sent or received since the last check that never came here: what it saw in the last

@@ -622,28 +622,6 @@ def recorder_beside_a_dmo(tmp_path, name: str, run_id: str, answer):
                 loop.join(30)
 
 
-def test_the_recorder_catches_up_on_what_the_network_lost_on_its_way(tmp_path):
-    """A message of the DMO's that never reached the recorder (the agent it was for asked again and alone got the
-    answer) is asked of the DMO on its next clock and recorded, with the DMO's time; one that came is not again."""
-    run_id = new_run_id()
-    day = synthetic_day(run_id, 1, 1)
-    lost, clock = (next(e for e in day if e[0].endswith(k)) for k in ("/dmo/award/mg1", "/dmo/clock"))
-    sent_at = time.time_ns() - 10 * 10**9
-    latest = [(lost[0], lost[1], sent_at), (clock[0], clock[1], sent_at)]  # what the DMO answers: it sent both
-    done = threading.Event()
-    with recorder_beside_a_dmo(tmp_path, "caught.mcap", run_id,
-                               lambda key, parameters: [] if "history" in parameters else latest) as (dmo, recorder):
-        assert dmo.wait_for_subscribers(clock[0], 10)
-        dmo.publish_raw(clock[0], clock[1])  # arrives; the award was lost on its way
-        deadline = time.monotonic() + 30
-        while recorder.caught_up < 1 and time.monotonic() < deadline:
-            done.wait(0.1)
-    rec = read_recording(tmp_path / "caught.mcap")
-    assert recorder.caught_up == 1
-    assert [(m.relative_key, m.log_time) for m in rec.messages if m.kind == "award"] == [("dmo/award/mg1", sent_at)]
-    assert sum(m.kind == "clock" for m in rec.messages) == 1  # what came live is not caught up again
-
-
 def test_what_the_recorder_remembers_to_catch_up_is_two_days_not_the_run():
     """The payloads the recorder notes as they come (to tell what catching up must add) are those since the DMO's
     history was checked the day before: each day summary's check moves the window on, however many days the run
