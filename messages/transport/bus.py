@@ -47,6 +47,8 @@ MAX_SESSIONS = 10_000
 ACCEPT_PENDING = 2_000
 ACCEPT_TIMEOUT_S = 60.0
 
+PRESENCE_GRACE_S = 1.0  # how long past its timeout a liveliness query may take to say it is done
+
 
 @dataclass(frozen=True)
 class BusConfig:
@@ -491,14 +493,21 @@ class Bus:
         return subscription
 
     def present(self, timeout_s: float = 1.0) -> set[str]:
-        """Names of the processes of this run alive now (this one included if it announced itself)."""
-        names = set()
-        for reply in self.session.liveliness().get(self.keys.alive("*"), timeout=timeout_s):
+        """Names of the processes of this run alive now (this one included if it announced itself). The replies go
+        to a callback, not a channel: a router answers from its own tables on the asking thread, and more tokens
+        than a channel holds (256) left that thread waiting on itself for good (a DMO with 400 agents)."""
+        names, done = set(), threading.Event()
+
+        def reply(r: zenoh.Reply) -> None:
             try:
-                names.add(parse_key(str(reply.ok.key_expr)).topic)
+                names.add(parse_key(str(r.ok.key_expr)).topic)
             except (AttributeError, MessageError):
-                continue  # an error reply, or a token that is not ours
-        return names
+                pass  # an error reply, or a token that is not ours
+
+        self.session.liveliness().get(self.keys.alive("*"), zenoh.handlers.Callback(reply, done.set),
+                                      timeout=timeout_s)
+        done.wait(timeout_s + PRESENCE_GRACE_S)
+        return set(names)
 
     # --- counters ----------------------------------------------------------------------------------------
 

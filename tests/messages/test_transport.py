@@ -223,6 +223,22 @@ def test_presence_join_and_leave(net):
         assert _get(events) == ("leave", "mg2")
 
 
+
+def test_a_router_sees_more_agents_present_than_a_channel_holds(net):
+    """A router answers a liveliness query from its own tables on the asking thread: with more tokens than Zenoh's
+    default channel holds (256) it waited on itself for good, and a DMO of 1,000 agents stopped at registration."""
+    dmo, agent, _, _ = net
+    joined: queue.Queue = queue.Queue()
+    with dmo.watch_presence(joined.put, lambda name: None, history=False):
+        tokens = [agent.session.liveliness().declare_token(agent.keys.alive(f"mg{i}")) for i in range(2, 402)]
+        assert {_get(joined) for _ in tokens} == {f"mg{i}" for i in range(2, 402)}  # the router has them all
+    names: queue.Queue = queue.Queue()
+    asking = threading.Thread(target=lambda: names.put(dmo.present(timeout_s=WAIT_S)), daemon=True)
+    asking.start()
+    assert len(_get(names)) == 402 and not asking.is_alive()  # mg1 to mg401, and the DMO itself
+    for token in tokens:
+        token.undeclare()
+
 _CHILD = """
 import sys
 from messages.transport import Bus, BusConfig
