@@ -200,16 +200,19 @@ class MicrogridAgent:
         """Ask the DMO (docs/protocol.md, "Asking the DMO") for the latest message on each key this agent waits on,
         and handle the answers as if they had come: what was handled already is a no-op."""
         k = self.bus.keys
-        keys = [k.clock()]
-        if not self._bid_sent:
-            keys.append(k.call_for_bids())
-        if self.award is None:
-            keys.append(k.award(self.id))
-        elif self.operator is not None and self.operator.next_hour <= HOURS:
-            keys.append(k.grid())
-        if self.statement is None:
-            keys += [k.statement(self.id), k.summary()]
-        for msg in self._latest(keys):
+        answers = self._latest([k.clock()])
+        if any(m.kind == "clock" and m.phase == "registration" for m in answers):
+            keys = []  # the DMO sends nothing else before registration closes (a thousand agents asking it for
+            # five keys each while they registered kept it too busy to answer)
+        else:
+            keys = [] if self._bid_sent else [k.call_for_bids()]
+            if self.award is None:
+                keys.append(k.award(self.id))
+            elif self.operator is not None and self.operator.next_hour <= HOURS:
+                keys.append(k.grid())
+            if self.statement is None:
+                keys += [k.statement(self.id), k.summary()]
+        for msg in answers + self._latest(keys):
             if msg.kind == "clock" or (msg.market_day == self.market_day and self._new(msg)):
                 self.asked += 1
                 self.events.put(msg)

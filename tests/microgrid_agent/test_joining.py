@@ -59,3 +59,26 @@ def test_a_dmo_not_up_yet_is_asked_again_soon_and_one_that_never_answers_ends_th
     assert dmo.now[0] == pytest.approx(5 * (0.001 + ASK_AFTER_S / 4))
     with pytest.raises(AgentTimeout, match="the DMO did not answer for 30 s"):
         joined(monkeypatch, Dmo([0.0], unanswered=10**6), idle_s=30.0)
+
+
+@pytest.mark.parametrize("phase", ["registration", "bidding"])
+def test_an_agent_that_hears_nothing_asks_for_the_clock_and_only_after_registration_for_the_rest(phase):
+    """While the DMO's clock says registration it has sent nothing else: an agent asks it for the clock alone
+    (a thousand registering agents asking for five keys each kept it too busy to answer)."""
+    keys, asked = Keys(new_run_id()), []
+    clock = Clock(sender="dmo", run=TOKEN, market_day="2026-07-01", phase=phase, deadline_s=60.0, day=1, days=1)
+
+    def fetch(key, timeout_s):
+        asked.append(key)
+        return [(key, encode(clock), 0)] if key == keys.clock() else []
+
+    events = []
+    agent = SimpleNamespace(id="mg1", bus=SimpleNamespace(keys=keys, fetch=fetch, run_token=TOKEN), _bid_sent=False,
+                            award=None, operator=None, statement=None, market_day="2026-07-01", asked=0,
+                            events=SimpleNamespace(put=events.append))
+    agent._latest = lambda keys, timeout_s=None: MicrogridAgent._latest(agent, keys, timeout_s)
+    MicrogridAgent._ask_the_dmo(agent)
+    assert [e.kind for e in events] == ["clock"] and agent.asked == 1
+    expected = [keys.clock()] + ([] if phase == "registration" else [
+        keys.call_for_bids(), keys.award("mg1"), keys.statement("mg1"), keys.summary()])
+    assert asked == expected
