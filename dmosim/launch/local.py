@@ -423,7 +423,8 @@ class _Watch:
         self.clock = "the start"  # where the DMO's clock stands, as the run's messages say it
         self.recorder_exit: str | None = None  # where it stood when the recorder exited
         # day -> role -> its memory as the day's last hour starts, when every agent is still there (at settlement,
-        # forked agents that have their statements are gone within milliseconds)
+        # forked agents that have their statements are gone within milliseconds); a role already gone when this
+        # process sees that clock (small agents on a loaded machine) keeps its sample of the latest hour before
         self.memory: dict[int, dict[str, dict]] = {}
 
     def when(self) -> str:
@@ -436,8 +437,8 @@ class _Watch:
             self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
-            if msg.phase == "realtime" and msg.hour == HOURS:  # the day's last hour: see self.memory
-                self.memory[msg.day] = roles_memory(self.roles)
+            if msg.phase == "realtime":  # each hour's start, the last one's kept: see self.memory
+                self.memory[msg.day] = self.memory.get(msg.day, {}) | roles_memory(self.roles)
             done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
             self.hours = (done, 24 * msg.days)
             self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
