@@ -392,7 +392,7 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Ite
                 watch.say(f"{', '.join(late)} restarted after the run had ended: stopped")
             return sorted(pending - set(late))
         if name == "recorder":
-            watch.recorder_exit = watch.when()
+            watch.recorder_exit = watch.killed_at.get("recorder") or watch.when()
             watch.say(f"the recorder exited at {watch.recorder_exit} ({_exit_status(code)}); the run goes on, and "
                       "its tables will come from the DMO's journal")
             continue
@@ -422,9 +422,10 @@ class _Watch:
         self.day = ""
         self.clock = "the start"  # where the DMO's clock stands, as the run's messages say it
         self.recorder_exit: str | None = None  # where it stood when the recorder exited
+        self.killed_at: dict[str, str] = {}  # role -> where the clock stood when a fault killed it
         # day -> role -> its memory as the day's last hour starts, when every agent is still there (at settlement,
         # forked agents that have their statements are gone within milliseconds); a role already gone when this
-        # process sees that clock (small agents on a loaded machine) keeps its sample of the latest hour before
+        # process sees that clock (small agents on a loaded machine) keeps its sample of the hour before
         self.memory: dict[int, dict[str, dict]] = {}
 
     def when(self) -> str:
@@ -437,8 +438,6 @@ class _Watch:
             self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
-            if msg.phase == "realtime":  # each hour's start, the last one's kept: see self.memory
-                self.memory[msg.day] = self.memory.get(msg.day, {}) | roles_memory(self.roles)
             done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
             self.hours = (done, 24 * msg.days)
             self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
@@ -446,6 +445,8 @@ class _Watch:
                 if msg.phase == "realtime" and (msg.day, msg.hour) == (f.day, f.hour) and f not in self.fired:
                     self.fired.add(f)
                     self._fire(f)
+            if msg.phase == "realtime" and msg.hour >= HOURS - 1:  # after the faults, which must not wait for it
+                self.memory[msg.day] = self.memory.get(msg.day, {}) | roles_memory(self.roles)  # see self.memory
 
     def on_schedule(self, key, msg: Schedule, received_at) -> None:
         with self.lock:
@@ -471,4 +472,5 @@ class _Watch:
             self.roles.restart(f.agent)
         else:
             self.say(f"fault: killing {f.agent} (SIGKILL) at {when}")
+            self.killed_at[f.agent] = self.clock  # where it died, whenever its exit is seen
             self.roles.kill(f.agent)
