@@ -24,7 +24,7 @@ import zenoh
 from messages.keys import HISTORY, SINCE, parse_key
 from messages.transport.bus import Entry
 
-from .journal import Journal, traffic, traffic_entry
+from .journal import Journal, line_of, traffic, traffic_entry
 
 
 class DayHistory:
@@ -57,7 +57,7 @@ class DayHistory:
             if self._journal is not None:
                 offset = self._journal.traffic(*entry)
             else:
-                line = (json.dumps(traffic_entry(*entry), separators=(",", ":")) + "\n").encode()
+                line = line_of(traffic_entry(*entry))
                 offset = self._size
                 self._scratch.write(line)
                 self._scratch.flush()

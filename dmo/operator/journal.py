@@ -51,7 +51,7 @@ class Journal:
 
     def write(self, entry: dict) -> int:
         """Append ``entry`` as a line; the offset at which it starts."""
-        line = (json.dumps(entry, separators=(",", ":")) + "\n").encode()
+        line = line_of(entry)
         with self._lock:
             at = self.size
             if not self._file.closed:
@@ -127,6 +127,11 @@ def restore(state: DayState, entries: list[dict], realised: Callable[[AgentDay],
                     realised(msg)
             state.count_accepted(msg, sha256(payload))
     return clock, finished
+
+
+def line_of(entry: dict) -> bytes:
+    """A journal entry as its line in the file (ASCII JSON: its length is its bytes)."""
+    return (json.dumps(entry, separators=(",", ":")) + "\n").encode()
 
 
 def traffic_entry(key: str, payload: bytes, at: int) -> dict:
