@@ -341,14 +341,16 @@ def test_a_meter_report_delayed_past_its_hour_is_rejected_as_late_and_settled_as
 def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline, noticed):
     """The new process registers once the DMO has seen the old one vanish, or at once: the agent's identity is its
     credentials and its later incarnation, not what the DMO saw of its presence."""
-    restarted = {}
+    restarted, back = {}, threading.Event()
 
     def crash(agent, hour):
         if agent.name == "mg2" and hour == 5 and not restarted:
             restarted["old"] = agent
             raise RuntimeError("mg2 crashes before reporting hour 5")
+        if agent.name == "mg1" and hour > 5:  # alone, mg1 would drive the day to its end before mg2 is back
+            back.wait(30)
 
-    with scripted_day(hour_s=1.0, before_meter=crash) as (day, agents, outcome):
+    with scripted_day(hour_s=5.0, before_meter=crash) as (day, agents, outcome):
         deadline = time.monotonic() + 30
         while "old" not in restarted and time.monotonic() < deadline:
             time.sleep(0.01)
@@ -356,9 +358,10 @@ def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline,
             restarted["old"].close()  # the process is gone: its liveliness token with it
             while "mg2" not in day.state.vanished and time.monotonic() < deadline:
                 time.sleep(0.01)
-        new = ScriptedAgent(outcome["run_id"], "mg2", outcome["endpoint"])  # a new process: seq from 0
+        time.sleep(3); new = ScriptedAgent(outcome["run_id"], "mg2", outcome["endpoint"])  # a new process: seq from 0
         try:
             new.register()
+            back.set()
             if not noticed:
                 restarted["old"].close()  # the old process goes only now, after the new one registered
             assert new.summary.wait(60)
