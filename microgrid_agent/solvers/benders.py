@@ -28,6 +28,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
+from .. import exact
 from ..model import (FIRST_STAGE, Params, dp_plus_of, first_stage_constraints, first_stage_variables, startup_cost,
                      variables)
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
@@ -171,7 +172,7 @@ class CutPool:
 
     def slack(self, ids: np.ndarray, x: np.ndarray, theta: np.ndarray) -> np.ndarray:
         """theta_s - g x - rhs of cuts ``ids`` at (x, theta): negative where a cut is violated."""
-        return theta[self.scenario[ids]] - self.grads[ids] @ x - self.rhs[ids]
+        return theta[self.scenario[ids]] - exact.matvec(self.grads[ids], x) - self.rhs[ids]
 
 
 class Master:
@@ -203,11 +204,11 @@ class Master:
         self.last = None
 
     def first_stage_cost(self, x: np.ndarray) -> float:
-        return float(self.cost @ x)
+        return exact.dot(self.cost, x)
 
     def expected_cost(self, x: np.ndarray, values: np.ndarray) -> float:
         """Objective (1) of first stage ``x`` whose scenario recourse costs are ``values``: an upper bound."""
-        return self.first_stage_cost(x) + float(self.probability @ values)
+        return self.first_stage_cost(x) + exact.dot(self.probability, values)
 
     def cut_at(self, pool: ScenarioPool, x: np.ndarray) -> tuple[np.ndarray, float, float]:
         """Evaluate ``x`` on the scenario LPs and add its cuts: Q_s(x), the expected cost, the seconds it took."""
@@ -218,7 +219,7 @@ class Master:
 
     def add_cuts(self, x: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
         """theta_s - g_s x >= Q_s(x^) - g_s x^ for every scenario s: into the pool, and active in the master."""
-        self.pool.add(np.arange(len(values)), values - grads @ x, grads)
+        self.pool.add(np.arange(len(values)), values - exact.matvec(grads, x), grads)
         self._activate(np.arange(self.pool.size - len(values), self.pool.size))
 
     def _activate(self, ids: np.ndarray) -> None:
@@ -527,7 +528,7 @@ def found_schedule(case: Case, scen: ScenarioSet, params: Params, found: Found, 
     first = FirstStage(commitment=pieces["I"], startup=pieces["y"], shutdown=pieces["w"],
                        discharging=pieces.get("u", np.zeros(HOURS)), charging=pieces.get("v", np.zeros(HOURS)),
                        load_on=pieces.get("z", np.zeros((Dn, HOURS))))
-    expected = {name: float(pr @ values) for name, values in found.costs.items()}
+    expected = {name: exact.dot(pr, values) for name, values in found.costs.items()}
     cost = CostBreakdown(startup=found.startup, **expected)
     return StochasticSchedule(status=found.status, objective=cost.total, bound=min(found.lower, cost.total),
                               cost=cost, first=first, dispatch=_dispatch(case, scen, params, found.arrays),

@@ -26,6 +26,7 @@ from scipy import stats
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
+from .. import exact
 from ..model import Params
 from ..schedule import StochasticSchedule
 from .benders import ScenarioPool, first_stage_vector
@@ -75,7 +76,7 @@ def estimate(costs: np.ndarray, probability: np.ndarray, stratum: np.ndarray | N
     """The expected cost and its standard error from a sample: equiprobable, or stratified by ``stratum`` (each
     stratum's weight the sum of its members' probabilities, its variance estimated within it). A stratum with a
     single member has no variance of its own; the estimate then falls back to the plain one, which is larger."""
-    mean = float(probability @ costs)
+    mean = exact.dot(probability, costs)
     if stratum is not None:
         counts = np.bincount(stratum)
         if counts.min() >= 2:

@@ -26,6 +26,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
+from .. import exact
 from ..model import Index, Params, recourse, second_stage_constraints
 from ..schedule import energy_weight
 
@@ -52,9 +53,9 @@ def group_means(scen: ScenarioSet, label: np.ndarray) -> ScenarioSet:
     def hourly(data: np.ndarray) -> np.ndarray:
         return data.reshape(*data.shape[:-1], HOURS, scen.subperiods).mean(axis=-1)
 
-    return ScenarioSet(subperiods=1, probability=p_g, load=weight @ hourly(scen.load),
-                       renewable=np.einsum("gs,rsh->rgh", weight, hourly(scen.renewable)),
-                       connected=weight @ hourly(scen.connected))
+    return ScenarioSet(subperiods=1, probability=p_g, load=exact.weighted(weight, hourly(scen.load), 0),
+                       renewable=exact.weighted(weight, hourly(scen.renewable), 1),
+                       connected=exact.weighted(weight, hourly(scen.connected), 0))
 
 
 @dataclass
