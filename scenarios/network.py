@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenarios import exact
 from scenarios.case import DATA_DIR, read_toml
 from scenarios.horizon import HOURS
 
@@ -150,8 +151,8 @@ class Network:
         buses), positive consumption, the substation's ignored): P = D p and Q = D q on each line away from the
         substation (..., lines), and V (p.u., (..., buses)) = sqrt(v_substation^2 - 2 D'(r P + x Q)): U = V^2
         drops by 2 (r P + x Q) along every line of a bus's path (Baran and Wu 1989). Losses are neglected."""
-        flow_p, flow_q = p @ self.downstream.T, q @ self.downstream.T
-        u = self.v_substation ** 2 - 2 * (flow_p * self.r_pu + flow_q * self.x_pu) @ self.downstream
+        flow_p, flow_q = exact.masked_sums(self.downstream, p), exact.masked_sums(self.downstream, q)
+        u = self.v_substation ** 2 - 2 * exact.masked_sums(self.downstream.T, flow_p * self.r_pu + flow_q * self.x_pu)
         return flow_p, flow_q, np.sqrt(np.maximum(u, 0.0))
 
     def bus_of(self, bus: object, where: str = "bus") -> int:
@@ -252,7 +253,7 @@ def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], subst
                   load_scale=float(load_scale), power_factor=float(power_factor))
     unrated = np.isnan(net.s_max_mva)
     peak = max(profile) * load_scale
-    downstream_s = np.hypot(net.downstream @ p, net.downstream @ q) * peak
+    downstream_s = np.hypot(exact.masked_sums(net.downstream, p), exact.masked_sums(net.downstream, q)) * peak
     net.s_max_mva[unrated] = np.maximum(rating_margin * downstream_s[unrated], MIN_RATING_MVA)
     _frozen(net.s_max_mva)
     return net

@@ -30,6 +30,7 @@ import scipy.sparse as sp
 from scipy.optimize import linprog
 
 from messages.schemas import PRICE_CAP
+from scenarios import exact
 from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
@@ -260,7 +261,7 @@ class _Hour:
         # A step's MW raises its bus's P by 1 and Q by tan(phi); a shed MW lowers P by 1 and Q by the load's ratio.
         a_ub = np.hstack([(g_p + self.feeder.tan_phi * g_q)[:, self.bus], -self.shed_columns(g_p, g_q, shed_at),
                           np.zeros((len(b), n))])
-        b_ub = b - g_p @ self.fixed_p - g_q @ self.fixed_q
+        b_ub = b - exact.matvec(g_p, self.fixed_p) - exact.matvec(g_q, self.fixed_q)
         s, k = len(book.quantity), len(shed_at)
         # The substation's balance: P0 = fixed load + net import of the steps - shed (LinDistFlow is lossless), P0
         # the sum of its segments' columns, each from 0 outwards (its prices rise with P0: the LP fills them in order)
@@ -314,7 +315,8 @@ class _Hour:
         """What a MW of fixed load shed at each of ``buses`` is worth at the solution's duals: the energy price plus
         the limits' duals times its sensitivities. Above VOLL, shedding it gains welfare."""
         relief = -solution.ub_dual
-        return solution.res.eqlin.marginals[0] + self.shed_columns(solution.g_p, solution.g_q, buses).T @ relief
+        columns = self.shed_columns(solution.g_p, solution.g_q, buses)
+        return solution.res.eqlin.marginals[0] + exact.matvec(columns.T, relief)
 
 
 @dataclass(frozen=True)
@@ -405,7 +407,7 @@ def _prices(hour: _Hour, sol: _Solution) -> tuple[float, np.ndarray, np.ndarray]
     relief = -sol.ub_dual  # >= 0: the welfare one unit of relief of the limit is worth
     g_mg = sol.g_p + hour.feeder.tan_phi * sol.g_q
     is_line = sol.rows < 8 * hour.feeder.network.n_lines
-    return energy, g_mg[is_line].T @ relief[is_line], g_mg[~is_line].T @ relief[~is_line]
+    return energy, exact.matvec(g_mg[is_line].T, relief[is_line]), exact.matvec(g_mg[~is_line].T, relief[~is_line])
 
 
 def _snap(hour: _Hour, step_mw: np.ndarray, bus_price: np.ndarray) -> np.ndarray:
@@ -450,7 +452,7 @@ def _on_feeder(hour: _Hour) -> _Cleared:
     bus_price = _snap(hour, sol.step_mw, energy + congestion + voltage)
     step_mw = _awards_at_bus_prices(hour, sol.step_mw, bus_price)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
-    held = sol.rows[b_ub - a_ub @ sol.res.x <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))]
+    held = sol.rows[b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))]
     base = 8 * hour.feeder.network.n_lines
     lines = tuple(int(x) for x in np.unique(held[held < base] // 8))
     buses = tuple(int(x) for x in np.unique((held[held >= base] - base) // 2))

@@ -41,7 +41,7 @@ from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_
 from scenarios.generation import forecast_scenario, make_scenarios, sample
 from scenarios.horizon import HOURS
 
-from .. import exact
+from scenarios import exact
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
 from ..schedule import FirstStage

@@ -26,7 +26,7 @@ from scipy import stats
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
-from .. import exact
+from scenarios import exact
 from ..model import Params
 from ..schedule import StochasticSchedule
 from .benders import ScenarioPool, first_stage_vector

@@ -26,7 +26,7 @@ from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from .. import exact
+from scenarios import exact
 from ..model import Index, Params, recourse, second_stage_constraints
 from ..schedule import energy_weight
 

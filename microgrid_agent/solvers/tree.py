@@ -27,7 +27,7 @@ import numpy as np
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
-from .. import exact
+from scenarios import exact
 from ..model import Params
 from ..schedule import StochasticSchedule
 from .benders import (Found, Master, ScenarioPool, Trace, apart, decomposition, first_stage_values, relax, reporter,

@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from dataclasses import replace
 
 import cvxpy as cp
@@ -221,31 +217,3 @@ def test_a_start_from_another_day_is_the_first_incumbent_and_one_the_master_forb
         assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
         assert schedule.objective <= its_cost * (1 + 1e-9)  # never worse than where it started
 
-
-_TRACE = """
-import json
-import numpy as np
-from microgrid_agent.instance import make_instance
-from microgrid_agent.solvers.benders import solve_decomposed
-from scenarios.case import load_case
-rng = np.random.default_rng(0)
-probe = rng.normal(size=(100, 400)) @ rng.normal(size=400)  # BLAS as numpy calls it: bits of this CPU's kernel
-inst = make_instance(load_case("paper"), scenarios=5, subperiods=1, seed=0)
-s = solve_decomposed(inst.case, inst.scen, inst.params, gap=0.005, workers=1)
-bits = [[float(r["lower_bound"]).hex(), float(r["upper_bound"]).hex()] for r in s.extra["trace"]]
-print(json.dumps({"probe": probe.tobytes().hex(), "trace": bits, "objective": s.objective.hex()}))
-"""
-
-
-def test_the_search_takes_the_same_path_whichever_blas_kernels_the_cpu_gets():
-    """OpenBLAS picks kernels for the CPU, and they add in different orders: cut right-hand sides and upper bounds
-    computed with them moved the path (docs/solver.md). Two processes forced onto different kernels must find the same
-    bounds, bit for bit, and the same schedule."""
-    runs = []
-    for kernel in ("Haswell", "Prescott"):  # AVX2 and SSE3 kernels, both in every x86-64 DYNAMIC_ARCH OpenBLAS
-        done = subprocess.run([sys.executable, "-c", _TRACE], capture_output=True, text=True, timeout=120,
-                              env=os.environ | {"OPENBLAS_CORETYPE": kernel}, check=True)
-        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))  # HiGHS's banner goes to stdout first
-    if runs[0]["probe"] == runs[1]["probe"]:
-        pytest.skip("this numpy's BLAS adds in one order on this machine whatever kernel is asked for")
-    assert runs[0]["trace"] == runs[1]["trace"] and runs[0]["objective"] == runs[1]["objective"]

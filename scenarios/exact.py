@@ -4,8 +4,10 @@ numpy's ``@`` and ``einsum`` hand their sums to BLAS, which picks its kernels fo
 ``DYNAMIC_ARCH``) and adds the terms in an order of the kernel's own: AVX-512, AVX2 and SSE kernels give sums that
 differ in their last bits. A decomposition's path turns on such bits (a cut's right-hand side, an upper bound: which
 x^ a MILP master returns next), and an agent's bid carries them to the DMO, so the same seed gave another schedule and
-other statements on another machine (docs/solver.md, "One machine, two paths"). Here each product is rounded once
-(the same everywhere) and each sum is exact before its one rounding (``math.fsum``), whatever the order.
+other statements on another machine (docs/solver.md, "The same path on every machine"); a feeder's flows and prices
+carried them into the awards. Here each product is rounded once (the same everywhere) and each sum is exact before
+its one rounding (``math.fsum``), whatever the order; a 0/1 matrix's sums, whose terms are exact, are added in numpy's
+own pairwise order, which is the same on every CPU.
 """
 
 from __future__ import annotations
@@ -21,9 +23,11 @@ def dot(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def matvec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(rows,) a @ x, each row's sum correctly rounded."""
-    products = np.multiply(a, x)
-    return np.array([math.fsum(row) for row in products.reshape(len(products), -1)])
+    """(rows,) a @ x for a (rows, n) matrix, each row's sum correctly rounded. The terms of x's zeros are left out
+    (they add nothing to an exact sum): a feeder's limits' duals are mostly zero."""
+    x = np.asarray(x, float)
+    terms = np.flatnonzero(x)
+    return np.array([math.fsum(row) for row in np.asarray(a, float)[:, terms] * x[terms]], dtype=float)
 
 
 def weighted(weight: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
@@ -33,3 +37,11 @@ def weighted(weight: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     products = moved[..., None, :] * weight  # (..., G, S)
     sums = np.array([math.fsum(row) for row in products.reshape(-1, products.shape[-1])])
     return np.moveaxis(sums.reshape(products.shape[:-1]), -1, axis)
+
+
+def masked_sums(mask: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(..., rows) sum_j mask[r, j] x[..., j] for a 0/1 ``mask`` (rows, n): a feeder's line flows and voltage drops
+    (``Network.downstream``). One row of ``x`` at a time, so a feeder of a thousand buses needs no cube in memory."""
+    flat = np.asarray(x, float).reshape(-1, mask.shape[1])
+    sums = np.array([(mask * row).sum(axis=1) for row in flat], dtype=float).reshape(len(flat), mask.shape[0])
+    return sums.reshape(*np.shape(x)[:-1], mask.shape[0])

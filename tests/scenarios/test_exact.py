@@ -1,0 +1,92 @@
+"""Sums that give the same bits on every CPU (scenarios/exact.py), and what rests on them: a decomposition's path and
+a feeder's clearing, each run in two processes forced onto different BLAS kernels."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from scenarios import exact
+
+
+def test_the_sums_are_those_of_numpy_correctly_rounded():
+    rng = np.random.default_rng(0)
+    a, x = rng.normal(size=(5, 7)), rng.normal(size=7)
+    assert exact.matvec(a, x) == pytest.approx(a @ x, abs=1e-14)
+    assert exact.matvec(a, x)[2] == math.fsum(a[2] * x)  # one rounding, of the exact sum
+    assert exact.matvec(np.zeros((0, 3)), np.ones(3)).shape == (0,)
+    assert exact.dot(np.array([1e16, 1.0, -1e16]), np.ones(3)) == 1.0  # added left to right: 0.0
+    weight, data = rng.random((2, 5)), rng.normal(size=(3, 5, 4))
+    assert exact.weighted(weight, data, 1) == pytest.approx(np.einsum("gs,rsh->rgh", weight, data), abs=1e-14)
+    assert exact.weighted(weight, data[0], 0) == pytest.approx(weight @ data[0], abs=1e-14)
+    mask, p = (rng.random((4, 6)) < 0.5).astype(float), rng.normal(size=(3, 6))
+    assert exact.masked_sums(mask, p) == pytest.approx(p @ mask.T, abs=1e-14)
+    assert exact.masked_sums(mask, p[0]).shape == (4,)
+
+
+_PROBE = """
+import json, sys
+import numpy as np
+rng = np.random.default_rng(0)
+probe = (rng.normal(size=(100, 400)) @ rng.normal(size=400)).tobytes().hex()  # BLAS as numpy calls it here
+"""
+
+_SEARCH = _PROBE + """
+from microgrid_agent.instance import make_instance
+from microgrid_agent.solvers.benders import solve_decomposed
+from scenarios.case import load_case
+inst = make_instance(load_case("paper"), scenarios=5, subperiods=1, seed=0)
+s = solve_decomposed(inst.case, inst.scen, inst.params, gap=0.005, workers=1)
+bits = [[float(r["lower_bound"]).hex(), float(r["upper_bound"]).hex()] for r in s.extra["trace"]]
+print(json.dumps({"probe": probe, "result": [bits, s.objective.hex()]}))
+"""
+
+_CLEARING = _PROBE + """
+from dmo.market.clearing import BidCurve, Step
+from dmo.market.distflow import clear_network
+from scenarios.horizon import HOURS
+from scenarios.network import load_network
+net = load_network("ieee33", load_scale=1.6)
+names = [f"mg{i}" for i in range(12)]
+buses = {n: int(b) for n, b in zip(names, rng.choice(np.arange(1, net.n_buses), 12, replace=False))}
+bids = [BidCurve(n, tuple(tuple(Step(float(p), float(q)) for p, q in zip(np.sort(rng.uniform(20, 200, 3))[::-1],
+                                                                        rng.uniform(-1.5, 1.5, 3)))
+                          for _ in range(HOURS))) for n in names]
+r = clear_network(bids, net, buses, 60.0, 3.0, 3.0, agents=names)
+bits = {k: np.asarray(v).tobytes().hex() for k, v in vars(r).items() if isinstance(v, np.ndarray)}
+bits["awards"] = {a: np.asarray(v).tobytes().hex() for a, v in r.awards.items()}
+print(json.dumps({"probe": probe, "result": bits}))
+"""
+
+
+def under_two_kernels(code: str) -> list:
+    """What ``code`` prints as its result in a process on OpenBLAS's AVX2 kernels and in one on its SSE3 kernels
+    (both in every x86-64 DYNAMIC_ARCH build); skipped where numpy's BLAS adds in one order whatever is asked."""
+    runs = []
+    for kernel in ("Haswell", "Prescott"):
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
+                              env=os.environ | {"OPENBLAS_CORETYPE": kernel})
+        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))  # HiGHS's banner may come first
+    if runs[0]["probe"] == runs[1]["probe"]:
+        pytest.skip("this numpy's BLAS adds in one order on this machine whatever kernel is asked for")
+    return [run["result"] for run in runs]
+
+
+def test_the_search_takes_the_same_path_whichever_blas_kernels_the_cpu_gets():
+    """Cut right-hand sides and upper bounds summed by BLAS moved a decomposition's path from one CPU to another
+    (docs/solver.md): every bound, bit for bit, and the schedule's cost must be the same."""
+    avx2, sse3 = under_two_kernels(_SEARCH)
+    assert avx2 == sse3
+
+
+def test_a_feeder_clears_to_the_same_bits_whichever_blas_kernels_the_cpu_gets():
+    """Awards, prices, flows and voltages of a day on the IEEE 33-bus feeder: an award's last bit is an agent's
+    schedule's data, so it must not depend on the CPU."""
+    avx2, sse3 = under_two_kernels(_CLEARING)
+    assert avx2 == sse3
