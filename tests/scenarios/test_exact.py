@@ -65,13 +65,24 @@ print(json.dumps({"probe": probe, "result": bits}))
 """
 
 
+def _numpy_dispatch() -> str:
+    """numpy's own vector code above its baseline (AVX2, AVX-512, ... on x86-64), to be turned off."""
+    try:
+        from numpy._core._multiarray_umath import __cpu_dispatch__  # noqa: PLC0415  (numpy 2)
+    except ImportError:
+        return ""
+    return " ".join(__cpu_dispatch__)
+
+
 def under_two_kernels(code: str) -> list:
-    """What ``code`` prints as its result in a process on OpenBLAS's AVX2 kernels and in one on its SSE3 kernels
-    (both in every x86-64 DYNAMIC_ARCH build); skipped where numpy's BLAS adds in one order whatever is asked."""
+    """What ``code`` prints as its result in a process on OpenBLAS's AVX2 kernels and numpy's best vector code, and
+    in one on OpenBLAS's SSE3 kernels (both in every x86-64 DYNAMIC_ARCH build) and numpy's baseline code; skipped
+    where numpy's BLAS adds in one order whatever is asked."""
     runs = []
-    for kernel in ("Haswell", "Prescott"):
+    for env in ({"OPENBLAS_CORETYPE": "Haswell"},
+                {"OPENBLAS_CORETYPE": "Prescott", "NPY_DISABLE_CPU_FEATURES": _numpy_dispatch()}):
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True,
-                              env=os.environ | {"OPENBLAS_CORETYPE": kernel})
+                              env=os.environ | env)
         runs.append(json.loads(done.stdout.strip().splitlines()[-1]))  # HiGHS's banner may come first
     if runs[0]["probe"] == runs[1]["probe"]:
         pytest.skip("this numpy's BLAS adds in one order on this machine whatever kernel is asked for")
