@@ -477,7 +477,8 @@ class HandlingTime(_WireModel):
                     Field(description="the kind of the DMO's message handled")]
     hour: Annotated[Hour | None, Field(description="its hour (a clock's or grid state's in real time), or null")]
     wall_s: Annotated[NonNeg, Field(description="wall-clock seconds")]
-    cpu_s: Annotated[NonNeg, Field(description="CPU seconds of the agent's process")]
+    cpu_s: Annotated[NonNeg, Field(description="CPU seconds of the thread that handled it (not other agents "
+                                                "sharing its process)")]
     started_at: Annotated[Annotated[int, Strict(), Field(ge=0, lt=2**63)] | None, Field(description=(
         "when it took the message up, ns since the Unix epoch on the agent's clock; null before version 9"))]
     turn_s: Annotated[NonNeg, Field(description=(

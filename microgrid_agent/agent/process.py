@@ -96,7 +96,7 @@ class MicrogridAgent:
         self.day, self.days = 1, 1
         self.case = self._day_case(case, 1)
         self.events: queue.Queue = queue.Queue()
-        self._answering: tuple[float, float] | None = None  # perf_counter, process_time as the answer went out
+        self._answering: tuple[float, float] | None = None  # perf_counter, thread_time as the answer went out
         self.delivery = Delivery(bus.republish)
         self.asked = 0  # messages the agent asked the DMO for (it had heard nothing for a while) and handled
         self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
@@ -169,11 +169,13 @@ class MicrogridAgent:
                 self._handle(msg)
                 continue
             started_at, self._answering = time.time_ns(), None
-            started = (time.perf_counter(), time.process_time())
+            # CPU of this thread: agents sharing a process each count their own (the process's counted, in each
+            # agent that waited for its turn, what the others computed meanwhile)
+            started = (time.perf_counter(), time.thread_time())
             with computing():  # a turn among the agents of a host (slots.py): waiting counts in wall_s and turn_s
                 turn_s = time.perf_counter() - started[0]
                 self._handle(msg)
-            ended = self._answering or (time.perf_counter(), time.process_time())
+            ended = self._answering or (time.perf_counter(), time.thread_time())
             self.compute.append(HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
                                              wall_s=ended[0] - started[0], cpu_s=ended[1] - started[1],
                                              started_at=started_at, turn_s=turn_s))
@@ -338,7 +340,7 @@ class MicrogridAgent:
     def _answer(self, msg) -> None:
         """Publish the answer to the message being handled. Its computation ends as it goes out: sending it is the
         protocol's work, and what the handler does afterwards overlaps the DMO's next step."""
-        self._answering = time.perf_counter(), time.process_time()
+        self._answering = time.perf_counter(), time.thread_time()
         self._publish(msg)
 
     def _handle(self, msg) -> None:

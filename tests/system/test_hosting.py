@@ -49,7 +49,13 @@ def test_forked_agents_settle_to_the_cent_as_agent_processes_and_a_killed_one_is
     assert "_host" in fork["memory_mib"]["1"] and "_host" not in process["memory_mib"]["1"]
     assert (tmp_path / "fork" / "logs" / "_host.log").is_file() and "mg1 registered" in (
         tmp_path / "fork" / "logs" / "mg1.log").read_text()
-    # mg1 and mg3 shared one process, each writing its own log and counting half of its PSS
+    # mg1 and mg3 shared one process, each counting its own CPU: never more than the time it computed (the process's
+    # counted, in the one that waited for its turn, what the other computed meanwhile)
+    for agent in ("mg1", "mg3"):
+        (day,) = shared["realised"][agent]
+        for e in day["compute"]:
+            assert e["cpu_s"] <= e["wall_s"] - e["turn_s"] + 0.01, (agent, e)
+    # and each wrote its own log and counted half of the process's PSS
     memory = shared["memory_mib"]["1"]
     assert memory["mg1"] == memory["mg3"]  # one process sampled once (mg2, killed, is gone by then)
     for agent, other in (("mg1", "mg3"), ("mg3", "mg1")):
