@@ -27,16 +27,20 @@ def matvec(a: np.ndarray, x: np.ndarray) -> np.ndarray:
     (they add nothing to an exact sum): a feeder's limits' duals are mostly zero."""
     x = np.asarray(x, float)
     terms = np.flatnonzero(x)
-    return np.array([math.fsum(row) for row in np.asarray(a, float)[:, terms] * x[terms]], dtype=float)
+    return _sums(np.asarray(a, float)[:, terms] * x[terms])
 
 
 def weighted(weight: np.ndarray, data: np.ndarray, axis: int) -> np.ndarray:
     """``data`` with its ``axis`` (length S) replaced by the (G, S) ``weight``'s rows: out[..., g, ...] = sum_s
     weight[g, s] data[..., s, ...], each sum correctly rounded."""
     moved = np.moveaxis(np.asarray(data, float), axis, -1)  # (..., S)
-    products = moved[..., None, :] * weight  # (..., G, S)
-    sums = np.array([math.fsum(row) for row in products.reshape(-1, products.shape[-1])])
-    return np.moveaxis(sums.reshape(products.shape[:-1]), -1, axis)
+    return np.moveaxis(_sums(moved[..., None, :] * weight), -1, axis)  # the products (..., G, S) summed over S
+
+
+def _sums(products: np.ndarray) -> np.ndarray:
+    """``products`` summed over their last axis, each sum correctly rounded."""
+    flat = products.reshape(math.prod(products.shape[:-1]), products.shape[-1])  # no -1: a row may have no terms
+    return np.array([math.fsum(row) for row in flat], dtype=float).reshape(products.shape[:-1])
 
 
 def masked_sums(mask: np.ndarray, x: np.ndarray) -> np.ndarray:

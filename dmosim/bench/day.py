@@ -82,8 +82,8 @@ def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: 
     (the critical path). The CPU bound is the least wall time the step's CPU work could take on ``cores`` cores:
     max(largest CPU time, total CPU time / cores), so ``cpu_wait_s`` (computation minus CPU bound) is time the agents
     spent waiting for a core, taken by each other or by other work on the machine (``cpu_s`` is the CPU of the thread
-    that handled the message: agents sharing a process each count their own). Registration (the agents' processes starting and connecting) is
-    reported as ``startup_s``, outside the day.
+    that handled the message: agents sharing a process each count their own). Registration (the agents' processes
+    starting and connecting) is reported as ``startup_s``, outside the day.
     """
     steps: dict[tuple[str, int | None], list[dict]] = {}
     for entries in compute.values():

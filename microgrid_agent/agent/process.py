@@ -36,12 +36,12 @@ from messages.keys import parse_key
 from messages.schemas import MAX_HANDLED, AgentDay, HandlingTime, MessageCounts, MidnightUnit
 from messages.transport import Bus
 from messages.transport.heap import return_free_memory
+from scenarios import exact
 from scenarios.case import Case
 from scenarios.days import carry_over, day_scale, day_seed, market_days, scaled_profiles
 from scenarios.generation import forecast_scenario, make_scenarios, sample
 from scenarios.horizon import HOURS
 
-from scenarios import exact
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
 from ..schedule import FirstStage
@@ -414,8 +414,7 @@ class MicrogridAgent:
         realised = sample(self.case, 1, k, island_hours=0, seed=day_seed(c.seed, self.day) + 1000)
         self.operator = Operator(self.case, first_stage_of(schedule), params.p_sch, params.penalty, k, realised,
                                  forecast_scenario(self.case, k), deviation_cost=params.deviation_cost)
-        p_m_expected = exact.weighted(schedule.probability[None, :], schedule.dispatch.p_m, 0)[0]
-        p_m_hourly = p_m_expected.reshape(HOURS, k).mean(axis=1)
+        p_m_hourly = exact.matvec(schedule.dispatch.p_m.T, schedule.probability).reshape(HOURS, k).mean(axis=1)
         self._answer(Schedule(
             sender=self.id, market_day=self.market_day, status=schedule.status,
             commitment={n: tuple(int(x) for x in schedule.commitment[n]) for n in schedule.unit_names},

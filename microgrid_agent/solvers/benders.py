@@ -24,11 +24,11 @@ import cvxpy as cp
 import highspy
 import numpy as np
 
+from scenarios import exact
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from scenarios import exact
 from ..model import (FIRST_STAGE, Params, dp_plus_of, first_stage_constraints, first_stage_variables, startup_cost,
                      variables)
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings

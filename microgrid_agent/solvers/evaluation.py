@@ -23,10 +23,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import stats
 
+from scenarios import exact
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
-from scenarios import exact
 from ..model import Params
 from ..schedule import StochasticSchedule
 from .benders import ScenarioPool, first_stage_vector

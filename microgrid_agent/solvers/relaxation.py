@@ -22,11 +22,11 @@ from dataclasses import dataclass, replace
 import cvxpy as cp
 import numpy as np
 
+from scenarios import exact
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 from scenarios.horizon import HOURS
 
-from scenarios import exact
 from ..model import Index, Params, recourse, second_stage_constraints
 from ..schedule import energy_weight
 

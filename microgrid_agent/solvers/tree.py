@@ -24,10 +24,10 @@ import time
 import highspy
 import numpy as np
 
+from scenarios import exact
 from scenarios.case import Case
 from scenarios.generation import ScenarioSet
 
-from scenarios import exact
 from ..model import Params
 from ..schedule import StochasticSchedule
 from .benders import (Found, Master, ScenarioPool, Trace, apart, decomposition, first_stage_values, relax, reporter,
@@ -205,7 +205,7 @@ def _handler_class(scip):
                 self.transformed = ([m.getTransformedVar(v) for v in t.x], [m.getTransformedVar(v) for v in t.theta])
             xs, thetas = self.transformed
             for s in np.flatnonzero(violated):
-                row = m.createEmptyRowUnspec(name=f"benders_{s}", lhs=values[s] - exact.dot(grads[s], x), rhs=None,
+                row = m.createEmptyRowUnspec(name=f"benders_{s}", lhs=float(values[s]) - exact.dot(grads[s], x), rhs=None,
                                              local=False)
                 m.cacheRowExtensions(row)
                 m.addVarToRow(row, thetas[s], 1.0)

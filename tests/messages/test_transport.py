@@ -223,7 +223,6 @@ def test_presence_join_and_leave(net):
         assert _get(events) == ("leave", "mg2")
 
 
-
 def test_a_router_sees_more_agents_present_than_a_channel_holds(net):
     """A router answers a liveliness query from its own tables on the asking thread: with more tokens than Zenoh's
     default channel holds (256) it waited on itself for good, and a DMO of 1,000 agents stopped at registration."""
@@ -240,6 +239,7 @@ def test_a_router_sees_more_agents_present_than_a_channel_holds(net):
     assert len(_get(names)) == 402 and not asking.is_alive()  # mg1 to mg401, and the DMO itself
     for token in tokens:
         token.undeclare()
+
 
 _CHILD = """
 import sys

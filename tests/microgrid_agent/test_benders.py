@@ -216,4 +216,3 @@ def test_a_start_from_another_day_is_the_first_incumbent_and_one_the_master_forb
         check_schedule(small.case, small.scen, schedule).raise_if_failed()
         assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
         assert schedule.objective <= its_cost * (1 + 1e-9)  # never worse than where it started
-
