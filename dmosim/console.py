@@ -6,6 +6,7 @@ import importlib.util
 import json
 import math
 import shutil
+import signal
 import sys
 import threading
 import time
@@ -50,6 +51,17 @@ def refuse_shadowed_packages() -> None:
     if why is not None:
         print(f"error: {why}", file=sys.stderr)
         raise SystemExit(2)
+
+
+def stop_on_terminate() -> None:
+    """Take SIGTERM as Ctrl-C from now on: a command that started processes of its own (``dmosim run`` its roles,
+    ``sweep`` and ``bench`` their runs) stops them on its way out (its ``except`` and ``finally``) and exits 130,
+    instead of dying and leaving them running."""
+    signal.signal(signal.SIGTERM, _interrupt)
+
+
+def _interrupt(*_):
+    raise KeyboardInterrupt
 
 
 def progress(message: str) -> None:

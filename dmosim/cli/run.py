@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import re
-import signal
 import sys
 from pathlib import Path
 
@@ -21,7 +20,7 @@ from microgrid_agent.agent.strategies import strategy_name
 from scenarios.case import load_case, parse_toml
 from scenarios.fleet import FleetError
 
-from ..console import Progress, UsageError, print_json
+from ..console import Progress, UsageError, print_json, stop_on_terminate
 from ..experiment.rundir import RunDir, RunDirError
 from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, settled_by,
                                with_settings)
@@ -198,7 +197,7 @@ def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Clust
     record = None if args.no_record else (record_to or rundir.recording)
     bar = None if args.quiet else Progress("hours")
     say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
-    signal.signal(signal.SIGTERM, _interrupt)  # a terminated run stops its roles like Ctrl-C does
+    stop_on_terminate()  # a terminated run stops its roles like Ctrl-C does
     try:
         if cluster:
             check_shared(cluster, rundir.root)
@@ -246,10 +245,6 @@ def _check_placement(args, experiment: Experiment, fleet) -> None:
     if taken:
         raise UsageError(f"agents.routers = {experiment.agents.routers}: {taken[0]} is the name of a router of the run "
                          "and of an agent; rename the agent")
-
-
-def _interrupt(*_):
-    raise KeyboardInterrupt
 
 
 def _tail(path: Path, lines: int = 15) -> None:

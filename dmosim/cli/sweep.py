@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from ..arguments import integer
-from ..console import Progress, UsageError, print_json
+from ..console import Progress, UsageError, print_json, stop_on_terminate
 from ..experiment.rundir import RUNS, RunDirError, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
@@ -79,6 +79,7 @@ def run(args) -> int:
             print(f"  {v.label}")
         return 0
     stamp = time.strftime("%Y%m%dT%H%M%S")
+    stop_on_terminate()  # a terminated sweep stops its runs, as Ctrl-C does
     # The cluster is reached before the sweep's directory is claimed: one that does not answer leaves nothing behind.
     with connected(args) if args.cluster else contextlib.nullcontext() as cluster:
         try:
