@@ -53,11 +53,12 @@ def refuse_shadowed_packages() -> None:
         raise SystemExit(2)
 
 
-def stop_on_terminate() -> None:
+def stop_on_terminate():
     """Take SIGTERM as Ctrl-C from now on: a command that started processes of its own (``dmosim run`` its roles,
     ``sweep`` and ``bench`` their runs) stops them on its way out (its ``except`` and ``finally``) and exits 130,
-    instead of dying and leaving them running."""
-    signal.signal(signal.SIGTERM, _interrupt)
+    instead of dying and leaving them running. Python runs the handler between bytecodes, so only where the main
+    thread waits in Python, not in a long native call (a solve). Returns the handler it replaced."""
+    return signal.signal(signal.SIGTERM, _interrupt)
 
 
 def _interrupt(*_):

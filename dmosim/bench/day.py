@@ -15,6 +15,7 @@ import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -22,6 +23,7 @@ import time
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
+from ..console import stop_on_terminate
 from ..experiment.spec import HOSTINGS, Agents
 from ..launch.processes import dmosim_command, role_env
 
@@ -188,7 +190,9 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
                           "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
                           "--json", "--quiet")
     start = time.perf_counter()
-    # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started.
+    # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started,
+    # and a bench terminated meanwhile stops it so (it would go on in its session).
+    previous = stop_on_terminate()
     process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                start_new_session=True, env=role_env())
     try:
@@ -202,6 +206,8 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
             process.kill()
             process.communicate()
         raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     process_s = time.perf_counter() - start
     result = _result(out) if process.returncode in (0, 1) else None  # 1: it ran, but its verdict is not ok
     if result is None:

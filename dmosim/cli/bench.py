@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..console import print_json, stop_on_terminate
+from ..console import print_json
 
 HELP = "benchmarks that print ratios and absolute times measured side by side (docs/benchmarks.md)"
 
@@ -22,7 +22,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    stop_on_terminate()  # a terminated bench stops the runs it started, as Ctrl-C does
     result = args.bench_run(args)
     if args.json:
         print_json(result)

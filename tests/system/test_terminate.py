@@ -1,0 +1,76 @@
+"""SIGTERM to a command that started runs of its own (``dmosim sweep``, ``dmosim bench``): it stops them, and
+each run its roles, as Ctrl-C does, and exits 130; nothing it started is left running."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+
+from test_market_day import ENV, ROOT, dmosim
+from test_sweep import EXPERIMENT
+
+# Each hour waits 5 s for mg1's meter report: the day would last two minutes; the command is stopped in its first.
+SLOW = 'faults = ["delay:agent/mg1/meter:5"]\n' + EXPERIMENT
+
+
+def test_a_sweep_terminated_stops_its_runs_and_their_roles(tmp_path):
+    (tmp_path / "slow.toml").write_text(SLOW)
+    _terminated_once_a_dmo_runs(dmosim("sweep", str(tmp_path / "slow.toml"), "--set", "market.penalty=400", "--out",
+                                       str(tmp_path / "sweep"), "--quiet"))
+
+
+def test_a_bench_terminated_stops_its_run_and_its_roles():
+    _terminated_once_a_dmo_runs(dmosim("bench", "day", "--agents", "3", "--scenarios", "1"))
+
+
+def _terminated_once_a_dmo_runs(argv: list[str]) -> None:
+    command = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
+                               start_new_session=True)
+    started = set()
+    try:
+        deadline = time.monotonic() + 120
+        while not any(" dmo --run-id " in _cmdline(pid) for pid in started):
+            assert command.poll() is None and time.monotonic() < deadline, "the command's run never started its DMO"
+            time.sleep(0.1)  # paces the look at /proc: nothing to wait on but the processes appearing
+            started = _descendants(command.pid)
+        command.terminate()
+        _, err = command.communicate(timeout=120)
+        assert command.returncode == 130 and err.strip().endswith("interrupted"), err[-2000:]
+        assert [pid for pid in started if _alive(pid)] == []  # the run and every role it started
+    finally:
+        for pid in [command.pid, *started]:
+            if _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+        command.communicate()
+
+
+def _descendants(pid: int) -> set[int]:
+    """The processes below ``pid`` now, however deep."""
+    parent = {}
+    for entry in os.listdir("/proc"):
+        try:
+            parent[int(entry)] = int(open(f"/proc/{entry}/stat").read().rpartition(")")[2].split()[1])
+        except (ValueError, OSError, IndexError):
+            continue
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, up in parent.items() if up in frontier} - found
+        found |= frontier
+    return found
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        return open(f"/proc/{pid}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie, ended but not yet reaped, does not)."""
+    try:
+        return open(f"/proc/{pid}/stat").read().rpartition(")")[2].split()[0] != "Z"
+    except OSError:
+        return False
