@@ -11,7 +11,7 @@ from typing import Iterable
 from dmo.market.rules import MAX_MW, MAX_RATE
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from messages.transport.credentials import MAX_HOSTS
-from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS
+from microgrid_agent.solvers.routes import METHODS, auto_rule
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE, FleetError
 from scenarios.generation import MAX_SCENARIOS
@@ -96,8 +96,8 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
         "schedule.method": ("--method", dict(choices=METHODS,
                                              help="route of the agents' solves: extensive, one MILP; benders, "
                                                   "decomposed (docs/solver.md); tree, decomposed in one SCIP tree "
-                                                  "(pip install 'dmosim[scip]'); auto, benders from "
-                                                  f"{AUTO_BENDERS_SCENARIOS} scenarios on (default: {s.method})")),
+                                                  f"(pip install 'dmosim[scip]'); auto, {auto_rule()} "
+                                                  f"(default: {s.method})")),
         "schedule.workers": ("--workers", dict(type=integer(1, MAX_WORKERS),
                                                help=f"processes per agent for Benders subproblems, at most "
                                                     f"{MAX_WORKERS} (default: {s.workers})")),

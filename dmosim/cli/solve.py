@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from dmo.market.rules import MAX_RATE
 from messages.schemas import MAX_SUBPERIODS
-from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, METHODS, check_available
+from microgrid_agent.solvers.routes import METHODS, auto_rule, check_available
 from scenarios.case import load_case
 from scenarios.days import MAX_SEED
 from scenarios.fleet import MAX_SCALE
@@ -62,7 +62,7 @@ def add_method_flags(p: argparse.ArgumentParser, workers: int) -> None:
     p.add_argument("--method", choices=METHODS, default="auto",
                    help="extensive: one MILP in HiGHS (the reference); benders: multi-cut decomposition "
                         "(docs/solver.md); tree: the decomposition in one SCIP branch-and-bound tree (pip install "
-                        f"'dmosim[scip]'); auto (default): benders from {AUTO_BENDERS_SCENARIOS} scenarios on")
+                        f"'dmosim[scip]'); auto (default): {auto_rule()}")
     p.add_argument("--workers", type=integer(1, MAX_WORKERS), default=workers,
                    help=f"processes for the Benders subproblems, at most {MAX_WORKERS} (default: {workers})")
 
@@ -119,7 +119,7 @@ def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
     from microgrid_agent.solvers.routes import resolve_method  # noqa: PLC0415
 
     s = inst.scen
-    progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S)}): {s.S} scenarios x {s.N} sub-periods, "
+    progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S, s.subperiods)}): {s.S} scenarios x {s.N} sub-periods, "
              f"penalty {_money(inst.params.penalty)}/MWh{', award must be taken' if inst.params.take_award else ''}, "
              f"gap {args.gap:g}, time limit {args.time_limit:g} s")
     schedule = inst.solve(method=args.method, workers=args.workers, gap=args.gap, time_limit=args.time_limit,

@@ -19,7 +19,7 @@ from dmosim.console import UsageError
 from dmosim.cli.flags import add_bus_flags, bus_config
 from messages import KINDS, PHASES, SCHEMA_VERSION, MeterReport, encode
 from messages.transport import BusConfig
-from microgrid_agent.solvers.routes import AUTO_BENDERS_SCENARIOS, resolve_method
+from microgrid_agent.solvers.routes import auto_threshold, resolve_method
 from scenarios.case import DATA_DIR
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -162,12 +162,15 @@ def test_bad_flags_exit_2_with_one_line(flags):
     assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr and out.stdout == ""
 
 
-def test_auto_decomposes_from_the_documented_scenario_count():
-    assert resolve_method("auto", AUTO_BENDERS_SCENARIOS - 1) == "extensive"
-    assert resolve_method("auto", AUTO_BENDERS_SCENARIOS) == "benders"
-    assert resolve_method("extensive", 100) == "extensive" and resolve_method("benders", 1) == "benders"
+def test_auto_decomposes_from_the_documented_scenario_count_at_each_resolution():
+    for subperiods in (1, 6):
+        n = auto_threshold(subperiods)
+        assert resolve_method("auto", n - 1, subperiods) == "extensive"
+        assert resolve_method("auto", n, subperiods) == "benders"
+    assert auto_threshold(1) > auto_threshold(6) == auto_threshold(2)  # hourly, the extensive form goes further
+    assert resolve_method("extensive", 100, 6) == "extensive" and resolve_method("benders", 1, 1) == "benders"
     with pytest.raises(ValueError, match="method must be one of"):
-        resolve_method("simplex", 10)
+        resolve_method("simplex", 10, 6)
 
 
 def test_unknown_command_exits_2():

@@ -84,6 +84,12 @@ def test_model_md_maps_each_equation_to_functions_that_build_it():
     assert model.build  # the table maps the package the solvers build from
 
 
+def test_the_route_auto_takes_reads_the_same_in_the_docs_as_in_the_code():
+    from microgrid_agent.solvers.routes import auto_rule  # noqa: PLC0415
+
+    assert auto_rule() in text(ROOT / "README.md") and auto_rule() in text(ROOT / "docs" / "solver.md")
+
+
 def test_readme_lists_every_verb():
     readme = text(ROOT / "README.md")
     missing = [verb for verb in VERBS if f"`dmosim {verb}" not in readme]
