@@ -11,6 +11,8 @@ import time
 from test_market_day import ENV, ROOT, dmosim
 from test_sweep import EXPERIMENT
 
+from dmosim.bench.fleet import descendants, role_of
+
 # Each hour waits 5 s for mg1's meter report: the day would last two minutes; the command is stopped in its first.
 SLOW = 'faults = ["delay:agent/mg1/meter:5"]\n' + EXPERIMENT
 
@@ -28,44 +30,23 @@ def test_a_bench_terminated_stops_its_run_and_its_roles():
 def _terminated_once_a_dmo_runs(argv: list[str]) -> None:
     command = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
                                start_new_session=True)
-    started = set()
+    tree = []
     try:
         deadline = time.monotonic() + 120
-        while not any(" dmo --run-id " in _cmdline(pid) for pid in started):
+        while not any(role_of(pid, parent, command.pid) == "dmo" for pid, parent in tree):
             assert command.poll() is None and time.monotonic() < deadline, "the command's run never started its DMO"
             time.sleep(0.1)  # paces the look at /proc: nothing to wait on but the processes appearing
-            started = _descendants(command.pid)
+            tree = descendants(command.pid)
+        started = [pid for pid, _ in tree if pid != command.pid]
         command.terminate()
         _, err = command.communicate(timeout=120)
         assert command.returncode == 130 and err.strip().endswith("interrupted"), err[-2000:]
         assert [pid for pid in started if _alive(pid)] == []  # the run and every role it started
     finally:
-        for pid in [command.pid, *started]:
+        for pid, _ in tree:
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
         command.communicate()
-
-
-def _descendants(pid: int) -> set[int]:
-    """The processes below ``pid`` now, however deep."""
-    parent = {}
-    for entry in os.listdir("/proc"):
-        try:
-            parent[int(entry)] = int(open(f"/proc/{entry}/stat").read().rpartition(")")[2].split()[1])
-        except (ValueError, OSError, IndexError):
-            continue
-    found, frontier = set(), {pid}
-    while frontier:
-        frontier = {child for child, up in parent.items() if up in frontier} - found
-        found |= frontier
-    return found
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        return open(f"/proc/{pid}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
-    except OSError:
-        return ""
 
 
 def _alive(pid: int) -> bool:
