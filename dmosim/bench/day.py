@@ -25,7 +25,7 @@ from pathlib import Path
 from ..arguments import gap, nonneg_float, positive_int
 from ..console import stop_on_terminate
 from ..experiment.spec import HOSTINGS, Agents
-from ..launch.processes import dmosim_command, role_env
+from ..launch.processes import dmosim_command, interrupts_held, role_env
 
 GOAL_PCT = 5.0
 # The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
@@ -192,13 +192,16 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
     start = time.perf_counter()
     # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started,
     # and a bench terminated meanwhile stops it so (it would go on in its session).
-    previous = stop_on_terminate()
-    process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               start_new_session=True, env=role_env())
+    previous, process = stop_on_terminate(), None
     try:
+        with interrupts_held():  # recorded before a Ctrl-C can leave it running unseen
+            process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                       start_new_session=True, env=role_env())
         with watch(process.pid) if watch else contextlib.nullcontext():
             out, err = process.communicate(timeout=timeout_s)
     except BaseException:
+        if process is None:
+            raise
         process.terminate()
         try:
             process.communicate(timeout=30)

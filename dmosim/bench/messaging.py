@@ -27,7 +27,7 @@ from messages.schemas import DMO
 from messages.transport import Bus, BusConfig
 
 from ..arguments import positive_int
-from ..launch.processes import free_port, role_env
+from ..launch.processes import free_port, interrupts_held, role_env
 
 AGENT = "mg1"
 TIMEOUT_S = 30.0  # for any single reply or handshake: a dead peer fails the bench instead of hanging it
@@ -202,10 +202,11 @@ class Echo:
         self.process: subprocess.Popen | None = None
 
     def __enter__(self) -> Echo:
-        self.process = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                        start_new_session=True, env=role_env())
-        threading.Thread(target=self._read, daemon=True, name="echo-stdout").start()
         try:
+            with interrupts_held():  # recorded before a Ctrl-C can leave it running unseen
+                self.process = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                                start_new_session=True, env=role_env())
+            threading.Thread(target=self._read, daemon=True, name="echo-stdout").start()
             self._answer("ready")
         except BaseException:
             self.__exit__()

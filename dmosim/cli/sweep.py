@@ -26,7 +26,7 @@ from ..experiment.rundir import RUNS, RunDirError, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
 from ..launch.cluster import Commands
-from ..launch.processes import dmosim_command, role_env
+from ..launch.processes import dmosim_command, interrupts_held, role_env
 from ..launch.roles import resolved, strategy_of
 from .checks import Checked, check_inputs, strategy_source
 from .flags import check_out
@@ -154,9 +154,10 @@ class LocalCommands:
 
     def start(self, args: list[str], name: str):
         """Start ``dmosim ARGS``; a function that returns None while it runs, then its exit code, stdout and stderr."""
-        process = subprocess.Popen(dmosim_command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                   env=role_env())
-        self.processes.append(process)
+        with interrupts_held():  # recorded before a Ctrl-C can leave it unseen
+            process = subprocess.Popen(dmosim_command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                       text=True, env=role_env())
+            self.processes.append(process)
 
         def poll() -> tuple[int, str, str] | None:
             if process.poll() is None:

@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +33,27 @@ def dmosim_command(*args: str) -> list[str]:
 def role_env() -> dict:
     """This environment, with the directory of this dmosim first on PYTHONPATH (for a checkout not installed)."""
     return {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(SOURCE_ROOT), os.environ.get("PYTHONPATH")]))}
+
+
+@contextmanager
+def interrupts_held():
+    """Hold Ctrl-C and SIGTERM until the block ends, then deliver the first that came as if it came then.
+
+    Around starting a process and recording it: an interrupt between the two (Popen reads its pipe to the child,
+    a watcher thread starts) would raise KeyboardInterrupt before the caller knows of the process, and leave it
+    running in its own session, never stopped. Only in the main thread, where Python runs signal handlers."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    came: list[int] = []
+    previous = {sig: signal.signal(sig, lambda sig, _: came.append(sig)) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        if came:
+            signal.raise_signal(came[0])
 
 
 def free_port() -> int:
@@ -128,16 +150,24 @@ class Roles:
     def fork_host(self, modules: tuple[str, ...], log: Path | None = None) -> ForkHost:
         """Start a host that imports ``modules`` (host.py), for roles to be forked from (``start(..., host=)``);
         its own errors go to ``log``. It imports this very dmosim, as ``role_env`` makes sure."""
-        host = ForkHost(modules, log, role_env())
-        self.hosts.append(host)
+        with interrupts_held():
+            host = ForkHost(modules, log, role_env())
+            self.hosts.append(host)
         return host
 
     def start(self, name: str, argv: list[str], log: Path | None = None, env: dict | None = None,
               cwd: Path | None = None, host: ForkHost | None = None) -> Role:
-        role = Role(name, self._spawn(name, argv, log, env, cwd, "w", host), log, argv=tuple(argv), env=env, cwd=cwd,
-                    host=host)
-        self.roles[name] = role
+        with self._held(host):
+            role = Role(name, self._spawn(name, argv, log, env, cwd, "w", host), log, argv=tuple(argv), env=env,
+                        cwd=cwd, host=host)
+            self.roles[name] = role
         return role
+
+    @staticmethod
+    def _held(host: ForkHost | None):
+        """``interrupts_held`` around a process started here; a child forked by ``host`` needs none (the host stops
+        every child it has when it is stopped), and its start may wait seconds for the host to be ready."""
+        return interrupts_held() if host is None else nullcontext()
 
     def start_group(self, host: ForkHost, roles: list[tuple[str, list[str], Path]]) -> list[Role]:
         """Start ``roles`` (name, ``dmosim_command(...)``, log) in one child of ``host``, each in a thread of its own
@@ -185,7 +215,8 @@ class Roles:
         _signal_group(old, signal.SIGKILL)
         old.wait()
         role.restarts += 1
-        role.process = self._spawn(name, role.argv, role.log, role.env, role.cwd, "a", role.host)
+        with self._held(role.host):
+            role.process = self._spawn(name, role.argv, role.log, role.env, role.cwd, "a", role.host)
 
     def kill(self, name: str) -> None:
         """SIGKILL one role (fault injection)."""

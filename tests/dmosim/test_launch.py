@@ -20,7 +20,7 @@ from dmosim.launch import local
 from dmosim.launch.host import AgentStreams
 from dmosim.launch.local import groups, wait_for_run
 from dmosim.launch.mesh import router_names, spread
-from dmosim.launch.processes import Roles, dmosim_command, free_port, memory_mib, wait_for_line
+from dmosim.launch.processes import Roles, dmosim_command, free_port, interrupts_held, memory_mib, wait_for_line
 
 DONE = [sys.executable, "-c", "pass"]
 STAYS = [sys.executable, "-c", "import time; time.sleep(120)"]
@@ -46,6 +46,41 @@ def test_an_agent_that_does_not_leave_after_the_run_has_failed():
         roles.start("dmo", DONE)
         assert wait(roles) == (["mg1"], [])
 
+
+
+def test_ctrl_c_while_a_role_starts_comes_once_it_is_recorded_and_stop_all_stops_it(monkeypatch):
+    """A Ctrl-C between the fork and the bookkeeping (here: as its watcher thread starts) would leave the role
+    running in its own session, unknown to ``stop_all``."""
+    watch = Roles._watch
+
+    def interrupted(self, *args):
+        os.kill(os.getpid(), signal.SIGINT)
+        watch(self, *args)
+
+    monkeypatch.setattr(Roles, "_watch", interrupted)
+    with pytest.raises(KeyboardInterrupt), Roles() as roles:
+        roles.start("mg1", STAYS)
+    assert list(roles.roles) == ["mg1"] and roles.roles["mg1"].process.poll() is not None
+
+
+def test_signals_held_in_a_block_arrive_once_at_its_end_and_the_handlers_are_restored():
+    handler = signal.getsignal(signal.SIGINT)
+    got = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_held():
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
+            got.append("the block went on")
+    assert got == ["the block went on"] and signal.getsignal(signal.SIGINT) is handler
+
+    def elsewhere():
+        with interrupts_held():  # another thread may not set handlers: there the block holds nothing, and works
+            got.append("in a thread")
+
+    outside = threading.Thread(target=elsewhere)
+    outside.start()
+    outside.join()
+    assert got[-1] == "in a thread"
 
 
 # A recorder that ignores SIGTERM: it has written what it will write and stays (as one stuck in Zenoh's teardown).

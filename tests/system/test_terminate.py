@@ -37,21 +37,44 @@ def _terminated_once_a_dmo_runs(argv: list[str]) -> None:
             assert command.poll() is None and time.monotonic() < deadline, "the command's run never started its DMO"
             time.sleep(0.1)  # paces the look at /proc: nothing to wait on but the processes appearing
             tree = descendants(command.pid)
-        started = [pid for pid, _ in tree if pid != command.pid]
+        started = {pid: _started_at(pid) for pid, _ in tree if pid != command.pid}
         command.terminate()
         _, err = command.communicate(timeout=120)
         assert command.returncode == 130 and err.strip().endswith("interrupted"), err[-2000:]
-        assert [pid for pid in started if _alive(pid)] == []  # the run and every role it started
+        left = {pid: _command_line(pid) for pid, at in started.items() if _alive(pid, at)}
+        assert left == {}  # the run and every role it started
     finally:
         for pid, _ in tree:
-            if _alive(pid):
+            if _alive(pid, _started_at(pid)):
                 os.kill(pid, signal.SIGKILL)
         command.communicate()
 
 
-def _alive(pid: int) -> bool:
-    """Whether ``pid`` runs (a zombie, ended but not yet reaped, does not)."""
+def _stat(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (state first), or none if there is no such process."""
     try:
-        return open(f"/proc/{pid}/stat").read().rpartition(")")[2].split()[0] != "Z"
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()
     except OSError:
-        return False
+        return []
+
+
+def _started_at(pid: int) -> str | None:
+    """When the process started (clock ticks since boot): with its pid, which process it is, also once its pid
+    may have been given to another (pids wrap at 32,768 here)."""
+    return (_stat(pid) or [None] * 20)[19]
+
+
+def _alive(pid: int, started_at: str | None) -> bool:
+    """Whether the process that had ``pid`` and started at ``started_at`` runs (a zombie, ended but not yet reaped,
+    does not)."""
+    fields = _stat(pid)
+    return bool(fields) and fields[0] != "Z" and fields[19] == started_at
+
+
+def _command_line(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline") as f:
+            return f.read().replace("\0", " ")
+    except OSError:
+        return "(gone)"
