@@ -39,7 +39,10 @@ def test_a_killed_agent_is_no_problem_of_the_run_but_info_counts_its_missing_met
     info = json.loads(run("info", str(out_dir / "recording.mcap"), "--json").stdout)
     missing = {m["market_day"]: m for m in info["missing_meter"]}
     assert set(missing) == {FIRST, SECOND} and all(m["agent"] == "mg1" and m["settled"] for m in missing.values())
-    assert missing[FIRST]["hours"][0] in (5, 6) and missing[FIRST]["hours"][-1] == 24  # hour 5 may be out already
+    # From the hour the kill landed to the day's end: `dmosim run` fires it once it hears the DMO's clock at hour 5,
+    # and where hours take milliseconds it may hear it some hours late (docs/faults.md).
+    first_missing = missing[FIRST]["hours"][0]
+    assert first_missing >= 5 and missing[FIRST]["hours"] == list(range(first_missing, 25))
     assert missing[SECOND]["hours"] == list(range(1, 25))
     for d in result["days"]:  # as many sub-periods as the DMO settled by the missing-data rule
         assert sum(missing[d["market_day"]]["subperiods"]) == d["settlement"]["mg1"]["missing_subperiods"]
