@@ -190,13 +190,13 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
                           "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
                           "--json", "--quiet")
     start = time.perf_counter()
-    # Its own session, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started,
-    # and a bench terminated meanwhile stops it so (it would go on in its session).
+    # Its own process group, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started,
+    # and a bench terminated meanwhile stops it so (it would go on in its group).
     previous, process = stop_on_terminate(), None
     try:
         with interrupts_held():  # recorded before a Ctrl-C can leave it running unseen
             process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                       start_new_session=True, env=role_env())
+                                       process_group=0, env=role_env())
         with watch(process.pid) if watch else contextlib.nullcontext():
             out, err = process.communicate(timeout=timeout_s)
     except BaseException:

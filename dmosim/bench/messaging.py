@@ -205,7 +205,7 @@ class Echo:
         try:
             with interrupts_held():  # recorded before a Ctrl-C can leave it running unseen
                 self.process = subprocess.Popen(self.argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                                start_new_session=True, env=role_env())
+                                                process_group=0, env=role_env())
             threading.Thread(target=self._read, daemon=True, name="echo-stdout").start()
             self._answer("ready")
         except BaseException:

@@ -294,7 +294,7 @@ def run_command(args: list[str], cwd: str, lifeline: str) -> tuple[int, str, str
     if tether.cut():  # stopped while this task waited for a thread
         return 1, "", CANCELLED
     process = subprocess.Popen(dmosim_command(*args), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, env=role_env(), start_new_session=True,
+                               stderr=subprocess.PIPE, text=True, env=role_env(), process_group=0,
                                cwd=cwd if os.path.isdir(cwd) else None)
     try:
         while True:

@@ -101,7 +101,7 @@ class ForkHost:
         err = open(log, "w") if log else subprocess.DEVNULL  # noqa: SIM115  (the host holds it; closed below)
         try:
             self.process = subprocess.Popen([sys.executable, "-m", __name__, *modules], stdin=subprocess.PIPE,
-                                            stdout=subprocess.PIPE, stderr=err, start_new_session=True, env=env)
+                                            stdout=subprocess.PIPE, stderr=err, process_group=0, env=env)
         finally:
             if log:
                 err.close()

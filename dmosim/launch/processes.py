@@ -1,5 +1,12 @@
 """Start, watch and always stop the OS processes of one run: every role in its own process group, started as a
-process of its own or forked from a pre-loaded host (host.py)."""
+process of its own or forked from a pre-loaded host (host.py).
+
+A role leads a process group (a signal to it reaches whatever it started; the terminal's Ctrl-C does not) in the
+session of the command that started it, never a session of its own: Linux shares the cores among sessions first
+(autogroup, on by default), so a role in a session of its own got as much of them as every agent together, and a
+forked host's hundreds of agents, one session between them, were starved for up to a minute while the DMO, the
+routers and the recorder each had a share as large (docs/benchmarks.md, "fleet"). dmosim's other launchers (the
+agents' host, ``dmosim bench``, a cluster's task) start their processes so too (``process_group=0``)."""
 
 from __future__ import annotations
 
@@ -41,7 +48,7 @@ def interrupts_held():
 
     Around starting a process and recording it: an interrupt between the two (Popen reads its pipe to the child,
     a watcher thread starts) would raise KeyboardInterrupt before the caller knows of the process, and leave it
-    running in its own session, never stopped. Only in the main thread, where Python runs signal handlers."""
+    running in a process group of its own, never stopped. Only in the main thread, where Python runs signal handlers."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -191,7 +198,7 @@ class Roles:
         else:
             out = open(log, mode) if log else None  # noqa: SIM115  (closed when the process ends)
             process = subprocess.Popen(list(argv), stdin=subprocess.DEVNULL, stdout=out or subprocess.DEVNULL,
-                                       stderr=out or None, start_new_session=True, env=env, cwd=cwd)
+                                       stderr=out or None, process_group=0, env=env, cwd=cwd)
         self._watch(name, process, out)
         return process
 

@@ -50,7 +50,7 @@ def test_an_agent_that_does_not_leave_after_the_run_has_failed():
 
 def test_ctrl_c_while_a_role_starts_comes_once_it_is_recorded_and_stop_all_stops_it(monkeypatch):
     """A Ctrl-C between the fork and the bookkeeping (here: as its watcher thread starts) would leave the role
-    running in its own session, unknown to ``stop_all``."""
+    running in a process group of its own, unknown to ``stop_all``."""
     watch = Roles._watch
 
     def interrupted(self, *args):
@@ -144,6 +144,19 @@ def gone(pid: int) -> bool:
     finally:
         os.close(fd)
 
+
+def test_every_process_of_a_run_leads_a_group_of_its_own_in_the_launcher_s_session(tmp_path):
+    """Not a session of its own: Linux shares the cores among sessions first (autogroup), which starved a host's
+    hundreds of agents against the DMO and the routers (dmosim/launch/processes.py)."""
+    with Roles() as roles:
+        host = roles.fork_host(("json",), tmp_path / "host.log")
+        started = [roles.start("alone", STAYS).process, host.process,
+                   roles.start("forked", probe(tmp_path, "stay"), log=tmp_path / "forked.log", cwd=tmp_path,
+                               host=host).process]
+        wait_for_line(tmp_path / "forked.log", "argv", 30, lambda: started[2].poll() is None)  # it runs the probe
+        for process in started:
+            assert (os.getsid(process.pid), os.getpgid(process.pid)) == (os.getsid(0), process.pid)
+            assert process.poll() is None
 
 def test_a_forked_role_runs_its_command_in_its_directory_environment_and_log_as_a_process_would(tmp_path):
     with Roles() as roles:
