@@ -158,6 +158,13 @@ def run_flags(args) -> list[str]:
             "--per-process", str(args.per_process)]
 
 
+def failure_line(err: str, limit: int = 600) -> str:
+    """The line a failed ``dmosim run`` ends its stderr with (its one-line failure, or its exception's), its middle
+    cut where longer than ``limit`` characters, so that both its start and its end are shown."""
+    line = (err.strip().splitlines() or ["(nothing on stderr)"])[-1]
+    return line if len(line) <= limit else f"{line[:limit - 150]} ... {line[-145:]}"
+
+
 def _result(out: str) -> dict | None:
     """The result ``dmosim run --json`` printed, or None if it printed none."""
     try:
@@ -214,7 +221,7 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
     process_s = time.perf_counter() - start
     result = _result(out) if process.returncode in (0, 1) else None  # 1: it ran, but its verdict is not ok
     if result is None:
-        raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {err.strip()[-500:]} "
+        raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {failure_line(err)} "
                            f"(run directory: {rundir})")
     if not result["verdict"]["ok"]:  # measured all the same, and said on stderr (the bench's rows show it too)
         print(f"dmosim run {' '.join(flags)}: {err.strip()}", file=sys.stderr)

@@ -13,7 +13,7 @@ import re
 import pytest
 
 import dmosim.bench
-from dmosim.bench.day import agents_reported, split_day
+from dmosim.bench.day import agents_reported, run_and_read, split_day
 from dmosim.bench.week import summarise
 from dmosim.cli import main
 
@@ -247,3 +247,11 @@ def test_clearing_runs_end_to_end(capsys):
         assert sum(row[f"hours_{label}"] for label in ("none", "import", "export", "line", "voltage")) == 24
     assert out["rows"][0]["over_copper_plate"] == 1.0
     assert out["goal"] == {}  # the goals are for 100 agents
+
+
+def test_a_run_that_fails_is_named_by_its_one_line_failure_from_its_start_to_its_end(tmp_path):
+    far = tmp_path.joinpath(*["d" * 150] * 4) / "none.toml"  # a fleet file whose name makes that line long
+    with pytest.raises(RuntimeError) as failed:
+        run_and_read(["--fleet", str(far)], timeout_s=120, keep=tmp_path / "run")
+    said = str(failed.value)
+    assert re.search(r" exited 2: error: fleet file not found: .{200,} \.\.\. .*/none\.toml \(run directory: ", said), said
