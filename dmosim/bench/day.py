@@ -189,8 +189,8 @@ def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict
 
 def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, watch=None) -> dict:
     """One ``dmosim run FLAGS --json`` into a run directory: ``keep``, or a scratch one removed unless the run
-    fails. Its result (also of a run whose verdict is not ok, which is said on stderr), each agent's ``compute`` entries and ``messages`` counts (``agents_reported``), and the
-    command's wall time. ``watch(pid)``, a context manager, is held while the command runs (e.g. to sample its
+    fails. Its result (also of a run whose verdict is not ok, which is said on stderr), each agent's ``compute``
+    entries and ``messages`` counts (``agents_reported``), and the command's wall time. ``watch(pid)``, a context manager, is held while the command runs (e.g. to sample its
     memory)."""
     rundir = keep or Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
     argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",

@@ -161,12 +161,19 @@ def descendants(root: int) -> list[tuple[int, int]]:
     return out
 
 
-def _parent(pid: int) -> int | None:
+def proc_stat(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (the state first, then the parent's pid; the start time
+    is the 20th), or none if there is no such process."""
     try:
         with open(f"/proc/{pid}/stat") as f:
-            return int(f.read().rsplit(")", 1)[1].split()[1])
-    except (OSError, IndexError, ValueError):
-        return None
+            return f.read().rpartition(")")[2].split()
+    except OSError:
+        return []
+
+
+def _parent(pid: int) -> int | None:
+    fields = proc_stat(pid)
+    return int(fields[1]) if len(fields) > 1 else None
 
 
 def pss_mib(pid: int) -> float | None:

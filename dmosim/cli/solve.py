@@ -119,7 +119,8 @@ def solve_verified(inst: Instance, args, label: str = "") -> StochasticSchedule:
     from microgrid_agent.solvers.routes import resolve_method  # noqa: PLC0415
 
     s = inst.scen
-    progress(f"{label}solving {inst.case.name} ({resolve_method(args.method, s.S, s.subperiods)}): {s.S} scenarios x {s.N} sub-periods, "
+    route = resolve_method(args.method, s.S, s.subperiods)
+    progress(f"{label}solving {inst.case.name} ({route}): {s.S} scenarios x {s.N} sub-periods, "
              f"penalty {_money(inst.params.penalty)}/MWh{', award must be taken' if inst.params.take_award else ''}, "
              f"gap {args.gap:g}, time limit {args.time_limit:g} s")
     schedule = inst.solve(method=args.method, workers=args.workers, gap=args.gap, time_limit=args.time_limit,

@@ -254,4 +254,5 @@ def test_a_run_that_fails_is_named_by_its_one_line_failure_from_its_start_to_its
     with pytest.raises(RuntimeError) as failed:
         run_and_read(["--fleet", str(far)], timeout_s=120, keep=tmp_path / "run")
     said = str(failed.value)
-    assert re.search(r" exited 2: error: fleet file not found: .{200,} \.\.\. .*/none\.toml \(run directory: ", said), said
+    cut = r" exited 2: error: fleet file not found: .{200,} \.\.\. .*/none\.toml \(run directory: "
+    assert re.search(cut, said), said

@@ -11,7 +11,7 @@ import time
 from test_market_day import ENV, ROOT, dmosim
 from test_sweep import EXPERIMENT
 
-from dmosim.bench.fleet import descendants, role_of
+from dmosim.bench.fleet import descendants, proc_stat, role_of
 
 # Each hour waits 5 s for mg1's meter report: the day would last two minutes; the command is stopped in its first.
 SLOW = 'faults = ["delay:agent/mg1/meter:5"]\n' + EXPERIMENT
@@ -50,25 +50,16 @@ def _terminated_once_a_dmo_runs(argv: list[str]) -> None:
         command.communicate()
 
 
-def _stat(pid: int) -> list[str]:
-    """The fields of /proc/PID/stat after the command name (state first), or none if there is no such process."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rpartition(")")[2].split()
-    except OSError:
-        return []
-
-
 def _started_at(pid: int) -> str | None:
     """When the process started (clock ticks since boot): with its pid, which process it is, also once its pid
     may have been given to another (pids wrap at 32,768 here)."""
-    return (_stat(pid) or [None] * 20)[19]
+    return (proc_stat(pid) or [None] * 20)[19]
 
 
 def _alive(pid: int, started_at: str | None) -> bool:
     """Whether the process that had ``pid`` and started at ``started_at`` runs (a zombie, ended but not yet reaped,
     does not)."""
-    fields = _stat(pid)
+    fields = proc_stat(pid)
     return bool(fields) and fields[0] != "Z" and fields[19] == started_at
 
 
