@@ -34,7 +34,7 @@ from ..model import (FIRST_STAGE, Params, dp_plus_of, first_stage_constraints, f
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
 from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
-from .relaxation import group_relaxation, relaxed
+from .relaxation import group_relaxation, islanding_groups, relaxed
 from .scenario_lp import ScenarioLP
 
 
@@ -151,6 +151,11 @@ class ScenarioPool:
 _SLACK = 1e-6  # relative slack above which a cut counts as not binding
 _EARLY_GAP = 0.02  # relative gap of the first MILP masters
 _CUTOFF_MARGIN = 1e-6  # relative: how far a master's pruning may trust a bound at its cutoff
+# A search stalls when STALL_MASTERS integer masters in a row find no better schedule and raise the bound by less
+# than STALL_RISE x the target gap in all; it then goes on with one relaxation group per islanding pattern
+# (``Master.regrouped``; docs/solver.md, "A stalled search").
+STALL_MASTERS = 10
+STALL_RISE = 0.1
 
 
 class CutPool:
@@ -298,6 +303,20 @@ class Master:
         default the last master solution's)."""
         self.incumbent = ((self.last if col is None else col).copy(), x, values)
 
+    def regrouped(self, case: Case, scen: ScenarioSet, params: Params, label: np.ndarray) -> Master:
+        """The same search with the relaxation's groups ``label``: a new master sharing this one's cut pool, carrying
+        the cuts this one carries, and started from its incumbent. Finer groups under-estimate the recourse at
+        least as closely (Jensen within each group), so its bound is at least this one's at every x."""
+        other = Master(case, scen, params, label)
+        other.pool = self.pool
+        other._activate(self.active)
+        if self.incumbent is not None:
+            _, x, values = self.incumbent
+            col = other.completion(x)  # x meets the same first-stage constraints: None only if HiGHS fails
+            if col is not None:
+                other.remember(x, values, col)
+        return other
+
     def _start(self) -> highspy.HighsSolution:
         # theta_s = Q_s(x) satisfies every cut at x (cuts under-estimate Q_s), so this start is feasible.
         col, x, values = self.incumbent
@@ -323,11 +342,15 @@ class Found:
     status: str
 
 
+ITERATIONS = ("lp", "milp", "tree")  # the trace's phases that are iterations: a master solved
+
+
 @dataclass
 class Trace:
     """Where the time went: per row (phase, lower bound, upper bound, master s, subproblem s). A row is an
-    iteration (``lp``, ``milp``, ``tree``) or a start evaluated between them (``start``, ``start_set_aside``: no
-    master solved, not counted in ``iterations``)."""
+    iteration (``lp``, ``milp``, ``tree``), a start evaluated between them (``start``, ``start_set_aside``), or a
+    stalled search's new master (``regroup``, its seconds to build as the master's); the last three solve no master
+    and are not counted in ``iterations``."""
 
     rows: list = field(default_factory=list)
     build_s: float = 0.0
@@ -339,8 +362,28 @@ class Trace:
     def summary(self) -> dict:
         master = sum(r["master_s"] for r in self.rows)
         sub = sum(r["subproblems_s"] for r in self.rows)
-        return {"iterations": sum(not r["phase"].startswith("start") for r in self.rows), "lp_iterations": sum(r["phase"] == "lp" for r in self.rows),
+        return {"iterations": sum(r["phase"] in ITERATIONS for r in self.rows),
+                "lp_iterations": sum(r["phase"] == "lp" for r in self.rows),
                 "build_s": self.build_s, "master_s": master, "subproblems_s": sub}
+
+
+class Stall:
+    """Whether the integer masters have stalled (``STALL_MASTERS`` in a row without a better schedule, the bound
+    raised by less than ``STALL_RISE`` x ``gap`` of the best value): said once, then never again in the solve."""
+
+    def __init__(self, gap: float):
+        self.gap, self.bounds, self.said = gap, [], False
+
+    def after(self, lower: float, upper: float) -> None:
+        """An integer master's bounds, as the search stands after it."""
+        self.bounds.append((lower, upper))
+
+    def stalled(self) -> bool:
+        if self.said or len(self.bounds) <= STALL_MASTERS:
+            return False
+        (lower0, upper0), (lower, upper) = self.bounds[-1 - STALL_MASTERS], self.bounds[-1]
+        self.said = upper >= upper0 and lower - lower0 < STALL_RISE * self.gap * abs(upper)
+        return self.said
 
 
 def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: float = 0.005,
@@ -350,7 +393,8 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
     """Benders decomposition to a certified relative gap; returns the same StochasticSchedule as the extensive form.
     ``start``: a first stage (another schedule's, e.g. the day before's), evaluated once the LP phase ends: if the
     master's first-stage constraints allow it, it is the first incumbent (an upper bound, the first MILP master's
-    cutoff and its start)."""
+    cutoff and its start). A search whose integer masters stall goes on with one relaxation group per islanding
+    pattern (``Stall``, ``Master.regrouped``)."""
     began = time.perf_counter()
     deadline = began + time_limit if time_limit else None
     with decomposition(case, scen, params, workers) as (master, pool, trace):
@@ -377,7 +421,14 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             return x, bound, time.perf_counter() - t0
 
         status = "optimal"
+        stall = Stall(gap)
         while True:
+            if stall.stalled():
+                t0 = time.perf_counter()
+                master = master.regrouped(case, scen, params, islanding_groups(scen))
+                trace.add("regroup", lower, upper, time.perf_counter() - t0, 0.0)
+                report("stalled: one relaxation group per islanding pattern after iteration", lower, upper,
+                       time.perf_counter() - t0)
             x, bound, master_s = master_solve()
             lower = max(lower, bound)
             if x is None:  # every x left costs (1 - gap) x the best value or more: the best is certified
@@ -392,6 +443,7 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             report("integer master, iteration", lower, upper, master_s)
             if apart(lower, upper) <= gap:
                 break
+            stall.after(lower, upper)
             if late(deadline):
                 status = "time_limit"
                 break

@@ -9,8 +9,11 @@ import numpy as np
 import pytest
 
 from microgrid_agent.checker import check_schedule
+from microgrid_agent.solvers import benders
 from microgrid_agent.solvers.benders import (
+    STALL_MASTERS,
     Master,
+    Stall,
     Subproblems,
     apart,
     first_stage_values,
@@ -108,6 +111,55 @@ def test_group_means_keep_the_expectation(small):
     assert np.isclose(means.probability.sum(), 1.0)
     assert np.allclose(means.probability @ means.load, scen.probability @ hourly)
     assert set(np.unique(means.connected)) <= {0.0, 1.0}
+
+
+def test_a_regrouped_master_carries_the_cuts_and_the_incumbent_and_bounds_no_lower(small):
+    """One relaxation group per islanding pattern: the same pool and cut rows, the incumbent as its MIP start, and
+    an LP bound at least the one-group master's (finer groups under-estimate the recourse no less closely)."""
+    sub = Subproblems(small.case, small.scen, small.params, range(small.scen.S))
+    master = Master(small.case, small.scen, small.params)
+    points = _neighbours(master, 3)
+    for x in points:
+        master.add_cuts(x, *sub.evaluate(x))
+    _, one_group, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
+    x, _, _ = master.solve(relaxed=False, gap=1e-6, time_limit=None)
+    master.remember(x, sub.evaluate(x)[0])
+    label = islanding_groups(small.scen)
+    assert label.max() > 0  # more than one pattern, or the test shows nothing
+    other = master.regrouped(small.case, small.scen, small.params, label)
+    assert other.pool is master.pool and list(other.active) == list(master.active)
+    assert other.h.getNumRow() - other.base_rows == len(master.active)
+    assert other.incumbent is not None and np.array_equal(other.incumbent[1], x)
+    _, grouped, _ = other.solve(relaxed=True, gap=1e-6, time_limit=None)
+    assert grouped >= one_group * (1 - 1e-7)
+
+
+def test_a_search_stalls_once_after_masters_that_neither_find_a_better_schedule_nor_raise_the_bound():
+    stall = Stall(gap=0.01)
+    for lower in np.linspace(90.0, 90.09, STALL_MASTERS + 1):  # the bound rises by 0.09 < 0.1 x 1% of 100
+        assert not stall.stalled()
+        stall.after(lower, 100.0)
+    assert stall.stalled() and not stall.stalled()  # said once
+    rising, better = Stall(gap=0.01), Stall(gap=0.01)
+    for i in range(3 * STALL_MASTERS):
+        rising.after(90.0 + 0.02 * i, 100.0)  # 0.2 over ten masters
+        better.after(90.0, 100.0 - 0.01 * i)
+        assert not rising.stalled() and not better.stalled()
+
+
+@pytest.mark.slow
+def test_a_search_that_goes_on_regrouped_agrees_with_the_extensive_form(small, monkeypatch):
+    """Made to stall before its first integer master, the search goes on with the grouped master and still
+    certifies the gap against the extensive form's optimum; the trace shows where."""
+    monkeypatch.setattr(benders.Stall, "stalled", lambda self: not self.bounds and not self.said and
+                        setattr(self, "said", True) is None)
+    reference = small.solve(gap=1e-6)
+    schedule = solve_decomposed(small.case, small.scen, small.params, gap=GAP, workers=1)
+    check_schedule(small.case, small.scen, schedule).raise_if_failed()
+    phases = [row["phase"] for row in schedule.extra["trace"]]
+    assert phases.count("regroup") == 1 and phases[phases.index("regroup") - 1] == "lp"
+    assert schedule.bound <= reference.objective * (1 + 1e-6)
+    assert schedule.objective <= reference.objective * (1 + GAP) + 1e-6
 
 
 def test_pruning_keeps_the_pool_and_the_master_optimum(small):
