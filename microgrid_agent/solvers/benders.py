@@ -15,6 +15,7 @@ bound. docs/solver.md gives the design and the measurements.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import multiprocessing as mp
 import time
@@ -372,7 +373,8 @@ class Stall:
     raised by less than ``STALL_RISE`` x ``gap`` of the best value): said once, then never again in the solve."""
 
     def __init__(self, gap: float):
-        self.gap, self.bounds, self.said = gap, [], False
+        self.gap, self.said = gap, False
+        self.bounds = collections.deque(maxlen=STALL_MASTERS + 1)  # (lower, upper) after each of the last masters
 
     def after(self, lower: float, upper: float) -> None:
         """An integer master's bounds, as the search stands after it."""
@@ -381,7 +383,7 @@ class Stall:
     def stalled(self) -> bool:
         if self.said or len(self.bounds) <= STALL_MASTERS:
             return False
-        (lower0, upper0), (lower, upper) = self.bounds[-1 - STALL_MASTERS], self.bounds[-1]
+        (lower0, upper0), (lower, upper) = self.bounds[0], self.bounds[-1]
         self.said = upper >= upper0 and lower - lower0 < STALL_RISE * self.gap * abs(upper)
         return self.said
 
@@ -426,9 +428,9 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
             if stall.stalled():
                 t0 = time.perf_counter()
                 master = master.regrouped(case, scen, params, islanding_groups(scen))
-                trace.add("regroup", lower, upper, time.perf_counter() - t0, 0.0)
-                report("stalled: one relaxation group per islanding pattern after iteration", lower, upper,
-                       time.perf_counter() - t0)
+                built_s = time.perf_counter() - t0
+                trace.add("regroup", lower, upper, built_s, 0.0)
+                report("stalled: one relaxation group per islanding pattern after iteration", lower, upper, built_s)
             x, bound, master_s = master_solve()
             lower = max(lower, bound)
             if x is None:  # every x left costs (1 - gap) x the best value or more: the best is certified

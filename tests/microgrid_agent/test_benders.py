@@ -73,6 +73,16 @@ def _neighbours(master, count: int, seed: int = 0):
     return [x0] + [0.5 * (np.clip(x0 + rng.uniform(-0.3, 0.3, x0.shape), 0, 1) + x0) for _ in range(count)]
 
 
+def _master_with_cuts(inst, count: int = 3):
+    """The instance's scenario LPs, and a master with their cuts at its LP optimum and ``count`` neighbours."""
+    sub = Subproblems(inst.case, inst.scen, inst.params, range(inst.scen.S))
+    master = Master(inst.case, inst.scen, inst.params)
+    points = _neighbours(master, count)
+    for x in points:
+        master.add_cuts(x, *sub.evaluate(x))
+    return sub, master, points
+
+
 def _relaxation_value(inst, label, x) -> float:
     """sum_g p_g Q_hourly(x, mean data of g): the group relaxation with the first stage fixed at x."""
     v = variables(inst.case, int(label.max()) + 1, HOURS, first_stage="continuous")
@@ -116,11 +126,7 @@ def test_group_means_keep_the_expectation(small):
 def test_a_regrouped_master_carries_the_cuts_and_the_incumbent_and_bounds_no_lower(small):
     """One relaxation group per islanding pattern: the same pool and cut rows, the incumbent as its MIP start, and
     an LP bound at least the one-group master's (finer groups under-estimate the recourse no less closely)."""
-    sub = Subproblems(small.case, small.scen, small.params, range(small.scen.S))
-    master = Master(small.case, small.scen, small.params)
-    points = _neighbours(master, 3)
-    for x in points:
-        master.add_cuts(x, *sub.evaluate(x))
+    sub, master, _ = _master_with_cuts(small)
     _, one_group, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
     x, _, _ = master.solve(relaxed=False, gap=1e-6, time_limit=None)
     master.remember(x, sub.evaluate(x)[0])
@@ -151,8 +157,11 @@ def test_a_search_stalls_once_after_masters_that_neither_find_a_better_schedule_
 def test_a_search_that_goes_on_regrouped_agrees_with_the_extensive_form(small, monkeypatch):
     """Made to stall before its first integer master, the search goes on with the grouped master and still
     certifies the gap against the extensive form's optimum; the trace shows where."""
-    monkeypatch.setattr(benders.Stall, "stalled", lambda self: not self.bounds and not self.said and
-                        setattr(self, "said", True) is None)
+    def at_once(stall):  # stalled at the first look, before the first integer master; never again
+        stalled, stall.said = not stall.said, True
+        return stalled
+
+    monkeypatch.setattr(benders.Stall, "stalled", at_once)
     reference = small.solve(gap=1e-6)
     schedule = solve_decomposed(small.case, small.scen, small.params, gap=GAP, workers=1)
     check_schedule(small.case, small.scen, schedule).raise_if_failed()
@@ -164,11 +173,7 @@ def test_a_search_that_goes_on_regrouped_agrees_with_the_extensive_form(small, m
 
 def test_pruning_keeps_the_pool_and_the_master_optimum(small):
     """Pruning removes only slack rows: the pool keeps every cut and the master LP keeps its optimum."""
-    sub = Subproblems(small.case, small.scen, small.params, range(small.scen.S))
-    master = Master(small.case, small.scen, small.params)
-    points = _neighbours(master, 3)
-    for x in points:
-        master.add_cuts(x, *sub.evaluate(x))
+    sub, master, points = _master_with_cuts(small)
     _, before, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
     master.prune()
     _, after, _ = master.solve(relaxed=True, gap=1e-6, time_limit=None)
