@@ -24,7 +24,7 @@ import numpy as np
 from messages import GridState, MeterReport, decode, encode
 from messages.keys import new_run_id
 from messages.schemas import DMO
-from messages.transport import Bus, BusConfig
+from messages.transport import Bus, BusConfig, wait_matching
 
 from ..arguments import positive_int
 from ..launch.processes import free_port, interrupts_held, role_env
@@ -183,13 +183,6 @@ def burst(echo: Echo, what: str, n: int, subperiods: int, counter: Counter) -> d
     received_s = (last - t0) / 1e9 if count else float("nan")
     return {"sent": n, "received": count, "lost": n - count, "send_s": (t1 - t0) / 1e9,
             "sent_per_s": n / ((t1 - t0) / 1e9), "received_per_s": count / received_s if count else 0.0}
-
-
-def wait_matching(publisher, timeout_s: float) -> bool:
-    """Wait until a plain Zenoh publisher has a subscriber (the raw counterpart of Bus.wait_for_subscribers)."""
-    matched = threading.Event()
-    with publisher.declare_matching_listener(lambda status: status.matching and matched.set()):
-        return publisher.matching_status or matched.wait(timeout_s)
 
 
 class Echo:

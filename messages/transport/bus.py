@@ -306,15 +306,7 @@ class Bus:
 
     def wait_for_subscribers(self, key: str, timeout_s: float) -> bool:
         """Wait until someone subscribes to ``key`` (a concrete key), so a first message is not sent into the void."""
-        publisher = self._publisher(key)
-        matched = threading.Event()
-
-        def on_status(status) -> None:
-            if status.matching:
-                matched.set()
-
-        with publisher.declare_matching_listener(on_status):
-            return publisher.matching_status or matched.wait(timeout_s)
+        return wait_matching(self._publisher(key), timeout_s)
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         self._own(key)
@@ -517,6 +509,15 @@ class Bus:
             return {"published": self._published, "received": self._received,
                     "rejected": dict(self._rejected), "rejected_total": sum(self._rejected.values()),
                     "handler_errors": self._handler_errors}
+
+
+def wait_matching(publisher: zenoh.Publisher, timeout_s: float) -> bool:
+    """Wait at most ``timeout_s`` until ``publisher`` has a subscriber; whether it has. The listener goes first, so
+    a subscriber that comes between it and the look at the status is not missed. (A status is an object, truthy
+    even when nothing matches: its ``matching`` says.)"""
+    matched = threading.Event()
+    with publisher.declare_matching_listener(lambda status: status.matching and matched.set()):
+        return publisher.matching_status.matching or matched.wait(timeout_s)
 
 
 def _quietly(action: Callable[[], object], what: str) -> None:

@@ -83,6 +83,16 @@ def test_messages_flow_both_ways_stamped_in_order(net):
         agent.subscribe(Keys("otherrun").bid("*"), lambda *a: None)  # nor listens outside its run
 
 
+def test_waiting_for_subscribers_says_no_until_one_subscribes_on_the_other_side(net):
+    """Zenoh's matching status is an object, truthy whether or not anything matches: the wait reads its flag, so a
+    first message does not go into the void (a bench's first round trip was lost that way on a loaded machine)."""
+    dmo, agent, _, _ = net
+    key = dmo.keys.award("mg1")
+    assert dmo.wait_for_subscribers(key, 0.2) is False
+    agent.subscribe(key, lambda key, msg, at: None)
+    assert dmo.wait_for_subscribers(key, WAIT_S) is True
+
+
 def test_the_tap_sees_what_a_process_sent_even_when_its_faults_lose_it():
     """The DMO's history is its tap: an award its message faults drop on the way must still be in it, or an agent
     that asks for the award it never got is answered with the day before's."""
