@@ -551,6 +551,19 @@ def test_replay_loops_until_interrupted(tmp_path):
     assert result["loops"] >= 2 and result["interrupted"] and result["published"] >= 2 * len(mix)
 
 
+def test_replay_says_when_nobody_listens_and_plays_all_the_same(tmp_path):
+    run_id, path = new_run_id(), tmp_path / "small.mcap"
+    mix = synthetic_day(run_id, 1, 1)
+    with RecordingWriter(path, run_id) as writer:
+        writer.start()
+        for i, (key, payload) in enumerate(mix):
+            writer.write(key, payload, 1_000_000_000 + i * 1_000_000)
+    out = dmosim("replay", str(path), "--run-id", new_run_id(), "--mode", "router", "--listen",
+                 f"tcp/127.0.0.1:{free_port()}", "--rate", "max", "--wait-for-subscriber", "0.3")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "nobody listens after 0.3 s; replaying anyway" in out.stderr
+
+
 @pytest.mark.slow
 def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path):
     rec = read_recording(day[0])
