@@ -189,9 +189,10 @@ def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict
 
 def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, watch=None) -> dict:
     """One ``dmosim run FLAGS --json`` into a run directory: ``keep``, or a scratch one removed unless the run
-    fails. Its result (also of a run whose verdict is not ok, which is said on stderr), each agent's ``compute``
-    entries and ``messages`` counts (``agents_reported``), and the command's wall time. ``watch(pid)``, a context manager, is held while the command runs (e.g. to sample its
-    memory)."""
+    fails or outlasts ``timeout_s`` (the error names it) and removed too when the bench is interrupted. Its result
+    (also of a run whose verdict is not ok, which is said on stderr), each agent's ``compute`` entries and
+    ``messages`` counts (``agents_reported``), and the command's wall time. ``watch(pid)``, a context manager, is
+    held while the command runs (e.g. to sample its memory)."""
     rundir = keep or Path(tempfile.mkdtemp(prefix="dmosim-bench-"))
     argv = dmosim_command("run", *flags, "--registration-timeout", "300", "--bid-timeout", "600",
                           "--schedule-timeout", "600", "--hour-timeout", "120", "--out", str(rundir), "--overwrite",
@@ -206,15 +207,19 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
                                        process_group=0, env=role_env())
         with watch(process.pid) if watch else contextlib.nullcontext():
             out, err = process.communicate(timeout=timeout_s)
-    except BaseException:
-        if process is None:
-            raise
-        process.terminate()
-        try:
-            process.communicate(timeout=30)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.communicate()
+    except BaseException as exc:
+        if process is not None:
+            process.terminate()
+            try:
+                process.communicate(timeout=30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.communicate()
+        if isinstance(exc, subprocess.TimeoutExpired):  # its logs say where it stood
+            raise RuntimeError(f"dmosim run {' '.join(flags)} took over {timeout_s:g} s and was stopped "
+                               f"(run directory: {rundir})") from None
+        if keep is None:  # interrupted: nothing of it is wanted
+            shutil.rmtree(rundir, ignore_errors=True)
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--drop", type=_probability, default=0.02,
                         help="probability that each published message is lost (default: 0.02)")
     parser.add_argument("--out", metavar="DIR",
-                        help="keep both runs in DIR/fault-free and DIR/dropped (default: a scratch directory, removed)")
+                        help="keep both runs in DIR/fault-free and DIR/dropped (default: a scratch directory, removed "
+                             "unless a run fails)")
     parser.add_argument("--timeout", type=nonneg_float, default=7200.0,
                         help="seconds each run may take before the bench stops it (default: 7200)")
 
@@ -49,9 +50,14 @@ def run(args) -> dict:
         runs = {name: run_and_read(flags + more, args.timeout, keep=root / name)
                 for name, more in (("fault-free", []), ("dropped", ["--fault", f"drop:**:{args.drop!r}"]))}
         changed = differences(*(read_recording(root / name / "recording.mcap") for name in runs))
-    finally:
+    except RuntimeError:  # a run failed or was stopped: the error names its directory, which stays
+        raise
+    except BaseException:
         if not args.out:
             shutil.rmtree(root, ignore_errors=True)
+        raise
+    if not args.out:
+        shutil.rmtree(root, ignore_errors=True)
     rows = [_row(name, run) for name, run in runs.items()]
     ratio = rows[1]["wall_s"] / rows[0]["wall_s"]
     return {

@@ -9,10 +9,13 @@ import json
 import math
 import pkgutil
 import re
+import tempfile
+from pathlib import Path
 
 import pytest
 
 import dmosim.bench
+from dmosim.bench import recovery
 from dmosim.bench.day import agents_reported, run_and_read, split_day
 from dmosim.bench.week import summarise
 from dmosim.cli import main
@@ -247,6 +250,23 @@ def test_clearing_runs_end_to_end(capsys):
         assert sum(row[f"hours_{label}"] for label in ("none", "import", "export", "line", "voltage")) == 24
     assert out["rows"][0]["over_copper_plate"] == 1.0
     assert out["goal"] == {}  # the goals are for 100 agents
+
+
+def test_a_run_that_outlasts_its_timeout_is_stopped_and_its_directory_named(tmp_path):
+    with pytest.raises(RuntimeError, match=r"took over 0\.5 s and was stopped \(run directory: .*/run\)$"):
+        run_and_read(["--agents", "1"], timeout_s=0.5, keep=tmp_path / "run")
+
+
+def test_recovery_keeps_the_scratch_directory_of_a_run_that_failed_and_names_it(tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where the scratch directory goes
+    parser = argparse.ArgumentParser()
+    recovery.add_arguments(parser)
+    args = parser.parse_args([])
+    args.scenarios = 0  # refused by dmosim run (exit 2): the first run fails
+    with pytest.raises(RuntimeError, match=r"exited 2: .*--scenarios.*\(run directory: (.*/fault-free)\)") as failed:
+        recovery.run(args)
+    root = Path(re.search(r"\(run directory: (.*)\)", str(failed.value)).group(1)).parent
+    assert root.parent == tmp_path and root.is_dir()  # kept: the runs the error names are in it
 
 
 def test_a_run_that_fails_is_named_by_its_one_line_failure_from_its_start_to_its_end(tmp_path):

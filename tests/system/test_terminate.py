@@ -23,12 +23,16 @@ def test_a_sweep_terminated_stops_its_runs_and_their_roles(tmp_path):
                                        str(tmp_path / "sweep"), "--quiet"))
 
 
-def test_a_bench_terminated_stops_its_run_and_its_roles():
-    _terminated_once_a_dmo_runs(dmosim("bench", "day", "--agents", "3", "--scenarios", "1"))
+def test_a_bench_terminated_stops_its_run_and_its_roles_and_leaves_no_scratch_directory(tmp_path):
+    scratch = tmp_path / "tmp"  # where the bench's run directory goes (TMPDIR)
+    scratch.mkdir()
+    _terminated_once_a_dmo_runs(dmosim("bench", "day", "--agents", "3", "--scenarios", "1"),
+                                {**ENV, "TMPDIR": str(scratch)})
+    assert list(scratch.iterdir()) == []
 
 
-def _terminated_once_a_dmo_runs(argv: list[str]) -> None:
-    command = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV,
+def _terminated_once_a_dmo_runs(argv: list[str], env: dict = ENV) -> None:
+    command = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env,
                                start_new_session=True)
     tree = []
     try:
