@@ -5,7 +5,8 @@ mode, load states) fixed, one scenario whose past and current hour are the reali
 connection the DMO announced, and whose future is the forecast, grid-connected. Sub-periods already operated are
 pinned to what was done, so the state of charge, ramps and load energy carry through the day; the current hour's
 values are then committed. Each LP extends the previous one's plan, which stays feasible for it (renewable spill
-and load curtailment absorb any surprise), so a day that started feasible stays feasible.
+and load curtailment absorb any surprise), so a day that started feasible stays feasible, unless an islanded hour
+leaves surplus generation nowhere to go (docs/agent.md, "Feasibility"): then the hour cannot be operated.
 
 On a feeder the DMO's grid state also gives the hour's operating envelope, a room either side of the award: P_M is
 then held within it in the hour's grid-connected sub-periods, unless the hour cannot be operated so, in which case
@@ -189,11 +190,15 @@ class Operator:
 
         infeasible = False
         try:
-            plan = solved(bounds)
-        except SolveError:
-            if bounds is None:
-                raise
-            plan, bounds, infeasible = solved(None), None, True  # a day never fails for an envelope
+            try:
+                plan = solved(bounds)
+            except SolveError:
+                if bounds is None:
+                    raise
+                plan, bounds, infeasible = solved(None), None, True  # a day never fails for an envelope
+        except SolveError as err:
+            raise SolveError(f"{_hours(first, last, self._connected[n0:n1])} cannot be operated: {err} "
+                             '(docs/agent.md, "Feasibility")') from None
         self._commit(plan.dispatch, n0, n1, bounds)
         kept = None if room is None or infeasible else float(room)
         results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen, kept, infeasible)
@@ -303,3 +308,11 @@ class Operator:
             unit_names=tuple(u.name for u in self.case.units), load_names=tuple(d.name for d in self.case.loads),
         )
         return RealisedDay(scen, schedule, self.p_sch.copy(), self.penalty, self.deviation_cost)
+
+
+def _hours(first: int, last: int, connected: np.ndarray) -> str:
+    """``hour 20 (islanded)``, ``hours 3-5``: the hours of one LP, and how they were connected."""
+    hours = f"hour {first}" if first == last else f"hours {first}-{last}"
+    if not connected.any():
+        return f"{hours} (islanded)"
+    return hours if connected.all() else f"{hours} (partly islanded)"

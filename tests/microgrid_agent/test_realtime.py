@@ -12,11 +12,11 @@ from dmo.market.settlement import settle
 from microgrid_agent.agent.realtime import Operator
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.model import DeviationCost, Params, first_stage_of
-from microgrid_agent.solvers.extensive import solve
+from microgrid_agent.solvers.extensive import SolveError, solve
 from microgrid_agent.solvers.rolling import RollingLP
 from scenarios.case import load_case
 from scenarios.days import carry_over, day_seed
-from scenarios.generation import make_scenarios, sample
+from scenarios.generation import ScenarioSet, make_scenarios, sample
 
 K = 1
 PENALTY = 150.0
@@ -121,6 +121,17 @@ def test_islanded_subperiods_have_no_grid_transfer(case, first_stage, p_sch):
     assert np.all(islanded.deviation == -p_sch[1])
     # the plan's future is grid-connected on the forecast: only the announced sub-periods are islanded
     assert partly.plan_scenario.connected[0].tolist() == [1, 1, 0, 0, 1, 0] + [1] * 42
+
+
+def test_an_hour_that_cannot_be_operated_is_named_with_its_connection(case, first_stage, p_sch):
+    """Islanded, with a load far below the committed units' minimum outputs: nowhere for the power to go."""
+    realised = sample(case, 1, K, island_hours=0, seed=3)
+    light = ScenarioSet(K, realised.probability, realised.load * 0.01, realised.renewable, realised.connected)
+    op = Operator(case, first_stage, p_sch, PENALTY, K, light)
+    assert op.first.commitment[:, 0].any()
+    with pytest.raises(SolveError, match=r'^hour 1 \(islanded\) cannot be operated: the real-time LP is Infeasible '
+                                         r'\(docs/agent\.md, "Feasibility"\)$'):
+        op.operate_hour(1, [False] * K)
 
 
 def test_hours_must_come_in_order(case, first_stage, p_sch):
