@@ -525,13 +525,19 @@ def test_replay_selects_topics_and_start_offset_and_keeps_the_spacing_scaled_by_
     assert result["seconds"] >= span_s / 40 - 1e-3  # it waits for the recorded gaps, 40 times shorter (seconds are printed to 3 decimals)
 
 
-def test_replay_loops_until_interrupted(tmp_path):
+def _small_recording(tmp_path: Path) -> tuple[Path, list]:
+    """A synthetic day of one agent written as a recording, its messages 1 ms apart; the path and the messages."""
     run_id, path = new_run_id(), tmp_path / "small.mcap"
     mix = synthetic_day(run_id, 1, 1)
     with RecordingWriter(path, run_id) as writer:
         writer.start()
         for i, (key, payload) in enumerate(mix):
-            writer.write(key, payload, 1_000_000_000 + i * 1_000_000)  # 1 ms apart
+            writer.write(key, payload, 1_000_000_000 + i * 1_000_000)
+    return path, mix
+
+
+def test_replay_loops_until_interrupted(tmp_path):
+    path, mix = _small_recording(tmp_path)
     replay_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
     with Tap(replay_id, endpoint) as tap:
         player = subprocess.Popen(argv("replay", str(path), "--loop", "--rate", "4", "--run-id", replay_id, "--mode",
@@ -552,12 +558,7 @@ def test_replay_loops_until_interrupted(tmp_path):
 
 
 def test_replay_says_when_nobody_listens_and_plays_all_the_same(tmp_path):
-    run_id, path = new_run_id(), tmp_path / "small.mcap"
-    mix = synthetic_day(run_id, 1, 1)
-    with RecordingWriter(path, run_id) as writer:
-        writer.start()
-        for i, (key, payload) in enumerate(mix):
-            writer.write(key, payload, 1_000_000_000 + i * 1_000_000)
+    path, _ = _small_recording(tmp_path)
     out = dmosim("replay", str(path), "--run-id", new_run_id(), "--mode", "router", "--listen",
                  f"tcp/127.0.0.1:{free_port()}", "--rate", "max", "--wait-for-subscriber", "0.3")
     assert out.returncode == 0, out.stderr[-2000:]
