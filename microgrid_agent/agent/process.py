@@ -137,8 +137,8 @@ class MicrogridAgent:
                         k.summary()):
             self.bus.subscribe(pattern, put)
         self.bus.subscribe(k.receipt(self.id), self._receipt_arrived)
-        self.bus.wait_for_subscribers(k.register(self.id), self.config.idle_s)
-        self._join_where_the_run_is()
+        self._join_where_the_run_is()  # the DMO has answered: it listens (docs/protocol.md, step 3)
+        self.bus.wait_for_subscribers(k.register(self.id), self.config.idle_s)  # and this client knows it does
         grid = self.case.grid
         self._publish(Registration(sender=self.id, market_day=self.market_day, case=self.base.name,
                                    max_import_mw=grid.p_m_max, max_export_mw=grid.p_m_max,
@@ -456,6 +456,9 @@ class MicrogridAgent:
                         "missing)", self.id, first, grid.hour - 1)
         room = self._room(grid)
         result = self.operator.operate_hour(grid.hour, grid.connected, room)
+        if result.surplus.any():
+            log.warning("%s: hour %d islanded: %.3f MWh of generation had nowhere to go and was let out "
+                        '(docs/agent.md, "Feasibility")', self.id, grid.hour, result.surplus.sum() / grid.subperiods)
         if result.envelope_infeasible:
             self.ignored["envelope_infeasible"] += 1
             log.warning("%s: hour %d cannot be operated within its operating envelope (%g MW either side of the "

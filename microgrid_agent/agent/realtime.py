@@ -5,8 +5,9 @@ mode, load states) fixed, one scenario whose past and current hour are the reali
 connection the DMO announced, and whose future is the forecast, grid-connected. Sub-periods already operated are
 pinned to what was done, so the state of charge, ramps and load energy carry through the day; the current hour's
 values are then committed. Each LP extends the previous one's plan, which stays feasible for it (renewable spill
-and load curtailment absorb any surprise), so a day that started feasible stays feasible, unless an islanded hour
-leaves surplus generation nowhere to go (docs/agent.md, "Feasibility"): then the hour cannot be operated.
+and load curtailment absorb any surprise), so a day that started feasible stays feasible; an islanded hour whose
+generation the microgrid cannot take is operated again with an outlet for the surplus (docs/agent.md,
+"Feasibility").
 
 On a feeder the DMO's grid state also gives the hour's operating envelope, a room either side of the award: P_M is
 then held within it in the hour's grid-connected sub-periods, unless the hour cannot be operated so, in which case
@@ -35,7 +36,8 @@ from ..solvers.rolling import RollingLP
 class HourResult:
     """What one operated hour did, per sub-period (K values): P_M (+ import), its deviation P_M - P^sch, load shed,
     unit outputs (G, K), renewables used (R, K), storage power (+ discharge) and state of charge, adjustable loads
-    (D, K), and the hour's realised cost. ``plan`` is the rolling LP's whole-day solution on ``plan_scenario``.
+    (D, K), the surplus generation let out while islanded (MW, docs/agent.md, "Feasibility"), and the hour's
+    realised cost. ``plan`` is the rolling LP's whole-day solution on ``plan_scenario``.
     ``room``: the operating envelope P_M was held within (MW either side of the award where connected), None if the
     hour had none; ``envelope_infeasible``: the hour had one but could not be operated within it, and was operated
     without."""
@@ -50,6 +52,7 @@ class HourResult:
     p_storage: np.ndarray
     soc: np.ndarray
     d_load: np.ndarray
+    surplus: np.ndarray
     soc_end: float
     cost: CostBreakdown
     plan: StochasticSchedule
@@ -62,13 +65,16 @@ class HourResult:
 class RealisedDay:
     """The realised day: ``scenario`` holds the realised load and renewables with the announced connection, and
     ``schedule`` the operated dispatch as a one-scenario schedule (its objective the realised cost), so
-    ``checker.check_schedule(case, scenario, schedule, p_sch=..., penalty=..., deviation_cost=...)`` verifies it."""
+    ``checker.check_schedule(case, scenario, schedule, p_sch=..., penalty=..., deviation_cost=...)`` verifies it;
+    in a sub-period that let ``surplus`` generation out while islanded (MW, per sub-period), the balance (2) is off
+    by that much (docs/agent.md, "Feasibility")."""
 
     scenario: ScenarioSet
     schedule: StochasticSchedule
     p_sch: np.ndarray
     penalty: float
     deviation_cost: DeviationCost | None = None  # the announced rule's, priced instead of the penalty
+    surplus: np.ndarray | None = None
 
     @property
     def cost(self) -> CostBreakdown:
@@ -109,7 +115,8 @@ class Operator:
         # recomputed from P_M (and with an infinite penalty the model fixes it to 0, which a pinned positive part
         # where islanded would contradict).
         self._done = {"P": np.zeros((G, N)), "Pr": np.zeros((R, N)), "Pst": np.zeros((1, N)),
-                      "C": np.zeros((1, N)), "D": np.zeros((Dn, N)), "PM": np.zeros((1, N)), "LS": np.zeros((1, N))}
+                      "C": np.zeros((1, N)), "D": np.zeros((Dn, N)), "PM": np.zeros((1, N)), "LS": np.zeros((1, N)),
+                      "S": np.zeros((1, N))}  # and the surplus let out while islanded (solvers/rolling.py)
         self._connected = np.ones(N)
         self._hours: list[HourResult] = []
         self._lp = RollingLP(case, Params(self.p_sch, self.penalty, deviation_cost=self.deviation_cost), self.first,
@@ -183,23 +190,24 @@ class Operator:
                 raise ValueError(f"connected must be {self.K} booleans (one per sub-period), got {c!r}")
         self._connected[n0:n1] = np.concatenate(conns).astype(float)
         scen = self._scenario(n1)
-        bounds = None if room is None else self._envelope(n0, n1, room)
-
-        def solved(pm_bounds):
-            return self._lp.solve(scen, pinned=(n0, self._done), pm_bounds=pm_bounds, time_limit=self.time_limit)
-
-        infeasible = False
-        try:
+        wanted = None if room is None else self._envelope(n0, n1, room)
+        attempts = [(wanted, None)]
+        if wanted is not None:
+            attempts.append((None, None))  # a day never fails for an envelope
+        if not self._connected[n0:n1].all():
+            attempts.append((None, (n0, n1)))  # nor for surplus generation while islanded
+        for bounds, outlet in attempts:
             try:
-                plan = solved(bounds)
-            except SolveError:
-                if bounds is None:
-                    raise
-                plan, bounds, infeasible = solved(None), None, True  # a day never fails for an envelope
-        except SolveError as err:
-            raise SolveError(f"{_hours(first, last, self._connected[n0:n1])} cannot be operated: {err} "
-                             '(docs/agent.md, "Feasibility")') from None
-        self._commit(plan.dispatch, n0, n1, bounds)
+                plan, surplus = self._lp.solve(scen, pinned=(n0, self._done), pm_bounds=bounds,
+                                               time_limit=self.time_limit, outlet=outlet)
+                break
+            except SolveError as err:
+                failed = err
+        else:
+            raise SolveError(f"{_hours(first, last, self._connected[n0:n1])} cannot be operated: {failed} "
+                             '(docs/agent.md, "Feasibility")')
+        infeasible = wanted is not None and bounds is None
+        self._commit(plan.dispatch, surplus, n0, n1, bounds)
         kept = None if room is None or infeasible else float(room)
         results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen, kept, infeasible)
                    for h in range(first, last + 1)]
@@ -218,9 +226,10 @@ class Operator:
             return None
         return n0, lower, upper
 
-    def _commit(self, d: Dispatch, n0: int, n1: int, bounds: tuple[int, np.ndarray, np.ndarray] | None) -> None:
-        """Copy the current hour out of the plan, clipped to the bounds the next LP pins it within (and to the
-        envelope's, ``bounds``, if the LP held P_M within it)."""
+    def _commit(self, d: Dispatch, surplus: np.ndarray, n0: int, n1: int,
+                bounds: tuple[int, np.ndarray, np.ndarray] | None) -> None:
+        """Copy the current hour out of the plan and its surplus, clipped to the bounds the next LP pins it within
+        (and to the envelope's, ``bounds``, if the LP held P_M within it)."""
         st = self.case.storage
         now = slice(n0, n1)
         self._done["P"][:, now] = d.p_unit[:, 0, now]
@@ -232,6 +241,7 @@ class Operator:
         lower, upper = (-limit, limit) if bounds is None else bounds[1:]  # the envelope's lie within the limits
         self._done["PM"][:, now] = np.clip(d.p_m[:, now], lower, upper)
         self._done["LS"][:, now] = np.maximum(d.load_shed[:, now], 0.0)
+        self._done["S"][0, now] = surplus[now]
 
     def _cost(self, n0: int, n1: int, hours: slice) -> CostBreakdown:
         """Realised cost of sub-periods n0..n1 and of the commitment transitions in ``hours``."""
@@ -266,6 +276,7 @@ class Operator:
             p_storage=done["Pst"][0, now].copy(),
             soc=done["C"][0, now].copy(),
             d_load=done["D"][:, now].copy(),
+            surplus=done["S"][0, now].copy(),
             soc_end=float(done["C"][0, n1 - 1]),
             cost=self._cost(n0, n1, slice(hour - 1, hour)),
             plan=plan,
@@ -307,7 +318,7 @@ class Operator:
             timings=Timings(*(math.fsum(getattr(t, f) for t in timings) for f in ("build_s", "solve_s", "total_s"))),
             unit_names=tuple(u.name for u in self.case.units), load_names=tuple(d.name for d in self.case.loads),
         )
-        return RealisedDay(scen, schedule, self.p_sch.copy(), self.penalty, self.deviation_cost)
+        return RealisedDay(scen, schedule, self.p_sch.copy(), self.penalty, self.deviation_cost, done["S"][0].copy())
 
 
 def _hours(first: int, last: int, connected: np.ndarray) -> str:

@@ -8,6 +8,11 @@ column bounds of one live HiGHS model. Building the model with cvxpy every hour 
 
 Each hour is solved from scratch (no basis kept from the hour before), so an hour's plan depends on that hour's
 data alone: an agent restarted mid-day operates the same hours as one that was not.
+
+An islanded hour can leave generation with nowhere to go (docs/agent.md, "Feasibility"). The LP carries an outlet
+for it beside the model's own columns: per sub-period, the surplus S >= 0 on the demand side of the balance (2),
+priced at VOLL like shed load so that it is the last resort, and held at 0 unless ``solve`` is given the
+sub-periods where it may be used.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ class RollingLP:
         self.case, self.params, self.first = case, params, first
         self.lp = ScenarioLP(case, params, scen.subperiods, scen.N)
         data, self.columns = self.lp.compile(scen, 0)
-        self.h, self._data = highs_model(data, integer=False), data
+        self._take(data)
         held, cols = self.lp.first_stage(self.columns)
         self._fixed = cols, first_stage_vector(case, first_stage_variables(first))[held]
         self.startup = float(startup_cost(case, first_stage_variables(first)).value)
@@ -44,18 +49,29 @@ class RollingLP:
 
     def solve(self, scen: ScenarioSet, pinned: tuple[int, dict[str, np.ndarray]] | None = None,
               pm_bounds: tuple[int, np.ndarray, np.ndarray] | None = None,
-              time_limit: float | None = None) -> StochasticSchedule:
+              time_limit: float | None = None, outlet: tuple[int, int] | None = None
+              ) -> tuple[StochasticSchedule, np.ndarray]:
         """The rest of the day on the one-scenario ``scen``, as ``model.build`` takes ``pinned`` (the second-stage
-        values of the sub-periods before n0) and ``pm_bounds`` (P_M within [lower, upper] from sub-period n0); a
-        SolveError if it is infeasible or finds nothing in ``time_limit``."""
+        values of the sub-periods before n0, and with ``"S"`` the surplus let out there) and ``pm_bounds`` (P_M
+        within [lower, upper] from sub-period n0); a SolveError if it is infeasible or finds nothing in
+        ``time_limit``. ``outlet`` (n0, n1): the islanded sub-periods among n0..n1 may let surplus out. The plan,
+        and the surplus (MW) of every sub-period."""
         start = time.perf_counter()
         data, _ = self.lp.compile(scen, 0)
         if _same_matrix(data, self._data):
             lower, upper = row_bounds(data)
             self.h.changeRowsBounds(len(lower), np.arange(len(lower), dtype=np.int32), lower, upper)
         else:  # scenario data reached the matrix (not in today's model): take the model anew
-            self.h, self._data = highs_model(data, integer=False), data
+            self._take(data)
         lower, upper = self._column_bounds(data, pinned, pm_bounds)
+        let_out = np.zeros(len(self._outlet))
+        if outlet is not None:
+            islanded = scen.connected[0] < 0.5
+            let_out[outlet[0]:outlet[1]] = np.where(islanded[outlet[0]:outlet[1]], highspy.kHighsInf, 0.0)
+        held = np.zeros(len(self._outlet))
+        if pinned is not None and "S" in pinned[1]:
+            held[:pinned[0]] = np.asarray(pinned[1]["S"], float).reshape(-1)[:pinned[0]]
+        lower, upper = np.concatenate([lower, held]), np.concatenate([upper, np.maximum(held, let_out)])
         self.h.changeColsBounds(len(lower), np.arange(len(lower), dtype=np.int32), lower, upper)
         self.h.clearSolver()
         self.h.setOptionValue("time_limit", float(time_limit) if time_limit else highspy.kHighsInf)
@@ -66,14 +82,29 @@ class RollingLP:
             raise SolveError(f"the real-time LP is {self.h.modelStatusToString(status)}"
                              + (f" (time limit {time_limit} s)" if status == highspy.HighsModelStatus.kTimeLimit
                                 else ""))
-        arrays, costs = self.lp.read(self.columns, np.asarray(self.h.getSolution().col_value))
+        col = np.asarray(self.h.getSolution().col_value)
+        model, surplus = col[:-len(self._outlet)], np.maximum(col[self._outlet], 0.0)
+        arrays, costs = self.lp.read(self.columns, model)
         found = Found(first_stage_variables(self.first), self.startup, {n: a[None] for n, a in arrays.items()},
                       {n: np.array([c]) for n, c in costs.items()},
                       self.startup + self.h.getInfo().objective_function_value, "optimal")
         end = time.perf_counter()
         build_s, self._unbooked_s = built - start + self._unbooked_s, 0.0
         return found_schedule(self.case, scen, self.params, found,
-                              Timings(build_s=build_s, solve_s=end - built, total_s=build_s + end - built))
+                              Timings(build_s=build_s, solve_s=end - built, total_s=build_s + end - built)), surplus
+
+    def _take(self, data: dict) -> None:
+        """A live HiGHS model of ``data``, with the outlet's columns after the model's: each the negative of the
+        shed load's column in its balance row (2), at its cost."""
+        self.h, self._data = highs_model(data, integer=False), data
+        shed = self.columns.of(self.lp.var["LS"])
+        balance = data["A"].tocsc()[:data["dims"].zero][:, shed]  # the equality rows: (2) holds LS once
+        if not np.all(np.diff(balance.indptr) == 1):
+            raise ValueError("the shed load is not in exactly one balance row of each sub-period")
+        n, first = len(shed), data["A"].shape[1]
+        self.h.addCols(n, np.asarray(data["c"], float)[shed], np.zeros(n), np.zeros(n), n,
+                       np.arange(n, dtype=np.int32), balance.indices.astype(np.int32), -balance.data)
+        self._outlet = np.arange(first, first + n, dtype=np.int32)
 
     def _column_bounds(self, data: dict, pinned, pm_bounds) -> tuple[np.ndarray, np.ndarray]:
         lower, upper = (bound.copy() for bound in column_bounds(data))

@@ -118,18 +118,31 @@ def test_islanded_subperiods_have_no_grid_transfer(case, first_stage, p_sch):
     partly = operate(op, 3, [True, False], case, p_sch)
     assert np.all(islanded.p_m == 0) and not islanded.connected.any()
     assert partly.p_m[1] == 0 and partly.connected.tolist() == [True, False]
+    assert not islanded.surplus.any() and not partly.surplus.any()  # the load takes what the units make
     assert np.all(islanded.deviation == -p_sch[1])
     # the plan's future is grid-connected on the forecast: only the announced sub-periods are islanded
     assert partly.plan_scenario.connected[0].tolist() == [1, 1, 0, 0, 1, 0] + [1] * 42
 
 
-def test_an_hour_that_cannot_be_operated_is_named_with_its_connection(case, first_stage, p_sch):
-    """Islanded, with a load far below the committed units' minimum outputs: nowhere for the power to go."""
+def test_islanded_generation_the_load_cannot_take_is_let_out_and_the_day_goes_on(case, first_stage, p_sch):
+    """Islanded, with a load far below the committed units' minimum outputs: the surplus is let out (and only
+    there), the balance (2) holds with it, the next hour is operated as usual, and the realised day carries it."""
     realised = sample(case, 1, K, island_hours=0, seed=3)
     light = ScenarioSet(K, realised.probability, realised.load * 0.01, realised.renewable, realised.connected)
     op = Operator(case, first_stage, p_sch, PENALTY, K, light)
     assert op.first.commitment[:, 0].any()
-    with pytest.raises(SolveError, match=r'^hour 1 \(islanded\) cannot be operated: the real-time LP is Infeasible '
+    islanded = op.operate_hour(1, [False] * K)
+    assert (islanded.surplus > 0.1).all() and (islanded.p_m == 0).all()
+    supply = islanded.p_unit.sum(0) + islanded.p_renewable.sum(0) + islanded.p_storage + islanded.load_shed
+    np.testing.assert_allclose(supply - islanded.surplus, light.load[0, :K] + islanded.d_load.sum(0), atol=1e-6)
+    for hour in range(2, 25):
+        assert not op.operate_hour(hour, [True] * K).surplus.any()
+    np.testing.assert_array_equal(op.day_result().surplus, np.concatenate([islanded.surplus, np.zeros(23 * K)]))
+
+
+def test_an_hour_that_cannot_be_operated_is_named_with_its_connection(case, first_stage, p_sch):
+    op = Operator(case, first_stage, p_sch, PENALTY, K, sample(case, 1, K, island_hours=0, seed=3), time_limit=1e-9)
+    with pytest.raises(SolveError, match=r'^hour 1 \(islanded\) cannot be operated: the real-time LP is .*'
                                          r'\(docs/agent\.md, "Feasibility"\)$'):
         op.operate_hour(1, [False] * K)
 
@@ -280,7 +293,8 @@ def test_each_hours_lp_is_the_extensive_form_and_depends_on_that_hours_data_alon
         stale = RollingLP(case, params, op.first, result.plan_scenario)
         stale._data = {**stale._data, "c": stale._data["c"] + 1.0}  # as if the model's data had reached it
         for again in (fresh, stale):
-            plan = again.solve(result.plan_scenario, pinned=(n0, past), pm_bounds=bounds)
+            plan, surplus = again.solve(result.plan_scenario, pinned=(n0, past), pm_bounds=bounds)
+            assert not surplus.any()
             for field in DISPATCH:
                 np.testing.assert_array_equal(getattr(plan.dispatch, field), getattr(result.plan.dispatch, field))
         for name, field in PINNED.items():
