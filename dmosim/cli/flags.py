@@ -202,12 +202,17 @@ def recording_path(path: str, overwrite: bool) -> Path:
 RECORDING_HELP = "a recording (MCAP file) or a run directory (its recording.mcap)"  # what load_recording reads
 
 
+def recording_file(path: str) -> str:
+    """The recording PATH names: the file itself, or a run directory's recording.mcap."""
+    if Path(path).is_dir() and RunDir(Path(path)).recording.is_file():
+        return str(RunDir(Path(path)).recording)
+    return path
+
+
 def load_recording(path: str) -> Recording:
     """A recording (a file, or a run directory's), or the one-line UsageError (exit 2) of a file that is not one."""
-    if Path(path).is_dir() and RunDir(Path(path)).recording.is_file():
-        path = str(RunDir(Path(path)).recording)
     try:
-        return read_recording(path)
+        return read_recording(recording_file(path))
     except RecordingError as exc:
         raise UsageError(str(exc)) from None
 

@@ -32,7 +32,7 @@ from ..launch.mesh import router_names
 from ..launch.roles import fleet_written, resolved, strategy_of
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
-from .flags import add_trust_flag, check_out, load_recording, recording_path, untrusted
+from .flags import add_trust_flag, check_out, load_recording, recording_file, recording_path, untrusted
 from .settings import add_setting_flags, experiment_with_flags
 
 HELP = "market days as processes: the DMO and one process per agent over Zenoh, from an experiment file and flags"
@@ -201,7 +201,8 @@ def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Clust
     try:
         if cluster:
             check_shared(cluster, rundir.root)
-        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=args.source, say=say,
+        repeat_of = recording_file(args.source) if args.source else None  # a run directory's recording.mcap
+        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=repeat_of, say=say,
                              tick=tick, cluster=cluster)
     except RoleFailed as exc:
         if bar:

@@ -51,8 +51,8 @@ def test_a_sweep_runs_each_variant_and_tables_every_bill(tmp_path):
     assert (tmp_path / "sweep" / "sweep.png").read_bytes()[:4] == b"\x89PNG"
 
     first, second = (tmp_path / "sweep" / label / "recording.mcap" for label in table["label"])
-    again = subprocess.run(dmosim("run", "--from", str(first), "--out", str(tmp_path / "again"), "--json", "--quiet"),
-                           capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    again = subprocess.run(dmosim("run", "--from", str(first.parent), "--out", str(tmp_path / "again"), "--json",
+                                  "--quiet"), capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert again.returncode == 0, again.stderr[-3000:]
     assert json.loads(again.stdout)["reproduced"] == {"source": str(first), "identical": True, "differences": []}
     told_apart = differences(read_recording(first), read_recording(second))  # penalty 0 against 400
