@@ -46,18 +46,17 @@ def _probability(text: str) -> float:
 def run(args) -> dict:
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="dmosim-bench-recovery-"))
     flags = run_flags(args)
+    kept = bool(args.out)
     try:
         runs = {name: run_and_read(flags + more, args.timeout, keep=root / name)
                 for name, more in (("fault-free", []), ("dropped", ["--fault", f"drop:**:{args.drop!r}"]))}
         changed = differences(*(read_recording(root / name / "recording.mcap") for name in runs))
     except RuntimeError:  # a run failed or was stopped: the error names its directory, which stays
+        kept = True
         raise
-    except BaseException:
-        if not args.out:
+    finally:
+        if not kept:
             shutil.rmtree(root, ignore_errors=True)
-        raise
-    if not args.out:
-        shutil.rmtree(root, ignore_errors=True)
     rows = [_row(name, run) for name, run in runs.items()]
     ratio = rows[1]["wall_s"] / rows[0]["wall_s"]
     return {
