@@ -73,7 +73,7 @@ def check_bus(msg: Registration, network, placement) -> Refusal | None:
         return None if msg.bus is None else ("invalid", f"{msg.sender} names bus {msg.bus}, but this market has no "
                                                         "feeder (a copper plate)")
     placed = placement.get(msg.sender)
-    bus = msg.bus if msg.bus is not None else placed
+    bus = bus_at(msg, placement)
     if bus is None:
         return "invalid", f"{msg.sender} names no bus and the run places it at none: on a feeder, name your bus"
     if placed is not None and bus != placed:
@@ -83,6 +83,11 @@ def check_bus(msg: Registration, network, placement) -> Refusal | None:
     except ValueError as err:
         return "invalid", str(err)
     return None
+
+
+def bus_at(msg: Registration, placement) -> str | None:
+    """The bus a registration puts its agent at: the one it names, else the one ``placement`` places it at."""
+    return msg.bus if msg.bus is not None else placement.get(msg.sender)
 
 
 def check_meter_report(msg: MeterReport, hour: int, subperiods: int, reported, registration: Registration,

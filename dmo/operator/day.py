@@ -470,7 +470,8 @@ class MarketDay:
         """A valid message from an agent, with the bytes it arrived as, decided by ``intake.receive``: what it took
         is journaled before its receipt goes (what is receipted survives a restart), a refusal is published, a
         rejoin is met with what the agent needs; every message gets its receipt."""
-        outcome = intake.receive(self.state, msg, sha256(payload), accept)
+        outcome = intake.receive(self.state, msg, sha256(payload), accept, self.config.network,
+                                 self.config.placement)
         if outcome.what == intake.REFUSED:
             code, reason = outcome.refusal
             return self._reject(key, payload, MessageError(reason, code), msg.sender)

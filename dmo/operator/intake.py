@@ -38,8 +38,10 @@ class Outcome:
         return self.what in (ACCEPTED, REJOINED)
 
 
-def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
-    """Decide on ``msg``, whose payload hashes to ``sha256``, and update ``state`` accordingly."""
+def receive(state: DayState, msg, sha256: str, accept: Accept, network=None, placement=None) -> Outcome:
+    """Decide on ``msg``, whose payload hashes to ``sha256``, and update ``state`` accordingly. ``network`` and
+    ``placement`` (agent -> bus) are the run's feeder, if any, which a rejoin's bus is checked on as a first
+    registration's is (``registration``)."""
     refusal = acceptance.check_run(msg, state.run_token)
     if refusal:
         return Outcome(REFUSED, refusal)
@@ -55,7 +57,7 @@ def receive(state: DayState, msg, sha256: str, accept: Accept) -> Outcome:
     what = ACCEPTED
     if refusal is None:
         if rejoining:
-            refusal = rejoin.rejoin_refusal(state, msg)
+            refusal = rejoin.rejoin_refusal(state, msg, network, placement)
             if refusal is None:
                 rejoin.readmit(state, msg)
                 what = REJOINED

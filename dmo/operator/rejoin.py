@@ -11,15 +11,17 @@ from __future__ import annotations
 
 from messages import Registration
 
-from ..market.acceptance import Refusal, repeated
+from ..market.acceptance import Refusal, bus_at, check_bus, repeated
 from .state import DayState
 
 CALL_FOR_BIDS, AWARD, GRID_STATE = "call_for_bids", "award", "grid_state"
 
 
-def rejoin_refusal(state: DayState, msg: Registration) -> Refusal | None:
+def rejoin_refusal(state: DayState, msg: Registration, network=None, placement=None) -> Refusal | None:
     """Whether a registered agent's new registration is refused: from the process already admitted it is a repeat;
-    from a later one (a restart) it must name the same case and limits as at first."""
+    from a later one (a restart) it must name the same case and limits as at first and, on a feeder (``network``
+    and the run's ``placement``), pass the bus rule of a first registration (``acceptance.check_bus``) at the bus
+    it was registered at."""
     agent = msg.sender
     if msg.incarnation == state.guard.incarnation.get(agent):
         return repeated("registration", agent)
@@ -27,6 +29,13 @@ def rejoin_refusal(state: DayState, msg: Registration) -> Refusal | None:
     if (msg.case, msg.max_import_mw, msg.max_export_mw) != (first.case, first.max_import_mw, first.max_export_mw):
         return "invalid", (f"{agent} cannot rejoin: it registered again with another case or other limits than "
                            "at first")
+    placement = placement or {}
+    refusal = check_bus(msg, network, placement)
+    if refusal is not None:
+        return refusal[0], f"{agent} cannot rejoin: {refusal[1]}"
+    if bus_at(msg, placement) != bus_at(first, placement):
+        return "invalid", (f"{agent} cannot rejoin: it names bus {bus_at(msg, placement)}, but registered at bus "
+                           f"{bus_at(first, placement)} at first")
     return None
 
 

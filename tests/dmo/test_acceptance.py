@@ -3,6 +3,7 @@ applies the same rules."""
 
 from __future__ import annotations
 
+import itertools
 from types import SimpleNamespace
 
 import pytest
@@ -188,3 +189,39 @@ def test_the_dmos_result_gives_each_agents_realised_days_in_order_and_none_for_a
     assert [(d["day"], d["market_day"], d["total"]) for d in realised["mg1"]] == [(1, "2026-06-30", 115.0),
                                                                                  (2, DAY, 215.0)]
     assert realised["mg2"] == [] and "sender" not in realised["mg1"][0] and realised["mg1"][0]["messages"]["asked"] == 0
+
+
+FEEDER_BUSES = ("0", "1", "2", "3", "4")  # feeder5: substation 0
+
+
+@pytest.mark.parametrize("placed", [None, "2"])
+def test_a_rejoin_is_held_to_the_bus_rule_of_a_registration_for_every_bus(placed):
+    """Every pair of (first registration's bus, rejoin's bus) over feeder5's buses, none named and one that does not
+    exist, with the agent placed by the run or not: a restarted process rejoins exactly when its registration would
+    be taken as a first one and puts the agent at the bus it was registered at; otherwise it is refused and the old
+    process stays admitted."""
+    from scenarios.network import load_network
+
+    network, placement = load_network("feeder5"), {} if placed is None else {"mg1": placed}
+    candidates = (None, *FEEDER_BUSES, "99")
+    for first_bus, again_bus in itertools.product(candidates, candidates):
+        state = DayState(market_day=DAY, run_token="ab" * 16)
+
+        def sent(bus, incarnation, rule):
+            msg = REG.model_copy(update={"run": state.run_token, "incarnation": incarnation, "seq": 0, "bus": bus})
+            payload = encode(msg)
+            return intake.receive(state, decode(payload), sha256(payload), rule, network, placement)
+
+        first = sent(first_bus, 100, intake.registration(state, network, placement))
+        at = first_bus if first_bus is not None else placed
+        valid = at not in (None, "0", "99") and (placed is None or at == placed)
+        assert first.taken == valid, (first_bus, first)
+        if not valid:
+            continue
+        state.phase = "realtime"
+        again = sent(again_bus, 101, intake.out_of_phase(state))
+        again_at = again_bus if again_bus is not None else placed
+        assert (again.what == intake.REJOINED) == (again_at == at), (first_bus, again_bus, again)
+        if again_at != at:
+            assert again.refusal[0] == "invalid" and "cannot rejoin" in again.refusal[1]
+            assert state.guard.incarnation["mg1"] == 100  # the registered process stays the admitted one
