@@ -28,7 +28,7 @@ from messages.schemas import AgentDay
 from messages.transport import Bus
 from messages.transport.heap import return_free_memory
 from scenarios.horizon import HOURS
-from scenarios.names import check_agent_id
+from scenarios.names import RECORDER, check_agent_id
 
 from ..market.acceptance import PHASE_ORDER
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
@@ -488,7 +488,9 @@ class MarketDay:
         """Stay until the live agents have left (they leave once they have the summary and what they sent is
         receipted), at most ``linger_s`` (the hour deadline unless set): the DMO is the agents' router, and closing
         at once could cut off the summary still on its way. What agents send meanwhile is decided and receipted as
-        in settlement: a realised day of the last day is still taken."""
+        in settlement: a realised day of the last day is still taken. Then, if a recorder is present, wait (at most
+        ``RECORDER_CHECK_S``) until it has asked for the traffic to its end (it asks as agents leave): what the
+        network lost on its way there, the last day's statements and summary too, reaches the recording."""
         # an agent whose presence the DMO cannot see (a client that declares no liveliness token) is not waited for
         waiting = set(self.state.live()) & self.bus.present(timeout_s=PRESENCE_CHECK_S)
         c = self.config
@@ -503,9 +505,14 @@ class MarketDay:
                 waiting.discard(event[1])
             elif event[0] in ("msg", "reject"):
                 self._handle(event, accept)
+        recorder = RECORDER in self.bus.present(timeout_s=PRESENCE_CHECK_S)
+        if recorder and not self.history.wait_answered(RECORDER_CHECK_S):
+            log.warning("the recorder did not ask for the run's last messages within %g s: the recording may lack "
+                        "what the network lost on its way there", RECORDER_CHECK_S)
 
 
 PRESENCE_CHECK_S = 0.5  # how long a presence check may hold the DMO up (an answer on one host takes milliseconds)
+RECORDER_CHECK_S = 10.0  # how long a leaving DMO waits for the recorder to ask for what it may have missed
 
 
 def _when(phase: str, hour: int | None) -> str:

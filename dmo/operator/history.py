@@ -45,6 +45,8 @@ class DayHistory:
         self._lock = threading.Lock()
         self._mark_at, self._mark_ns = array("q"), array("q")  # where each mark is, and the latest ns before it
         self._recorded = 0
+        self._answered = threading.Condition(self._lock)
+        self._covered = 0  # lines of traffic that a history answer read to its end has covered
         self._latest_ns = -1
         for entry in traffic(journal.entries if journal else ()):
             self._keep_latest(entry)
@@ -101,14 +103,25 @@ class DayHistory:
             before = bisect.bisect_left(self._mark_ns, since)  # marks before which everything is older than since
             start = self._mark_at[before - 1] if before else 0
             end = self._journal.size if self._journal is not None else self._size
+            recorded = self._recorded
         if self._journal is None:
             yield from _lines(self._scratch.fileno(), start, end)
-            return
-        fd = os.open(self._journal.path, os.O_RDONLY)
-        try:
-            yield from _lines(fd, start, end)
-        finally:
-            os.close(fd)
+        else:
+            fd = os.open(self._journal.path, os.O_RDONLY)
+            try:
+                yield from _lines(fd, start, end)
+            finally:
+                os.close(fd)
+        with self._answered:  # read to its end: whoever asked has had all the traffic recorded when it asked
+            self._covered = max(self._covered, recorded)
+            self._answered.notify_all()
+
+    def wait_answered(self, timeout_s: float) -> bool:
+        """Wait until a question about the traffic has been answered to the end of all the traffic recorded (at
+        most ``timeout_s``); whether it has been. The recorder asks whenever an agent leaves, so a DMO that waits
+        for this before it leaves knows that the recording lacks nothing that the network lost on its way."""
+        with self._answered:
+            return self._answered.wait_for(lambda: self._covered >= self._recorded, timeout_s)
 
 
 def _lines(fd: int, start: int, end: int, chunk: int = 1 << 16) -> Iterator[bytes]:

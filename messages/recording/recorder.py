@@ -1,7 +1,9 @@
 """The recorder's loop: every payload under one run prefix, as it arrived, valid or not, into a RecordingWriter;
 for a recorder that joins late, what the run said before it joined, asked of the DMO (``backfill``); and what the
-network lost on the way to it, asked of the DMO on each day summary (``catch up``): everything the DMO sent or
-received since the last."""
+network lost on the way to it, asked of the DMO on each day summary and whenever an agent leaves (``catch up``):
+everything the DMO sent or received since the last. Agents leave at the run's end, once they have their last
+statements, so the last check comes after the last day's messages even when every one of them was lost on its
+way here (the DMO waits for that check before it leaves: dmo/operator/day.py)."""
 
 from __future__ import annotations
 
@@ -83,7 +85,8 @@ class Recorder:
         self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
         self.seen = Seen()  # the payloads queued in the current catch-up window and the one before
         self._summary = bus.keys.summary()  # once a day's summary is written, the memory the day used goes back
-        self._wake = threading.Event()  # a day summary came: check the DMO's history
+        self._wake = threading.Event()  # a day summary came, or an agent left: check the DMO's history
+        self._dmo_gone = threading.Event()  # the DMO left: a check under way waits for an answer that cannot come
         self._closing = False
         self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
@@ -99,6 +102,7 @@ class Recorder:
             self.backfilled = self._backfill(timeout_s)
             self._catching_up = threading.Thread(target=self._catch_up_loop, name="recorder-catch-up", daemon=True)
             self._catching_up.start()
+            self.bus.watch_presence(lambda name: None, self._left, history=False)
         if self.announce:
             self._token = self.bus.session.liveliness().declare_token(self.bus.keys.alive(self.bus.name))
         return self.backfilled
@@ -114,11 +118,20 @@ class Recorder:
                 and parsed.kind in HISTORY_KINDS):
             self._wake.set()
 
+    def _left(self, name: str) -> None:
+        """A process of the run left: if it is an agent, the DMO may be about to end the run (liveliness is never
+        lost as a message may be), so check its history now; if it is the DMO, nobody is left to ask."""
+        if name == DMO:
+            self._dmo_gone.set()
+        else:
+            self._wake.set()
+
     def _catch_up_loop(self) -> None:
-        """On each day summary of the DMO's, ask it for everything it sent or received since the last, and queue what
-        never arrived here. Zenoh delivers once: a message the network lost on the way here (an agent's
-        registration behind a router link that went down, an award its agent alone asked for again) would be
-        missing from the recording. Off Zenoh's threads: a query must not block one."""
+        """On each day summary of the DMO's and each agent that leaves, ask the DMO for everything it sent or
+        received since the last, and queue what never arrived here. Zenoh delivers once: a message the network lost
+        on the way here (an agent's registration behind a router link that went down, an award its agent alone
+        asked for again, a statement dropped by a fault) would be missing from the recording. Off Zenoh's threads:
+        a query must not block one."""
         while not self._closing:
             if not self._wake.wait(timeout=0.5) or self._closing:  # closing wakes it to end, not to check
                 continue
@@ -150,8 +163,8 @@ class Recorder:
         added += self._queue_missing(late)
         self.seen.checked_until(latest + 1)
         if added:
-            log.info("caught up on %d message(s) the DMO sent or received since the last day summary that never "
-                     "came here", added)
+            log.info("caught up on %d message(s) the DMO sent or received since the last check that never came "
+                     "here", added)
         return added
 
     def _queue_missing(self, entries) -> int:
@@ -216,12 +229,12 @@ class Recorder:
 
     def _finish_catching_up(self) -> None:
         """Let a check of the DMO's history under way end (its answer may hold the last registrations the file
-        lacks), for at most ``CLOSING_WAIT_S``; then no new one starts."""
+        lacks), for at most ``CLOSING_WAIT_S`` while the DMO is there to answer; then no new one starts."""
         self._closing = True
         thread = self._catching_up
         if thread is not None and thread is not threading.current_thread():
             self._wake.set()
-            thread.join(CLOSING_WAIT_S)
+            thread.join(0 if self._dmo_gone.is_set() else CLOSING_WAIT_S)
 
     def _write(self, key: str, payload: bytes, at: int, live: bool, on_write) -> None:
         valid = self.writer.write(key, payload, at)

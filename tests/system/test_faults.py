@@ -440,7 +440,8 @@ def test_the_operator_catches_up_missed_hours_in_one_lp_and_the_day_stays_valid(
 def test_dmosim_run_survives_message_faults_and_a_restart_and_settles_what_it_accepted(tmp_path):
     # the grid state's delay paces the hours, so that the restarted agent (seconds to start) rejoins mid-day
     faults = ["duplicate:agent/*/meter:1", "duplicate:dmo/grid:1", "delay:dmo/grid:0.5", "corrupt:agent/mg2/meter:0.15",
-              "drop:agent/mg1/meter:0.1", "delay:agent/*/bid:0.3", "restart:mg1:2"]
+              "drop:agent/mg1/meter:0.1", "delay:agent/*/bid:0.3", "restart:mg1:2",
+              "drop:dmo/statement/mg2:1", "drop:dmo/summary:1"]  # asked for by the agent, caught up by the recorder
     deadlines = [*DEADLINES[:-1], "2.5"]
     assert DEADLINES[-2] == "--hour-timeout"
     argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *deadlines, "--out", str(tmp_path), "--json",
