@@ -2,8 +2,8 @@
 certificates ``dmosim credentials --cluster`` makes and always closed: dmosim's launcher connects with its bundle and
 runs a command on the worker as ``sweep --cluster`` does; a client without the cluster's certificates reaches neither
 the scheduler nor the worker; and an agent placed on the worker as ``run --cluster`` places it gets its own bundle
-of the run's credentials, in a private directory there, and nothing else. Whole runs on a cluster are in
-tests/system/test_on_a_cluster.py."""
+of the run's credentials, in a private directory there, and nothing else. An open scheduler (tcp://) is used only
+with --insecure-cluster. Whole runs on a cluster are in tests/system/test_on_a_cluster.py."""
 
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ from pathlib import Path
 import pytest
 
 from dmosim.cli.main import build_parser, main
+from dmosim.console import UsageError
 from dmosim.cli.placement import check_cluster, check_shared, connected
 from dmosim.launch.cluster import Commands, RemoteAgents
 from dmosim.launch.clusterauth import CLIENT, cluster_security
@@ -36,8 +37,8 @@ def tls_cluster(tmp_path_factory):
     auth = tmp_path_factory.mktemp("cluster") / "auth"
     assert main(["credentials", "--cluster", "--out", str(auth)]) == 0
     with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True, protocol="tls://",
-                                  host="127.0.0.1", scheduler_port=0, dashboard_address=None,
-                                  worker_dashboard_address=None, security=cluster_security(auth)) as local, \
+                                  host="127.0.0.1", scheduler_port=0, dashboard_address="127.0.0.1:0",
+                                  worker_dashboard_address="127.0.0.1:0", security=cluster_security(auth)) as local, \
             distributed.Client(local, set_as_default=False) as client:
         yield auth, client
 
@@ -149,3 +150,16 @@ def _auth_dir_of(run_id: str, timeout_s: float = 120) -> Path:
                     return given
         time.sleep(0.1)  # paces the look at /proc: nothing to wait on but the process appearing
     raise AssertionError(f"no agent of run {run_id} started")
+
+
+def test_an_open_scheduler_is_used_when_the_user_says_so():
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
+                                  host="127.0.0.1", scheduler_port=0, dashboard_address="127.0.0.1:0",
+                                  worker_dashboard_address="127.0.0.1:0") as local:
+        address = local.scheduler.address
+        with pytest.raises(UsageError, match=f"--cluster {address}: a Dask scheduler's users can run any code"):
+            check_cluster(args_of(["run"], "--cluster", address))
+        args = args_of(["run"], "--cluster", address, "--insecure-cluster")
+        check_cluster(args)
+        with connected(args) as cluster:
+            assert cluster.threads() == 1

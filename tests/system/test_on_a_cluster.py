@@ -60,8 +60,8 @@ def auth(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def cluster(auth):
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, protocol="tls://",
-                                  host="127.0.0.1", scheduler_port=0, dashboard_address=None,
-                                  worker_dashboard_address=None, security=cluster_security(auth)) as local, \
+                                  host="127.0.0.1", scheduler_port=0, dashboard_address="127.0.0.1:0",
+                                  worker_dashboard_address="127.0.0.1:0", security=cluster_security(auth)) as local, \
             distributed.Client(local, set_as_default=False) as client:
         client.get_task_stream()  # from now on the scheduler keeps a record of each task: where it ran
         yield client
