@@ -20,7 +20,7 @@ import ssl
 from pathlib import Path
 
 from messages.transport.access import CA_FILE, CERT_FILE, KEY_FILE, AuthError
-from messages.transport.credentials import Leaf, check_private, fresh_directory, write_certificates
+from messages.transport.credentials import Leaf, check_private, check_validity, fresh_directory, write_certificates
 
 SCHEDULER, WORKER, CLIENT = "scheduler", "worker", "client"  # the bundles, each named for its role in Dask
 CREDENTIALS_COMMAND = "dmosim credentials --cluster --out DIR"  # what makes them
@@ -30,6 +30,7 @@ def create_cluster_auth(out: str | os.PathLike, valid_days: int, *, overwrite: b
     """Fresh credentials of a cluster in ``out`` (made private; ``overwrite`` replaces what it holds): a new CA and
     a certificate for each role, valid for ``valid_days``."""
     out = Path(out)
+    check_validity(valid_days)  # before anything is made
     fresh_directory(out, overwrite)
     for role in (SCHEDULER, WORKER, CLIENT):
         (out / role).mkdir(mode=0o700)

@@ -48,8 +48,7 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
     if len(readers) > MAX_READERS or len(hosts) > MAX_HOSTS or len(routers) > MAX_HOSTS:
         raise AuthError(f"at most {MAX_READERS} readers, {MAX_HOSTS} host names and {MAX_HOSTS} routers, not "
                         f"{len(readers)}, {len(hosts)} and {len(routers)}")
-    if not 1 <= valid_days <= MAX_CERT_DAYS:
-        raise AuthError(f"certificates are valid for 1..{MAX_CERT_DAYS} days, not {valid_days}")
+    check_validity(valid_days)
     if tls and not hosts:
         raise AuthError("TLS needs at least one host name or address for the router's certificate")
     Keys(run_id)  # a bad run id fails here, not in the router
@@ -69,6 +68,12 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
         write_certificates([Leaf(out, ROUTER_CERT_NAME, server=True, hosts=tuple(hosts)),
                             *(Leaf(out / n, n, client=True) for n in names)], valid_days)
     return out
+
+
+def check_validity(valid_days: int) -> None:
+    """``AuthError`` unless certificates may be made valid for ``valid_days``."""
+    if not 1 <= valid_days <= MAX_CERT_DAYS:
+        raise AuthError(f"certificates are valid for 1..{MAX_CERT_DAYS} days, not {valid_days}")
 
 
 def fresh_directory(out: Path, overwrite: bool) -> None:
