@@ -1,6 +1,7 @@
 """The TLS credentials of a Dask cluster for ``--cluster`` (docs/cluster.md): made (a CA of their own, and the
-scheduler's, the workers' and the launcher's certificates, by the helper that makes a run's) and read back as the
-launcher's ``distributed.Security``, which refuses any connection that is not mutual TLS with that CA.
+scheduler's, the workers' and the launcher's certificates, by the helper that makes a run's) and read back as a
+``distributed.Security`` (the launcher's, or every role's for a Python that starts the cluster itself), which
+refuses any connection that is not mutual TLS with that CA.
 
 The layout, one bundle per role, each as a run's (messages/transport/access.py)::
 
