@@ -1,24 +1,32 @@
-"""``dmosim credentials``: per-run passwords, access-control rules and TLS certificates for roles on several hosts."""
+"""``dmosim credentials``: per-run passwords, access-control rules and TLS certificates for roles on several hosts;
+with ``--cluster``, the TLS certificates of a Dask cluster for ``--cluster-auth`` instead (docs/cluster.md)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from messages.transport.access import READERS, AuthError
+from messages.transport.access import CA_FILE, CERT_FILE, KEY_FILE, READERS, AuthError
 from messages.transport.credentials import DEFAULT_HOSTS, MAX_CERT_DAYS, MAX_HOSTS, MAX_READERS, create_auth_dir
 from scenarios.fleet import FleetError, load_fleet, make_fleet
 
 from ..arguments import agents, integer
 from ..console import UsageError
+from ..launch.clusterauth import CLIENT, SCHEDULER, WORKER, create_cluster_auth
 from .flags import DEFAULT_AGENTS, run_id_of
 
-HELP = "passwords, access-control rules and TLS certificates of one run, for roles on several hosts (docs/security.md)"
+HELP = ("passwords, access-control rules and TLS certificates of one run, for roles on several hosts "
+        "(docs/security.md); --cluster: a Dask cluster's TLS certificates (docs/cluster.md)")
+RUN_FLAGS = ("run_id", "agents", "fleet", "reader", "router", "tls", "host")  # what --cluster's certificates ignore
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="directory to create: the router's files, and "
                                                                "one bundle DIR/<name>/ per other process")
+    p.add_argument("--cluster", action="store_true",
+                   help="instead of a run's credentials, a Dask cluster's: a CA and the bundles DIR/scheduler/, "
+                        "DIR/worker/ (one for every worker) and DIR/client/ (dmosim run and sweep --cluster-auth DIR); "
+                        "takes --days and --overwrite only (docs/cluster.md)")
     p.add_argument("--run-id", help="the run the rules are for (default: a new one, printed)")
     p.add_argument("--agents", type=agents, help=f"agents mg1..mgN (default: {DEFAULT_AGENTS})")
     p.add_argument("--fleet", help="fleet TOML file naming the agents instead of --agents")
@@ -40,6 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
+    if args.cluster:
+        return _cluster(args)
     if args.agents is not None and args.fleet is not None:
         raise UsageError("--agents and --fleet exclude each other: a fleet file names its agents")
     try:
@@ -63,4 +73,32 @@ def run(args) -> int:
               f"{router} --listen tls/HOST:7447 --connect tls/DMO-HOST:7447, DIR holding {out}'s router files "
               f"and its bundle {out}/{router}/ (docs/hosts.md)")
     print(f"  bundles: {', '.join(bundles)}")
+    return 0
+
+
+def _cluster(args) -> int:
+    """``--cluster``: the cluster's certificates, and the commands that use them."""
+    given = [name for name in RUN_FLAGS if getattr(args, name) not in (None, False, [])]
+    if given:
+        raise UsageError(f"--{given[0].replace('_', '-')} is for a run's credentials; --cluster makes a Dask "
+                         "cluster's, which take --days and --overwrite only")
+    try:
+        out = create_cluster_auth(args.out, args.days, overwrite=args.overwrite)
+    except AuthError as exc:
+        raise UsageError(str(exc)) from None
+    except OSError as exc:
+        raise UsageError(f"cannot write {args.out}: {exc.strerror or exc}") from None
+
+    def tls(role: str) -> str:
+        bundle = out / role
+        return f"--tls-ca-file {bundle / CA_FILE} --tls-cert {bundle / CERT_FILE} --tls-key {bundle / KEY_FILE}"
+
+    print(f"TLS credentials of a Dask cluster in {out}, valid for {args.days} days: a CA of their own and the bundles "
+          f"{SCHEDULER}/, {WORKER}/ and {CLIENT}/; give each host only its bundle, and keep it private "
+          "(docs/cluster.md)")
+    print(f"  scheduler host: dask scheduler --host PRIVATE-IP --port 8786 --dashboard-address 127.0.0.1:8787 "
+          f"{tls(SCHEDULER)}")
+    print(f"  each worker host: dask worker tls://PRIVATE-IP:8786 --host WORKER-IP --dashboard-address 127.0.0.1:0 "
+          f"--nthreads 1 {tls(WORKER)}")
+    print(f"  this machine: dmosim run ... --cluster tls://PRIVATE-IP:8786 --cluster-auth {out}")
     return 0

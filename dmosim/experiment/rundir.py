@@ -6,7 +6,9 @@
     result.json       the DMO's result, as `dmosim run --json` prints it
     tables/*.csv      the recording as tidy tables (`dmosim export`)
     run.png           the run as a figure (`dmosim plot`)
-    logs/             each role's log, the DMO's journal, the run's credentials (logs/auth/, private)
+    logs/             each role's log, the DMO's journal
+
+The run's credentials are never in it (dmosim/launch/local.py keeps them in a private temporary directory).
 """
 
 from __future__ import annotations

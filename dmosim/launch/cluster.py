@@ -8,6 +8,11 @@ launcher beats every ``BEAT_S``: once the launcher cuts it (the sweep or the run
 stops beating it for ``LOST_AFTER_S`` (the launcher died), the task stops its processes (SIGTERM, SIGKILL after a
 grace) and returns. Dask is imported only here and only when ``--cluster`` is given: it is an extra
 (``pip install 'dmosim[cluster]'``).
+
+The launcher reaches the scheduler over mutual TLS with the certificates of clusterauth.py (``--cluster-auth``), or
+with none only when the user says so (``--insecure-cluster``, dmosim/cli/placement.py). The agents of ``dmosim run
+--cluster`` get their credentials with their task, each its own bundle and nothing of the run's other ones; a task
+keeps them in a private directory of its worker while its agents run.
 """
 
 from __future__ import annotations
@@ -18,17 +23,21 @@ import queue
 import secrets
 import signal
 import socket
+import ssl
 import subprocess
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from messages.transport.credentials import write_bundle
+
 from .processes import Roles, dmosim_command, role_env
 
 INSTALL = "pip install 'dmosim[cluster]'"
-SCHEMES = ("tcp", "tls")  # the Dask transports a scheduler is reached by here (tls with Dask's own configuration)
+SCHEMES = ("tcp", "tls")  # the Dask transports a scheduler is reached by here (tcp only with --insecure-cluster)
 CONNECT_TIMEOUT_S = 20.0  # how long the launcher tries to reach the scheduler
 WORKERS_TIMEOUT_S = 60.0  # how long a cluster with no worker yet (batch jobs still in the queue) is waited for
 REACH_TIMEOUT_S = 10.0  # how long a worker tries to open a connection to this machine's DMO
@@ -107,11 +116,14 @@ class Cluster:
         self.close()
 
 
-def connect(address: str, advertise: str | None = None, timeout_s: float = CONNECT_TIMEOUT_S) -> Cluster:
-    """Connect to the scheduler at ``address`` (``tcp://HOST:PORT``, ``HOST:PORT``, or a scheduler file that ``dask
-    scheduler --scheduler-file`` wrote), once it has a worker. ``advertise`` is where the workers reach this machine;
-    by default the address this machine reaches the scheduler from. ``ClusterUsage`` for bad input,
-    ``ClusterError`` if the scheduler does not answer or has no worker within ``WORKERS_TIMEOUT_S``."""
+def connect(address: str, advertise: str | None = None, timeout_s: float = CONNECT_TIMEOUT_S,
+            security=None) -> Cluster:
+    """Connect to the scheduler at ``address`` (``tls://HOST:PORT``, ``tcp://HOST:PORT``, ``HOST:PORT``, or a
+    scheduler file that ``dask scheduler --scheduler-file`` wrote) with ``security`` (a ``distributed.Security``:
+    clusterauth.client_security; None: no TLS, ``--insecure-cluster``), once it has a worker. ``advertise`` is where the
+    workers reach this machine; by default the address this machine reaches the scheduler from. ``ClusterUsage``
+    for bad input, ``ClusterError`` if the scheduler does not answer, refuses the connection (TLS), or has no worker
+    within ``WORKERS_TIMEOUT_S``."""
     try:
         import distributed  # noqa: PLC0415  (an extra: only --cluster needs it)
     except ImportError:
@@ -120,13 +132,17 @@ def connect(address: str, advertise: str | None = None, timeout_s: float = CONNE
     try:  # a plain connection first: a scheduler nobody runs is told at once, without Dask's retries
         with socket.create_connection((host, port), timeout=timeout_s) as probe:
             here = probe.getsockname()[0]
+            if security is not None:
+                _handshake(probe, security, address)
     except OSError as exc:
         raise ClusterError(f"--cluster {address}: cannot reach the Dask scheduler at {host}:{port}: "
                            f"{exc.strerror or exc}") from None
     try:
-        client = distributed.Client(f"{scheme}://{_join(host, port)}", timeout=timeout_s, set_as_default=False)
+        client = distributed.Client(f"{scheme}://{_join(host, port)}", timeout=timeout_s, set_as_default=False,
+                                    security=security)
     except (OSError, TimeoutError) as exc:
-        raise ClusterError(f"--cluster {address}: the Dask scheduler did not answer: {exc}") from None
+        raise ClusterError(f"--cluster {address}: the Dask scheduler did not answer or refused this connection: "
+                           f"{' '.join(str(exc).split())}") from None
     try:
         client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S)
     except (TimeoutError, OSError):
@@ -134,6 +150,19 @@ def connect(address: str, advertise: str | None = None, timeout_s: float = CONNE
         raise ClusterError(f"--cluster {address}: the scheduler has had no worker for {WORKERS_TIMEOUT_S:g} s "
                            "(docs/cluster.md, \"Starting a cluster\")") from None
     return Cluster(client, address, advertise or here)
+
+
+def _handshake(connection: socket.socket, security, address: str) -> None:
+    """``ClusterError`` unless a TLS handshake with ``security``'s certificates succeeds on ``connection``: a
+    scheduler without TLS, or with certificates of another CA, is told in one line (Dask would fail with an error of
+    its internals, or wait)."""
+    context = security.get_connection_args("client")["ssl_context"]
+    try:
+        context.wrap_socket(connection).close()
+    except (ssl.SSLError, OSError) as exc:
+        why = getattr(exc, "reason", None) or exc
+        raise ClusterError(f"--cluster {address}: TLS with the scheduler failed ({why}): is it a scheduler started "
+                           "with the certificates of --cluster-auth's DIR/scheduler/ (docs/cluster.md)?") from None
 
 
 def scheduler_address(text: str) -> tuple[str, str, int]:
@@ -149,8 +178,8 @@ def scheduler_address(text: str) -> tuple[str, str, int]:
                            f"HOST:PORT, not {scheme}://")
     found = _host_port(rest)
     if found is None:
-        raise ClusterUsage(f"--cluster {text}: expected a scheduler's address, tcp://HOST:PORT (e.g. "
-                           "tcp://10.0.0.5:8786), or the file of dask scheduler --scheduler-file")
+        raise ClusterUsage(f"--cluster {text}: expected a scheduler's address, tls://HOST:PORT (e.g. "
+                           "tls://10.0.0.5:8786), or the file of dask scheduler --scheduler-file")
     return scheme, *found
 
 
@@ -375,12 +404,16 @@ def _await(futures: list, timeout_s: float) -> None:
 
 # --- agents on the workers (dmosim run --cluster) -------------------------------------------------------------------
 
-def host_agents(agents: list[tuple[str, list[str], str]], modules: tuple[str, ...] | None, host_log: str | None,
-                cwd: str, lifeline: str, exits: str) -> dict[str, int | None]:
+def host_agents(agents: list[tuple[str, list[str], str]], bundles: dict[str, dict[str, str]],
+                modules: tuple[str, ...] | None, host_log: str | None, cwd: str, lifeline: str,
+                exits: str) -> dict[str, int | None]:
     """On a worker: one run's share of agents, ``(name, dmosim ARGS, log)`` each, started as processes of their
     own, or with ``modules`` forked from one host that has imported them (its log ``host_log``), in directory ``cwd``
-    (the launcher's, if this worker has it); each exit put on the ``distributed.Queue`` ``exits`` as it comes;
-    every one stopped when the lifeline is cut. Returns each agent's exit code (None: it never started). It leaves the worker's thread pool: agents must start now, not when a thread is free."""
+    (the launcher's, if this worker has it), each logging in with its bundle of ``bundles`` (by name, its files'
+    text), written for the time they run to a private directory of this worker, their ``--auth-dir``; each exit put
+    on the ``distributed.Queue`` ``exits`` as it comes; every one stopped when the lifeline is cut. Returns each
+    agent's exit code (None: it never started). It leaves the worker's thread pool: agents must start now, not when a
+    thread is free."""
     from distributed import Queue, secede  # noqa: PLC0415
 
     secede()
@@ -389,10 +422,14 @@ def host_agents(agents: list[tuple[str, list[str], str]], modules: tuple[str, ..
     if tether.cut():  # the run was over before this task started
         return {name: None for name, _, _ in agents}
     directory = Path(cwd) if os.path.isdir(cwd) else None
-    with Roles() as roles:
+    # the credentials go once the agents are stopped (the context managers end in reverse order)
+    with tempfile.TemporaryDirectory(prefix="dmosim-agents-") as auth, Roles() as roles:
+        for name, files in bundles.items():
+            write_bundle(auth, name, files)
         host = roles.fork_host(modules, Path(host_log) if host_log else None) if modules else None
         for name, args, log in agents:
-            roles.start(name, dmosim_command(*args), log=Path(log), env=role_env(), cwd=directory, host=host)
+            roles.start(name, dmosim_command(*args, "--auth-dir", auth), log=Path(log), env=role_env(), cwd=directory,
+                        host=host)
         while len(codes) < len(agents):
             try:
                 name, code = roles.exits.get(timeout=TASK_POLL_S)
@@ -429,15 +466,18 @@ class RemoteAgents:
     def names(self) -> list[str]:
         return [name for share in self.placed.values() for name in share]
 
-    def start(self, agents: list[tuple[str, list[str], Path]], modules: tuple[str, ...] | None,
-              host_log: Callable[[int], Path]) -> dict[str, list[str]]:
-        """Start ``(name, dmosim ARGS, log)`` dealt to the workers (``deal``), with ``modules`` forked from one host a
-        worker (its log ``host_log(i)`` for the i-th worker) or as processes; returns worker -> its agents."""
+    def start(self, agents: list[tuple[str, list[str], Path]], bundles: dict[str, dict[str, str]],
+              modules: tuple[str, ...] | None, host_log: Callable[[int], Path]) -> dict[str, list[str]]:
+        """Start ``(name, dmosim ARGS, log)`` dealt to the workers (``deal``), each with its bundle of ``bundles``
+        (``messages.transport.credentials.read_bundle``), with ``modules`` forked from one host a worker (its log
+        ``host_log(i)`` for the i-th worker) or as processes; returns worker -> its agents. A worker's task carries
+        the bundles of its own agents only."""
         of = {name: (name, args, str(log)) for name, args, log in agents}
         self.placed = deal(list(of), self.cluster.workers())
         for i, (worker, names) in enumerate(self.placed.items()):
             future = self.cluster.client.submit(
-                host_agents, [of[n] for n in names], modules, str(host_log(i)) if modules else None, os.getcwd(),
+                host_agents, [of[n] for n in names], {n: bundles[n] for n in names}, modules,
+                str(host_log(i)) if modules else None, os.getcwd(),
                 self.lifeline.name, self.queue.name, workers=[worker], allow_other_workers=False, pure=False,
                 retries=0, key=f"dmosim-agents-{i}-{self.lifeline.name}")
             self.futures[future] = names

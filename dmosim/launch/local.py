@@ -1,5 +1,6 @@
 """A run on this machine: the DMO, one process per agent and the recorder, started from an experiment over Zenoh on
-loopback with credentials made for the run, watched (process faults fire on the DMO's clock) and always stopped.
+loopback with credentials made for the run (in a private temporary directory, never in the run directory), watched
+(process faults fire on the DMO's clock) and always stopped.
 With ``agents.hosting = "fork"`` each agent's process is forked from one host that has imported the agent's code
 (host.py), instead of starting a Python of its own; the agents run the same command either way. With a ``cluster``
 the agents run on its workers instead (cluster.py), the DMO listening for them on every interface of this machine.
@@ -17,6 +18,7 @@ import json
 import queue
 import signal
 import subprocess
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -30,7 +32,7 @@ from messages.keys import new_run_id
 from messages.recording import Recording, RecordingError, read_recording
 from messages.transport import Bus, BusConfig
 from messages.transport.access import bundle_settings
-from messages.transport.credentials import DEFAULT_HOSTS, create_auth_dir
+from messages.transport.credentials import DEFAULT_HOSTS, create_auth_dir, read_bundle
 from scenarios.case import case_path
 from scenarios.fleet import FleetMember
 
@@ -130,21 +132,26 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                      (endpoint(scheme, "::" if ":" in cluster.host else "0.0.0.0", port),
                       endpoint(scheme, cluster.host, port)))
     logs = rundir.logs
-    auth = create_auth_dir(logs / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER), tls=tls,
-                           hosts=tuple(dict.fromkeys([*DEFAULT_HOSTS, *([cluster.host] if cluster else [])])),
-                           valid_days=2, dmo_client=bool(names), routers=tuple(names[1:]), overwrite=True)
     # absolute paths: an agent on a cluster's worker starts in another directory
-    common = ["--run-id", run_id, "--experiment", str(rundir.experiment.resolve()), "--auth-dir", str(auth.resolve())]
+    common = ["--run-id", run_id, "--experiment", str(rundir.experiment.resolve())]
     say(f"run {run_id}: DMO and {len(fleet)} agents on {reach}"
         + (f", the agents on the cluster at {cluster.address}" if cluster else "")
         + f", {e.days} day(s) from {e.market_day}; writing to {rundir.root}" + ("" if record else "; not recording"))
-    with Roles() as roles, _remote(cluster, run_id, roles) as remote:
+    # The run's credentials live in a private directory of this machine while it runs, never in the run directory
+    # (which a cluster's workers share); an agent on a worker gets its own bundle with its task (cluster.py). The
+    # directory goes once every role has stopped (the context managers end in reverse order).
+    with tempfile.TemporaryDirectory(prefix=f"dmosim-{run_id}-") as private, Roles() as roles, \
+            _remote(cluster, run_id, roles) as remote:
+        auth = create_auth_dir(Path(private) / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER),
+                               tls=tls, valid_days=2, dmo_client=bool(names), routers=tuple(names[1:]),
+                               hosts=tuple(dict.fromkeys([*DEFAULT_HOSTS, *([cluster.host] if cluster else [])])))
+        login = ["--auth-dir", str(auth)]
         routers = start_routers(roles, names, scheme, run_id, auth, logs) if names else []
         if routers:
             local = reach = routers[0]
             say(f"{len(routers)} router(s): " + ", ".join(f"{n} on {at}" for n, at in zip(names, routers)))
         roles.start("dmo", dmosim_command(
-            "dmo", *common, *(("--mode", "client", "--connect", local) if routers else ("--listen", listen)),
+            "dmo", *common, *login, *(("--mode", "client", "--connect", local) if routers else ("--listen", listen)),
             "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"),
             *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
         fork = e.agents.hosting == "fork"
@@ -163,7 +170,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                 # out, so the recording has the run from its first message.
                 roles.start("recorder", dmosim_command(
                     "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", local,
-                    "--auth-dir", str(auth), *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
+                    *login, *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
                 _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
             router_of = spread([m.id for m in fleet], len(routers)) if routers else {}
             agents = [(m.id, ["agent", *common, "--id", m.id, "--connect",
@@ -172,13 +179,14 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             if remote is None:
                 alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
                 for group in groups(agents, e.agents.per_process if host is not None else 1, alone):
-                    commands = [(name, dmosim_command(*args), log) for name, args, log in group]
+                    commands = [(name, dmosim_command(*args, *login), log) for name, args, log in group]
                     if len(commands) > 1:
                         roles.start_group(host, commands)
                     else:
                         roles.start(commands[0][0], commands[0][1], log=commands[0][2], host=host)
             else:
-                placed = remote.start(agents, AGENT_MODULES if fork else None,
+                placed = remote.start(agents, {m.id: read_bundle(auth, m.id) for m in fleet},
+                                      AGENT_MODULES if fork else None,
                                       lambda i: (logs / f"{HOST}-{i + 1}.log").resolve())
                 say(f"agents on {len(placed)} worker(s): "
                     + "; ".join(f"{w}: {', '.join(names)}" for w, names in placed.items()))

@@ -1,6 +1,8 @@
 """Make the credentials of one run: a password per process, the router's user dictionary and access-control file
-(access.py), and with TLS a CA, the router's certificate and one client certificate per process; and check that
-credentials found on disk are private to this user before any process uses them.
+(access.py), and with TLS a CA, the router's certificate and one client certificate per process; carry one
+process's bundle to the host that runs it; and check that credentials found on disk are private to this user before
+any process uses them. ``write_certificates`` is the one maker of certificates (a Dask cluster's too,
+dmosim/launch/clusterauth.py).
 
 The layout of the directory is in access.py, which reads it back; every secret is created readable by its owner
 only, every other file and directory writable by its owner only.
@@ -15,7 +17,8 @@ import os
 import secrets
 import shutil
 import stat
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from scenarios.names import DMO
@@ -26,6 +29,7 @@ from .access import (ACL_FILE, CA_FILE, CERT_FILE, KEY_FILE, PASSWORD_FILE, READ
 
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")  # what the router's certificate is valid for, unless told
 SECRETS = (USERS_FILE, PASSWORD_FILE, KEY_FILE)  # files that hold a secret, wherever they are in a directory
+BUNDLE_FILES = (PASSWORD_FILE, CA_FILE, CERT_FILE, KEY_FILE)  # what a client's bundle holds (the last three: TLS)
 # Certificates cannot be revoked (docs/security.md): a year is their longest validity, far longer than a run.
 MAX_CERT_DAYS = 366
 MAX_READERS = 16  # readers of one run (the recorder, taps): each may hear everything
@@ -44,10 +48,37 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
     if len(readers) > MAX_READERS or len(hosts) > MAX_HOSTS or len(routers) > MAX_HOSTS:
         raise AuthError(f"at most {MAX_READERS} readers, {MAX_HOSTS} host names and {MAX_HOSTS} routers, not "
                         f"{len(readers)}, {len(hosts)} and {len(routers)}")
-    if not 1 <= valid_days <= MAX_CERT_DAYS:
-        raise AuthError(f"certificates are valid for 1..{MAX_CERT_DAYS} days, not {valid_days}")
+    check_validity(valid_days)
+    if tls and not hosts:
+        raise AuthError("TLS needs at least one host name or address for the router's certificate")
     Keys(run_id)  # a bad run id fails here, not in the router
     acl = access_control(run_id, agents, readers, tls=tls, dmo_client=dmo_client, routers=routers)  # checks names
+    fresh_directory(out, overwrite)
+    names = [*([DMO] if dmo_client else []), *readers, *routers, *agents]
+    passwords = {name: secrets.token_urlsafe(24) for name in names}
+    for name in names:
+        (out / name).mkdir(mode=0o700)
+    _write(out / USERS_FILE, "".join(f"{n}:{p}\n" for n, p in passwords.items()))
+    _write(out / ACL_FILE, json.dumps(acl, indent=2) + "\n", public=True)
+    for name, password in passwords.items():
+        _write(out / name / PASSWORD_FILE, password)  # the password alone: what a client sends is the file
+    if tls:
+        # the router's server certificate (common name ROUTER_CERT_NAME, which no client certificate has) and one
+        # client certificate per process, whose common name the access-control subjects match
+        write_certificates([Leaf(out, ROUTER_CERT_NAME, server=True, hosts=tuple(hosts)),
+                            *(Leaf(out / n, n, client=True) for n in names)], valid_days)
+    return out
+
+
+def check_validity(valid_days: int) -> None:
+    """``AuthError`` unless certificates may be made valid for ``valid_days``."""
+    if not 1 <= valid_days <= MAX_CERT_DAYS:
+        raise AuthError(f"certificates are valid for 1..{MAX_CERT_DAYS} days, not {valid_days}")
+
+
+def fresh_directory(out: Path, overwrite: bool) -> None:
+    """``out`` made (or emptied, with ``overwrite``) as a directory of credentials: this user's, mode 0700, empty;
+    ``AuthError`` for another user's directory, a file, or one that holds something without ``overwrite``."""
     if out.exists():
         if not out.is_dir():
             raise AuthError(f"{out} exists and is not a directory")
@@ -59,17 +90,26 @@ def create_auth_dir(out: str | os.PathLike, run_id: str, agents: Sequence[str], 
             shutil.rmtree(out)
     out.mkdir(mode=0o700, parents=True, exist_ok=True)
     out.chmod(0o700)
-    names = [*([DMO] if dmo_client else []), *readers, *routers, *agents]
-    passwords = {name: secrets.token_urlsafe(24) for name in names}
-    for name in names:
-        (out / name).mkdir(mode=0o700)
-    _write(out / USERS_FILE, "".join(f"{n}:{p}\n" for n, p in passwords.items()))
-    _write(out / ACL_FILE, json.dumps(acl, indent=2) + "\n", public=True)
-    for name, password in passwords.items():
-        _write(out / name / PASSWORD_FILE, password)  # the password alone: what a client sends is the file
-    if tls:
-        write_certificates(out, names, hosts, valid_days)
-    return out
+
+
+def read_bundle(auth: str | os.PathLike, name: str) -> dict[str, str]:
+    """The files of process ``name``'s bundle in ``auth``, by file name: all it needs to log in, for
+    ``write_bundle`` to put elsewhere (on the host that runs it, and nothing of the others')."""
+    bundle = Path(auth) / name
+    return {file: (bundle / file).read_text() for file in BUNDLE_FILES if (bundle / file).is_file()}
+
+
+def write_bundle(auth: str | os.PathLike, name: str, files: Mapping[str, str]) -> Path:
+    """``files`` (as ``read_bundle`` gives them) as process ``name``'s bundle in ``auth``, a private directory
+    that then serves as its ``--auth-dir``; each file made as ``create_auth_dir`` makes it."""
+    unknown = sorted(set(files) - set(BUNDLE_FILES))
+    if unknown:
+        raise AuthError(f"{unknown[0]} is not a file of a bundle ({', '.join(BUNDLE_FILES)})")
+    bundle = Path(auth) / name
+    bundle.mkdir(mode=0o700)
+    for file, text in files.items():
+        _write(bundle / file, text, public=file not in SECRETS)
+    return bundle
 
 
 def private_directory(path: str | os.PathLike) -> Path:
@@ -130,17 +170,29 @@ def _check_owner(path: Path, info: os.stat_result | None = None) -> None:
                         "else made are not used")
 
 
-def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], valid_days: int) -> None:
-    """A CA for this auth directory, the router's server certificate for ``hosts`` (common name ROUTER_CERT_NAME,
-    which no client certificate has) and one client certificate per name (common name = the name, which the
-    access-control subjects match). EC P-256 keys."""
+@dataclass(frozen=True)
+class Leaf:
+    """A certificate for ``write_certificates`` to sign: the bundle directory it goes to, its common name, and what
+    it is for: to serve (``server``, valid for ``hosts``), to connect (``client``), or both (a role of a Dask
+    cluster, which listens and connects, docs/cluster.md)."""
+
+    bundle: Path
+    common_name: str
+    server: bool = False
+    client: bool = False
+    hosts: tuple[str, ...] = ()
+
+
+def write_certificates(leaves: Sequence[Leaf], valid_days: int, authority: str = "dmosim run CA") -> None:
+    """A new CA (common name ``authority``), and a certificate it signs for each of ``leaves``, written to the
+    leaf's bundle: ``cert.pem``, its key ``key.pem`` (0600) and the CA's ``ca.pem``. EC P-256 keys. The CA's key is
+    not kept: nothing can be signed for these credentials later, so new ones replace them (a certificate cannot be
+    revoked either)."""
     from cryptography import x509  # noqa: PLC0415  (only TLS needs it)
     from cryptography.hazmat.primitives import hashes, serialization  # noqa: PLC0415
     from cryptography.hazmat.primitives.asymmetric import ec  # noqa: PLC0415
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: PLC0415
 
-    if not hosts:
-        raise AuthError("TLS needs at least one host name or address for the router's certificate")
     now = dt.datetime.now(dt.timezone.utc)
     start, end = now - dt.timedelta(minutes=5), now + dt.timedelta(days=valid_days)
 
@@ -152,14 +204,8 @@ def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], va
         return (x509.CertificateBuilder().subject_name(subject).issuer_name(issuer).public_key(key.public_key())
                 .serial_number(x509.random_serial_number()).not_valid_before(start).not_valid_after(end))
 
-    def save(bundle: Path, cert, key) -> None:
-        _write(bundle / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM).decode(), public=True)
-        _write(bundle / KEY_FILE, key.private_bytes(
-            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()).decode())
-        _write(bundle / CA_FILE, ca_pem.decode(), public=True)
-
     ca_key = ec.generate_private_key(ec.SECP256R1())
-    ca_name = name("dmosim run CA")
+    ca_name = name(authority)
     ca_cert = (builder(ca_name, ca_name, ca_key)
                .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
                .add_extension(x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True,
@@ -167,21 +213,22 @@ def write_certificates(out: Path, names: Sequence[str], hosts: Sequence[str], va
                                             key_agreement=False, encipher_only=False, decipher_only=False),
                               critical=True)
                .sign(ca_key, hashes.SHA256()))
-    ca_pem = ca_cert.public_bytes(serialization.Encoding.PEM)
+    ca_pem = ca_cert.public_bytes(serialization.Encoding.PEM).decode()
 
-    def leaf(common_name: str, usage, alt_names=None):
+    for leaf in leaves:
         key = ec.generate_private_key(ec.SECP256R1())
-        b = (builder(name(common_name), ca_name, key)
+        usages = [*([ExtendedKeyUsageOID.SERVER_AUTH] if leaf.server else []),
+                  *([ExtendedKeyUsageOID.CLIENT_AUTH] if leaf.client else [])]
+        b = (builder(name(leaf.common_name), ca_name, key)
              .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-             .add_extension(x509.ExtendedKeyUsage([usage]), critical=False))
-        if alt_names:
-            b = b.add_extension(x509.SubjectAlternativeName(alt_names), critical=False)
-        return b.sign(ca_key, hashes.SHA256()), key
-
-    alt = [_alt_name(x509, host) for host in hosts]
-    save(out, *leaf(ROUTER_CERT_NAME, ExtendedKeyUsageOID.SERVER_AUTH, alt))
-    for n in names:
-        save(out / n, *leaf(n, ExtendedKeyUsageOID.CLIENT_AUTH))
+             .add_extension(x509.ExtendedKeyUsage(usages), critical=False))
+        if leaf.hosts:
+            b = b.add_extension(x509.SubjectAlternativeName([_alt_name(x509, h) for h in leaf.hosts]), critical=False)
+        cert = b.sign(ca_key, hashes.SHA256())
+        _write(leaf.bundle / CERT_FILE, cert.public_bytes(serialization.Encoding.PEM).decode(), public=True)
+        _write(leaf.bundle / KEY_FILE, key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()).decode())
+        _write(leaf.bundle / CA_FILE, ca_pem, public=True)
 
 
 def _alt_name(x509, host: str):

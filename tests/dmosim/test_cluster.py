@@ -1,23 +1,31 @@
 """``--cluster`` without a cluster (docs/cluster.md): how agents are dealt to workers, when a task stops on its
 lifeline, what the flag accepts, the check that workers see a directory, and the one-line errors of ``dmosim run``
-and ``dmosim sweep`` (no Dask installed, a malformed address, a scheduler nobody runs, a fault it cannot fire).
-Runs on a real Dask cluster are in tests/system/test_on_a_cluster.py."""
+and ``dmosim sweep`` (no Dask installed, a malformed address, a scheduler without dmosim's TLS certificates unless
+``--insecure-cluster``, a scheduler nobody runs, a fault it cannot fire). A cluster over TLS is in
+tests/dmosim/test_cluster_tls.py; runs on a real Dask cluster in tests/system/test_on_a_cluster.py."""
 
 from __future__ import annotations
 
+import datetime
 import json
+import re
 import socket
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
 from dmosim.cli import main
+from dmosim.launch import clusterauth
+from dmosim.launch.clusterauth import client_security, create_cluster_auth
+from messages.transport.access import AuthError
 from dmosim.launch.cluster import CUT, INSTALL, Cluster, ClusterError, ClusterUsage, Tether, connect, deal, \
     read_token, scheduler_address
 from dmosim.launch.processes import free_port
 
 EXPERIMENT = 'name = "tiny"\n[agents]\ncount = 2\n'
+OPEN = ("--cluster", "tcp://10.0.0.5:8786", "--insecure-cluster")  # a scheduler without TLS, allowed
 
 
 def test_agents_are_dealt_to_the_workers_in_turn():
@@ -135,37 +143,106 @@ def one_line(capsys) -> str:
 
 def test_the_flag_without_dask_names_the_extra_to_install(experiment, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # as if it were not installed
-    assert main(["sweep", str(experiment), "--set", "seed=1,2", "--cluster", "tcp://10.0.0.5:8786", "--check"]) == 2
+    assert main(["sweep", str(experiment), "--set", "seed=1,2", *OPEN, "--check"]) == 2
     assert INSTALL in one_line(capsys) and INSTALL == "pip install 'dmosim[cluster]'"
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--check"]) == 2
+    assert main(["run", str(experiment), *OPEN, "--check"]) == 2
     assert INSTALL in one_line(capsys)
 
 
 def test_run_refuses_what_it_cannot_do_on_a_cluster(experiment, capsys):
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--fault", "kill:mg2:3", "--check"]) == 2
+    assert main(["run", str(experiment), *OPEN, "--fault", "kill:mg2:3", "--check"]) == 2
     assert "--fault kill:mg2:3: with --cluster the agents run on the cluster's workers" in one_line(capsys)
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--fault", "restart:mg1:3",
-                 "--check"]) == 2
+    assert main(["run", str(experiment), *OPEN, "--fault", "restart:mg1:3", "--check"]) == 2
     one_line(capsys)
     assert main(["run", str(experiment), "--advertise", "10.0.0.1", "--check"]) == 2
     assert "--advertise goes with --cluster" in one_line(capsys)
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--advertise", "a b", "--check"]) == 2
+    assert main(["run", str(experiment), *OPEN, "--advertise", "a b", "--check"]) == 2
     assert "--advertise 'a b'" in one_line(capsys)
-    assert main(["run", str(experiment), "--cluster", "10.0.0.5", "--check"]) == 2
+    assert main(["run", str(experiment), "--cluster", "10.0.0.5", "--insecure-cluster", "--check"]) == 2
     assert "expected a scheduler's address" in one_line(capsys)
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--hosting", "fork", "--per-process",
-                 "4", "--check"]) == 2
+    assert main(["run", str(experiment), *OPEN, "--hosting", "fork", "--per-process", "4", "--check"]) == 2
     assert "agents.per_process = 4: with --cluster each worker forks its agents one to a process" in one_line(capsys)
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--routers", "2", "--check"]) == 2
+    assert main(["run", str(experiment), *OPEN, "--routers", "2", "--check"]) == 2
     assert "agents.routers = 2: with --cluster the agents connect to the DMO from the workers" in one_line(capsys)
     # the DMO and the recorder stay on this machine: their faults are fired as ever
-    assert main(["run", str(experiment), "--cluster", "tcp://10.0.0.5:8786", "--fault", "restart:dmo:3",
-                 "--fault", "kill:recorder:2", "--check"]) == 0
+    assert main(["run", str(experiment), *OPEN, "--fault", "restart:dmo:3", "--fault", "kill:recorder:2",
+                 "--check"]) == 0
 
 
 def test_a_sweep_on_a_scheduler_nobody_runs_fails_in_one_line_and_leaves_nothing(experiment, tmp_path, capsys):
     out = tmp_path / "sweep"
     assert main(["sweep", str(experiment), "--set", "seed=1,2", "--cluster", f"tcp://127.0.0.1:{free_port()}",
-                 "--out", str(out)]) == 1
+                 "--insecure-cluster", "--out", str(out)]) == 1
     assert "cannot reach the Dask scheduler" in one_line(capsys)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("verb", [["run"], ["sweep", "--set", "seed=1,2"]])
+def test_a_scheduler_without_tls_is_refused_before_anything_starts_unless_the_user_says_so(verb, experiment, tmp_path,
+                                                                                            capsys):
+    (tmp_path / "scheduler.json").write_text(json.dumps({"type": "Scheduler", "address": "tcp://10.0.0.5:8786"}))
+    out = tmp_path / "out"
+    for address in ("tcp://10.0.0.5:8786", "10.0.0.5:8786", "tls://10.0.0.5:8786", str(tmp_path / "scheduler.json")):
+        assert main([verb[0], str(experiment), *verb[1:], "--cluster", address, "--out", str(out)]) == 2
+        assert f"--cluster {address}: a Dask scheduler's users can run any code on its workers" in one_line(capsys)
+        assert not out.exists()  # refused before a directory is made or the scheduler reached
+    for address in ("tcp://10.0.0.5:8786", "10.0.0.5:8786", str(tmp_path / "scheduler.json")):
+        assert main([verb[0], str(experiment), *verb[1:], "--cluster", address, "--insecure-cluster", "--check"]) == 0
+        capsys.readouterr()
+    # a tls:// scheduler is reached with dmosim's certificates, never with none
+    assert main([verb[0], str(experiment), *verb[1:], "--cluster", "tls://10.0.0.5:8786", "--insecure-cluster",
+                 "--check"]) == 2
+    assert "a tls:// scheduler is reached with --cluster-auth DIR" in one_line(capsys)
+
+
+def test_the_cluster_flags_are_refused_where_they_do_not_fit(experiment, tmp_path, capsys):
+    assert main(["credentials", "--cluster", "--out", str(tmp_path / "cluster")]) == 0
+    capsys.readouterr()
+    auth = str(tmp_path / "cluster")
+    for flags, says in [
+        (["--cluster-auth", auth], "--cluster-auth goes with --cluster"),
+        (["--insecure-cluster"], "--insecure-cluster goes with --cluster"),
+        (["--cluster", "tls://10.0.0.5:8786", "--cluster-auth", auth, "--insecure-cluster"],
+         "--cluster-auth and --insecure-cluster exclude each other"),
+        (["--cluster", "tcp://10.0.0.5:8786", "--cluster-auth", auth],
+         "with --cluster-auth the scheduler is reached at tls://HOST:PORT"),
+        (["--cluster", "tls://10.0.0.5:8786", "--cluster-auth", str(tmp_path / "none")],
+         f"--cluster-auth {tmp_path / 'none'}: no such directory"),
+    ]:
+        assert main(["run", str(experiment), *flags, "--check"]) == 2, flags
+        assert says in one_line(capsys), flags
+    assert main(["run", str(experiment), "--cluster", "tls://10.0.0.5:8786", "--cluster-auth", auth, "--check"]) == 0
+
+
+class Later(datetime.datetime):
+    """The clock 31 days on: the certificates of `dmosim credentials --cluster` (30 days) have expired."""
+
+    @classmethod
+    def now(cls, tz=None):
+        return super().now(tz) + datetime.timedelta(days=31)
+
+
+@pytest.mark.parametrize("spoil, says", [
+    (lambda auth: (auth / "client" / "key.pem").unlink(), r"client: holds no key.pem"),
+    (lambda auth: (auth / "client" / "key.pem").chmod(0o644), r"client/key.pem is readable by others"),
+    (lambda auth: (auth / "client" / "cert.pem").write_text("junk"), r"client: not a certificate and key"),
+    (lambda auth: (auth / "worker").chmod(0o777), r"worker is writable by its group"),
+])
+def test_cluster_credentials_that_cannot_be_used_are_refused_in_one_line(tmp_path, capsys, spoil, says):
+    experiment = tmp_path / "tiny.toml"
+    experiment.write_text(EXPERIMENT)
+    auth = tmp_path / "cluster"
+    assert main(["credentials", "--cluster", "--out", str(auth)]) == 0
+    capsys.readouterr()
+    spoil(auth)
+    assert main(["run", str(experiment), "--cluster", "tls://10.0.0.5:8786", "--cluster-auth", str(auth),
+                 "--check"]) == 2
+    assert re.search(says, one_line(capsys))
+
+
+def test_expired_cluster_credentials_are_refused_in_one_line(tmp_path, monkeypatch):
+    auth = create_cluster_auth(tmp_path / "cluster", 30)
+    client_security(auth)
+    monkeypatch.setattr(clusterauth, "dt", SimpleNamespace(datetime=Later, timezone=datetime.timezone))
+    with pytest.raises(AuthError, match=r"client/cert.pem: valid from .* UTC, not now; make new credentials"):
+        client_security(auth)

@@ -1,6 +1,7 @@
 """Credentials on disk (messages/transport/credentials.py): made private whatever the umask, the password file
 holding the password alone, credentials that someone else could have made or changed refused in one line naming
-the path and what is wrong, and a mesh's routers' (docs/hosts.md)."""
+the path and what is wrong, a mesh's routers' (docs/hosts.md), certificates for what each role does, and a bundle
+carried to another host."""
 
 from __future__ import annotations
 
@@ -8,9 +9,12 @@ import json
 import os
 
 import pytest
+from cryptography import x509
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from messages.transport.access import ACL_FILE, PASSWORD_FILE, ROUTER_CERT_NAME, USERS_FILE, AuthError, read_password
-from messages.transport.credentials import MAX_CERT_DAYS, MAX_HOSTS, MAX_READERS, check_private, create_auth_dir
+from messages.transport.credentials import (BUNDLE_FILES, MAX_CERT_DAYS, MAX_HOSTS, MAX_READERS, Leaf, check_private,
+                                            create_auth_dir, read_bundle, write_bundle, write_certificates)
 
 
 @pytest.fixture
@@ -112,3 +116,33 @@ def test_a_mesh_needs_tls_and_routers_named_apart(tmp_path):
     with pytest.raises(AuthError, match=f"at most .* {MAX_HOSTS} routers"):
         create_auth_dir(tmp_path / "d", "r1", ["mg1"], tls=True, routers=[f"h{i}" for i in range(MAX_HOSTS + 1)])
     assert not any((tmp_path / d).exists() for d in "abcd")
+
+
+def usages(path) -> set[str]:
+    """What the certificate at ``path`` may be used for: serve, connect, or both."""
+    cert = x509.load_pem_x509_certificate(path.read_bytes())
+    names = {ExtendedKeyUsageOID.SERVER_AUTH: "serve", ExtendedKeyUsageOID.CLIENT_AUTH: "connect"}
+    return {names[u] for u in cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value}
+
+
+def test_one_maker_signs_each_certificate_for_what_its_role_does(tmp_path):
+    run = create_auth_dir(tmp_path / "run", "r1", ["mg1"], tls=True)
+    assert usages(run / "cert.pem") == {"serve"} and usages(run / "mg1" / "cert.pem") == {"connect"}
+    (tmp_path / "both").mkdir()
+    write_certificates([Leaf(tmp_path / "both", "a dask worker", server=True, client=True)], 1, "a cluster's CA")
+    assert usages(tmp_path / "both" / "cert.pem") == {"serve", "connect"}
+    assert oct((tmp_path / "both" / "key.pem").stat().st_mode & 0o777) == "0o600"
+
+
+def test_a_bundle_carried_elsewhere_is_the_same_and_as_private(tmp_path, loose_umask):
+    run = create_auth_dir(tmp_path / "run", "r1", ["mg1", "mg2"], tls=True)
+    files = read_bundle(run, "mg1")
+    assert sorted(files) == sorted(BUNDLE_FILES)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir(mode=0o700)
+    write_bundle(elsewhere, "mg1", files)
+    assert read_bundle(elsewhere, "mg1") == files and [p.name for p in elsewhere.iterdir()] == ["mg1"]
+    check_private(elsewhere)
+    assert (elsewhere / "mg1" / PASSWORD_FILE).stat().st_mode & 0o777 == 0o600
+    with pytest.raises(AuthError, match="users.txt is not a file of a bundle"):
+        write_bundle(elsewhere, "mg2", {USERS_FILE: "mg1:x\n"})

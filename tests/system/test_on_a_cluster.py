@@ -1,9 +1,10 @@
-"""``--cluster`` on a real Dask cluster of this machine (``distributed.LocalCluster``, two worker processes, always
-closed; docs/cluster.md). ``dmosim sweep --cluster``: each variant's run is a task on the workers and settles to the
-cent as the same experiment run here. ``dmosim run --cluster --hosting fork``: the agents, forked on the workers and
-connected to the DMO where ``--advertise`` says, settle as that variant's run, whose agents were all on one host.
-An agent still running when the launcher lets go is stopped on its worker; a sweep stopped (Ctrl-C) cancels what
-waits for a worker and stops what runs."""
+"""``--cluster`` on a real Dask cluster of this machine (``distributed.LocalCluster``, two worker processes, over TLS
+with the certificates of ``dmosim credentials --cluster``, always closed; docs/cluster.md). ``dmosim sweep
+--cluster``: each variant's run is a task on the workers and settles to the cent as the same experiment run here.
+``dmosim run --cluster --hosting fork``: the agents, forked on the workers and connected to the DMO where
+``--advertise`` says, settle as that variant's run, whose agents were all on one host. No run directory holds the
+run's credentials. An agent still running when the launcher lets go is stopped on its worker; a sweep stopped
+(Ctrl-C) cancels what waits for a worker and stops what runs."""
 
 from __future__ import annotations
 
@@ -19,10 +20,13 @@ import pytest
 from test_market_day import ENV, ROOT, dmosim
 
 from dmo.replay.reproduce import differences
+from dmosim.cli.main import main
 from dmosim.launch.cluster import CANCELLED, Cluster, Commands, RemoteAgents
+from dmosim.launch.clusterauth import cluster_security
 from dmosim.launch.processes import free_port, wait_for_line
 from messages.keys import new_run_id
 from messages.recording import read_recording
+from messages.transport.credentials import SECRETS, create_auth_dir, read_bundle
 
 distributed = pytest.importorskip("distributed")  # the test extra installs it; the cluster extra for users
 
@@ -46,22 +50,32 @@ hour = 60.0
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, scheduler_port=0,
-                                  dashboard_address=None) as local, distributed.Client(local,
-                                                                                     set_as_default=False) as client:
+def auth(tmp_path_factory) -> Path:
+    """The cluster's certificates, as a user makes them."""
+    auth = tmp_path_factory.mktemp("cluster") / "auth"
+    assert main(["credentials", "--cluster", "--out", str(auth)]) == 0
+    return auth
+
+
+@pytest.fixture(scope="module")
+def cluster(auth):
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, protocol="tls://",
+                                  host="127.0.0.1", scheduler_port=0, dashboard_address="127.0.0.1:0",
+                                  worker_dashboard_address="127.0.0.1:0", security=cluster_security(auth)) as local, \
+            distributed.Client(local, set_as_default=False) as client:
         client.get_task_stream()  # from now on the scheduler keeps a record of each task: where it ran
         yield client
 
 
-def sweep_and_run_here(cluster, tmp: Path) -> tuple[dict, dict, str]:
+def sweep_and_run_here(cluster, auth: Path, tmp: Path) -> tuple[dict, dict, str]:
     """A sweep of penalty 0 and 150 on the cluster, and beside it the same experiment at penalty 0 run here: the
     sweep's summary, the run's result, and the sweep's progress lines."""
     for penalty in (0, 150):
         (tmp / f"penalty-{penalty}.toml").write_text(EXPERIMENT.format(penalty=float(penalty)))
     runs = {"sweep": subprocess.Popen(dmosim("sweep", str(tmp / "penalty-0.toml"), "--set", "market.penalty=0,150",
-                                             "--cluster", cluster.scheduler.address, "--out", str(tmp / "sweep"),
-                                             "--json"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                             "--cluster", cluster.scheduler.address, "--cluster-auth", str(auth),
+                                             "--out", str(tmp / "sweep"), "--json"),
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                      cwd=ROOT, env=ENV),
             "here": subprocess.Popen(dmosim("run", str(tmp / "penalty-0.toml"), "--out", str(tmp / "here"), "--json",
                                             "--quiet"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -80,8 +94,8 @@ def sweep_and_run_here(cluster, tmp: Path) -> tuple[dict, dict, str]:
 
 # One test, so that the runs it compares run once even when pytest-xdist deals the tests of this file to
 # several processes.
-def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on_one_host(cluster, tmp_path):
-    summary, here, progress = sweep_and_run_here(cluster, tmp_path)
+def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on_one_host(cluster, auth, tmp_path):
+    summary, here, progress = sweep_and_run_here(cluster, auth, tmp_path)
     assert f"2 run(s), 2 at a time on the cluster at {cluster.scheduler.address} (2 workers, 2 threads)" in progress
     # each variant was a task of the cluster's workers
     ran = {t["key"].rsplit("-", 1)[0]: t["worker"] for t in cluster.get_task_stream()
@@ -104,8 +118,8 @@ def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on
     variant = table[table["market.penalty"] == 150]["label"].iloc[0]
     on_one_host = json.loads((tmp_path / "sweep" / variant / "result.json").read_text())
     out = subprocess.run(dmosim("run", str(tmp_path / "sweep" / "experiments" / f"{variant}.toml"), "--hosting",
-                                "fork", "--cluster", cluster.scheduler.address, "--advertise", "127.0.0.2", "--out",
-                                str(tmp_path / "run"), "--json", "--quiet"),
+                                "fork", "--cluster", cluster.scheduler.address, "--cluster-auth", str(auth),
+                                "--advertise", "127.0.0.2", "--out", str(tmp_path / "run"), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     spread = json.loads(out.stdout)
@@ -117,15 +131,19 @@ def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on
     for i, agent in enumerate(("mg1", "mg2"), start=1):  # each worker's host forked its agent, and their logs are here
         assert f"{agent} registered" in (logs / f"{agent}.log").read_text()
         assert (logs / f"_host-{i}.log").is_file()
+    # the run's credentials were on this machine and the workers' own, never where every worker reads
+    assert [p for p in tmp_path.rglob("*") if p.name in SECRETS or p.name == "auth"] == []
 
 
 def test_an_agent_still_running_when_the_launcher_lets_go_is_stopped_on_its_worker(cluster, tmp_path):
     run_id, log, exits = new_run_id(), tmp_path / "mg1.log", queue.Queue()
+    credentials = create_auth_dir(tmp_path / "auth", run_id, ["mg1"])
     # an agent that waits, for ten minutes, for a DMO nobody runs
     waits = ["agent", "--run-id", run_id, "--id", "mg1", "--connect", f"tcp/127.0.0.1:{free_port()}",
-             "--connect-timeout", "600", "--insecure"]
+             "--connect-timeout", "600"]
     with RemoteAgents(Cluster(cluster, cluster.scheduler.address, "127.0.0.1"), run_id, exits) as remote:
-        remote.start([("mg1", waits, log)], None, lambda i: tmp_path / "unused.log")
+        remote.start([("mg1", waits, log)], {"mg1": read_bundle(credentials, "mg1")}, None,
+                     lambda i: tmp_path / "unused.log")
         wait_for_line(log, "connecting to tcp/127.0.0.1", 300, lambda: True)
     assert remote.stop() == {"mg1": -15}  # SIGTERM from its task, once the launcher cut the lifeline
     assert exits.get_nowait() == ("mg1", -15)
