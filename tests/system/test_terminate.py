@@ -11,7 +11,8 @@ import time
 from test_market_day import ENV, ROOT, dmosim
 from test_sweep import EXPERIMENT
 
-from dmosim.bench.fleet import descendants, proc_stat, role_of
+from dmosim.bench.fleet import role_of
+from dmosim.launch.processes import descendants, proc_stat
 
 # Each hour waits 5 s for mg1's meter report: the day would last two minutes; the command is stopped in its first.
 SLOW = 'faults = ["delay:agent/mg1/meter:5"]\n' + EXPERIMENT
