@@ -9,7 +9,9 @@ routers and the recorder each had a share as large (docs/benchmarks.md, "fleet")
 agents' host, ``dmosim bench``, a cluster's task) start their processes so too (``process_group=0``).
 
 Every one of them is stopped the same way (``stop_processes``): SIGTERM to its group, and after a grace SIGKILL to
-it and to everything below it, whatever each is doing (solving, blocked, ignoring SIGTERM)."""
+it and to everything below it, whatever each is doing (solving, blocked, ignoring SIGTERM). A command whose output
+its starter reads (``Command``: a ``dmosim run --json`` under a sweep or a benchmark) writes it to files, never to a
+pipe that nobody reads while it runs."""
 
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from contextlib import contextmanager, nullcontext, suppress
@@ -34,6 +37,9 @@ SOURCE_ROOT = Path(__file__).resolve().parents[2]
 
 CLI_ENTRY = "dmosim.cli.main:main"  # what ``dmosim ARGS`` calls with ARGS: a group's thread calls it (host.py)
 ROLE_STOP_S = 5.0  # how long a stopped role has to leave (the recorder: to finish its file) before SIGKILL
+# How long a stopped ``dmosim run`` (a sweep's, a benchmark's) has to stop its roles (``ROLE_STOP_S``) and leave before
+# SIGKILL reaches it and all it started: a command stopped by Ctrl-C or SIGTERM ends within 10 s, whatever its runs do.
+COMMAND_STOP_S = 6.0
 
 
 def dmosim_command(*args: str) -> list[str]:
@@ -338,3 +344,43 @@ def _parent(pid: int) -> int | None:
     fields = proc_stat(pid)
     return int(fields[1]) if len(fields) > 1 else None
 
+
+class Command:
+    """A command started as a process leading its own group, whose exit code, stdout and stderr its starter reads
+    once it has ended (``output``). What it writes goes to two files of its own (unnamed, in the temporary
+    directory), never to a pipe: a pipe holds 64 KiB, and a child that writes more than that to one nobody reads
+    until it exits waits for ever (a two-day ``dmosim run --json`` writes 100 kB). Stopped with ``stop_processes``.
+    Start it inside ``interrupts_held`` with whatever records it, so that a Ctrl-C cannot leave it unknown."""
+
+    def __init__(self, argv: list[str], cwd: str | Path | None = None):
+        self._out, self._err = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+        try:
+            self.process = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=self._out, stderr=self._err,
+                                            process_group=0, env=role_env(), cwd=cwd)
+        except BaseException:
+            self._close()
+            raise
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def poll(self) -> int | None:
+        return self.process.poll()
+
+    def wait(self, timeout_s: float | None = None) -> int:
+        """Its exit code once it has ended; ``subprocess.TimeoutExpired`` if it has not within ``timeout_s``."""
+        return self.process.wait(timeout=timeout_s)
+
+    def output(self) -> tuple[str, str]:
+        """What it wrote to stdout and to stderr (once it has ended)."""
+        said = []
+        for file in (self._out, self._err):
+            file.seek(0)
+            said.append(file.read().decode("utf-8", errors="replace"))
+        self._close()
+        return said[0], said[1]
+
+    def _close(self) -> None:
+        self._out.close()
+        self._err.close()
