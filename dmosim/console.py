@@ -5,11 +5,14 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import os
 import shutil
 import signal
+import stat
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, TextIO
 
@@ -61,8 +64,56 @@ def stop_on_terminate():
     return signal.signal(signal.SIGTERM, _interrupt)
 
 
+@contextmanager
+def stopping_on_terminate():
+    """``stop_on_terminate`` for the block only (a benchmark while it has processes of its own), the handler it
+    replaced restored after it."""
+    previous = stop_on_terminate()
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _interrupt(*_):
     raise KeyboardInterrupt
+
+
+def last_words(line: str) -> None:
+    """Say ``line`` on stderr as the last thing this process says, and never wait for a reader to do it: what stdout
+    and stderr cannot take at once (a pipe nobody reads, whose 64 KiB a ``--json`` of 100 kB outgrows) is dropped.
+    An interrupted command (Ctrl-C, SIGTERM) says so and exits, whoever reads its output, instead of waiting for ever
+    to finish writing it (the flush at exit would wait too)."""
+    _write_now(sys.stdout, "")
+    _write_now(sys.stderr, line + "\n")
+
+
+def _write_now(stream: TextIO, text: str) -> None:
+    """Write ``text`` and what ``stream`` holds back, as far as its pipe or socket takes it without waiting; what it
+    does not take is dropped, the stream pointed at /dev/null. A file or a terminal is written as usual."""
+    if stream.closed:
+        return
+    try:
+        fd = stream.fileno()
+        mode = os.fstat(fd).st_mode
+        waits = stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode)
+    except (OSError, ValueError):  # no descriptor of its own (a test's capture)
+        waits = False
+    if not waits:
+        stream.write(text)
+        stream.flush()
+        return
+    os.set_blocking(fd, False)
+    try:
+        stream.write(text)
+        stream.flush()
+        full = False
+    except BlockingIOError:
+        full = True
+    finally:
+        os.set_blocking(fd, True)  # the pipe is shared: whoever writes to it next expects it to wait
+    if full:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), fd)  # what is still held back goes nowhere, at once
 
 
 def progress(message: str) -> None:

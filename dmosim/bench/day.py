@@ -15,7 +15,6 @@ import contextlib
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -23,9 +22,9 @@ import time
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
-from ..console import stop_on_terminate
+from ..console import stopping_on_terminate
 from ..experiment.spec import HOSTINGS, Agents
-from ..launch.processes import dmosim_command, interrupts_held, role_env
+from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
 
 GOAL_PCT = 5.0
 # The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
@@ -200,33 +199,27 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
     start = time.perf_counter()
     # Its own process group, so that stopping it is our decision: SIGTERM makes dmosim run stop every role it started,
     # and a bench terminated meanwhile stops it so (it would go on in its group).
-    previous, process = stop_on_terminate(), None
-    try:
-        with interrupts_held():  # recorded before a Ctrl-C can leave it running unseen
-            process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                       process_group=0, env=role_env())
-        with watch(process.pid) if watch else contextlib.nullcontext():
-            out, err = process.communicate(timeout=timeout_s)
-    except BaseException as exc:
-        if process is not None:
-            process.terminate()
-            try:
-                process.communicate(timeout=30)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.communicate()
-        if isinstance(exc, subprocess.TimeoutExpired):  # its logs say where it stood
-            raise RuntimeError(f"dmosim run {' '.join(flags)} took over {timeout_s:g} s and was stopped "
-                               f"(run directory: {rundir})") from None
-        if keep is None:  # interrupted: nothing of it is wanted
-            shutil.rmtree(rundir, ignore_errors=True)
-        raise
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    with stopping_on_terminate():
+        command = None
+        try:
+            with interrupts_held():  # recorded before a Ctrl-C can leave it running unseen
+                command = Command(argv)
+            with watch(command.pid) if watch else contextlib.nullcontext():
+                code = command.wait(timeout_s)
+        except BaseException as exc:
+            if command is not None:
+                stop_processes([command.process], COMMAND_STOP_S)
+            if isinstance(exc, subprocess.TimeoutExpired):  # its logs say where it stood
+                raise RuntimeError(f"dmosim run {' '.join(flags)} took over {timeout_s:g} s and was stopped "
+                                   f"(run directory: {rundir})") from None
+            if keep is None:  # interrupted: nothing of it is wanted
+                shutil.rmtree(rundir, ignore_errors=True)
+            raise
     process_s = time.perf_counter() - start
-    result = _result(out) if process.returncode in (0, 1) else None  # 1: it ran, but its verdict is not ok
+    out, err = command.output()
+    result = _result(out) if code in (0, 1) else None  # 1: it ran, but its verdict is not ok
     if result is None:
-        raise RuntimeError(f"dmosim run {' '.join(flags)} exited {process.returncode}: {failure_line(err)} "
+        raise RuntimeError(f"dmosim run {' '.join(flags)} exited {code}: {failure_line(err)} "
                            f"(run directory: {rundir})")
     if not result["verdict"]["ok"]:  # measured all the same, and said on stderr (the bench's rows show it too)
         print(f"dmosim run {' '.join(flags)}: {err.strip()}", file=sys.stderr)

@@ -25,6 +25,7 @@ from messages.transport.credentials import MAX_HOSTS
 
 from ..arguments import gap, integer, nonneg_float, positive_int
 from ..experiment.spec import HOSTINGS, MAX_AGENTS
+from ..launch.processes import descendants
 from .day import GOAL_PCT, run_and_read, split_day
 
 INTERVAL_S = 1.0  # how often the run's memory is summed
@@ -143,37 +144,6 @@ class TreeMemory:
             total = sum(by_role.values())
             if total > self.peak_mib:
                 self.peak_mib, self.peak_by_role = total, by_role
-
-
-def descendants(root: int) -> list[tuple[int, int]]:
-    """(pid, parent pid) of ``root`` and every process below it, from /proc."""
-    children: dict[int, list[int]] = {}
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            parent = _parent(int(entry))
-            if parent is not None:
-                children.setdefault(parent, []).append(int(entry))
-    out, todo = [], [(root, 0)]
-    while todo:
-        pid, parent = todo.pop()
-        out.append((pid, parent))
-        todo += [(child, pid) for child in children.get(pid, [])]
-    return out
-
-
-def proc_stat(pid: int) -> list[str]:
-    """The fields of /proc/PID/stat after the command name (the state first, then the parent's pid; the start time
-    is the 20th), or none if there is no such process."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rpartition(")")[2].split()
-    except OSError:
-        return []
-
-
-def _parent(pid: int) -> int | None:
-    fields = proc_stat(pid)
-    return int(fields[1]) if len(fields) > 1 else None
 
 
 def pss_mib(pid: int) -> float | None:

@@ -27,10 +27,12 @@ from messages.schemas import DMO
 from messages.transport import Bus, BusConfig, wait_matching
 
 from ..arguments import positive_int
-from ..launch.processes import free_port, interrupts_held, role_env
+from ..console import stopping_on_terminate
+from ..launch.processes import ROLE_STOP_S, free_port, interrupts_held, role_env, stop_processes
 
 AGENT = "mg1"
 TIMEOUT_S = 30.0  # for any single reply or handshake: a dead peer fails the bench instead of hanging it
+QUIT_S = 5.0  # how long the echo process has to quit once its input ends, before it is stopped
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +61,8 @@ def run(args) -> dict:
 
     run_id, port = new_run_id(), free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    with Bus(run_id, DMO, BusConfig(mode="router", listen=(endpoint,))) as bus:
+    # SIGTERM as Ctrl-C while the echo process runs: it is stopped on the way out (Echo.__exit__).
+    with stopping_on_terminate(), Bus(run_id, DMO, BusConfig(mode="router", listen=(endpoint,))) as bus:
         raw = bus.keys.prefix + "/bench"
         replies: queue.Queue = queue.Queue()
         bus_count, raw_count = Counter(), Counter()
@@ -231,14 +234,9 @@ class Echo:
             return
         try:
             process.stdin.close()  # the echo process quits at the end of its input
-            process.wait(timeout=5)
+            process.wait(timeout=QUIT_S)
         except (OSError, subprocess.TimeoutExpired):
-            process.terminate()
-            try:
-                process.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+            stop_processes([process], ROLE_STOP_S)
 
 
 # --- the echo process --------------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ from messages.schemas import PRICE_CAP, PRICE_FLOOR
 from messages.recording import CHUNK_MESSAGES, RecordingWriter, read_recording
 
 from ..arguments import positive_int
+from ..console import stopping_on_terminate
 from ..launch.processes import dmosim_command, role_env
 from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT
 
@@ -219,7 +220,7 @@ def wire_rate(mix, n: int, chunk_messages: int, scratch: Path) -> dict:
     run_id = mix[0][0].split("/")[1]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     path, ready, log = scratch / "wire.mcap", scratch / "ready", scratch / "recorder.log"
-    with Roles() as roles:
+    with stopping_on_terminate(), Roles() as roles:  # SIGTERM as Ctrl-C: the recorder is stopped on the way out
         recorder = roles.start("recorder", dmosim_command("record", "--out", str(path), "--run-id", run_id, "--mode", "router",
                                                    "--listen", endpoint, "--ready-file", str(ready),
                                                    "--chunk-messages", str(chunk_messages)), log=log, env=role_env())
@@ -281,7 +282,9 @@ def replay_rate(path: Path, scratch: Path) -> dict:
             if got["n"] >= total:
                 done.set()
 
-    with Bus(run_id, "tap", BusConfig(mode="router", listen=(endpoint,)), announce=False) as bus, Roles() as roles:
+    # SIGTERM as Ctrl-C: the player is stopped on the way out
+    with stopping_on_terminate(), Bus(run_id, "tap", BusConfig(mode="router", listen=(endpoint,)),
+                                      announce=False) as bus, Roles() as roles:
         bus.subscribe_raw(bus.keys.everything(), on_sample)
         start = time.perf_counter()
         player = roles.start("replay", dmosim_command("replay", str(path), "--rate", "max", "--run-id", run_id, "--mode",

@@ -13,7 +13,7 @@ import sys
 from messages.transport.heap import limit_arenas
 from scenarios.case import CaseError
 
-from ..console import UsageError
+from ..console import UsageError, last_words
 from . import (agent, bench, cat, credentials, dmo, export, fleet, info, plot, record, replay, router, run, schemas,
                settle, solve, study, sweep)
 
@@ -67,12 +67,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         argv = sys.argv[1:] if argv is None else argv
         args = build_parser(argv[0] if argv and not argv[0].startswith("-") else None).parse_args(argv)
-        return args.verb.run(args) or 0
+        code = args.verb.run(args) or 0
+        sys.stdout.flush()  # out before the exit: a reader that stalls it is met here, where Ctrl-C ends it with 130
+        return code
     except (UsageError, CaseError) as exc:  # one line, even where a path or a key the user gave holds a newline
         print("error: " + str(exc).replace("\n", "\\n"), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        last_words("interrupted")  # never waits for a reader of its output: whoever reads it, it exits now
         return 130
     except BrokenPipeError:  # the reader of stdout went away (dmosim info ... | head): nothing left to say
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())

@@ -4,9 +4,11 @@ time; then one table of every run and agent (``sweep.csv``) and its figure (``sw
 
 Every variant is validated before the first run starts. A run that fails, or ends with a verdict that is not ok
 (docs/experiments.md, "The result"), is reported and keeps a row saying so (``status`` ``failed`` or
-``untrusted``); the others go on, and the sweep exits 1 at the end. Ctrl-C stops every run under way (each stops
-its roles). With ``--cluster`` each run is a task on the workers of a Dask cluster instead of a process here
-(dmosim/launch/cluster.py, docs/cluster.md), into the same directories, which the workers must share.
+``untrusted``); the others go on, and the sweep exits 1 at the end. A run's output goes to files, read once it has
+ended (``Command``). Ctrl-C or SIGTERM stops every run under way (each stops its roles; what is left of one after
+``COMMAND_STOP_S`` is killed with all it started). With ``--cluster`` each run is a task on the workers of a Dask
+cluster instead of a process here (dmosim/launch/cluster.py, docs/cluster.md), into the same directories, which the
+workers must share.
 """
 
 from __future__ import annotations
@@ -15,7 +17,6 @@ import argparse
 import contextlib
 import json
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -26,7 +27,7 @@ from ..experiment.rundir import RUNS, RunDirError, claim_directory
 from ..experiment.spec import Experiment, ExperimentError, load_experiment, to_toml
 from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
 from ..launch.cluster import Commands
-from ..launch.processes import dmosim_command, interrupts_held, role_env
+from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
 from ..launch.roles import resolved, strategy_of
 from .checks import Checked, check_inputs, strategy_source
 from .flags import check_out
@@ -147,33 +148,28 @@ def _portable(experiment: Experiment) -> Experiment:
 
 class LocalCommands:
     """``dmosim`` commands as processes of this machine, each watched by ``poll``, all stopped by ``stop``: what
-    ``dmosim.launch.cluster.Commands`` does on a cluster's workers."""
+    ``dmosim.launch.cluster.Commands`` does on a cluster's workers. Each leads a process group of its own (the
+    terminal's Ctrl-C reaches the sweep, which stops them) and writes its output to files (``Command``)."""
 
     def __init__(self):
-        self.processes: list[subprocess.Popen] = []
+        self.commands: list[Command] = []
 
     def start(self, args: list[str], name: str):
         """Start ``dmosim ARGS``; a function that returns None while it runs, then its exit code, stdout and stderr."""
         with interrupts_held():  # recorded before a Ctrl-C can leave it unseen
-            process = subprocess.Popen(dmosim_command(*args), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                       text=True, env=role_env())
-            self.processes.append(process)
+            command = Command(dmosim_command(*args))
+            self.commands.append(command)
 
         def poll() -> tuple[int, str, str] | None:
-            if process.poll() is None:
-                return None
-            out, err = process.communicate()
-            return process.returncode, out, err
+            code = command.poll()
+            return None if code is None else (code, *command.output())
 
         return poll
 
     def stop(self) -> None:
-        """Stop every command still running, and wait for it: ``dmosim run`` stops its roles on SIGTERM."""
-        running = [p for p in self.processes if p.poll() is None]
-        for process in running:
-            process.terminate()
-        for process in running:
-            process.wait()
+        """Stop every command still running and wait for it: ``dmosim run`` stops its roles on SIGTERM, and what is
+        left of it after ``COMMAND_STOP_S`` is killed."""
+        stop_processes([c.process for c in self.commands], COMMAND_STOP_S)
 
 
 def _run_all(runs: list[Variant], root: Path, parallel: int, commands: LocalCommands | Commands, say,

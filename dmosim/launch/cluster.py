@@ -34,7 +34,7 @@ from typing import Callable
 
 from messages.transport.credentials import write_bundle
 
-from .processes import Roles, dmosim_command, role_env
+from .processes import COMMAND_STOP_S, ROLE_STOP_S, Command, Roles, dmosim_command, role_env, stop_processes
 
 INSTALL = "pip install 'dmosim[cluster]'"
 SCHEMES = ("tcp", "tls")  # the Dask transports a scheduler is reached by here (tcp only with --insecure-cluster)
@@ -45,8 +45,6 @@ MAX_SCHEDULER_FILE = 65536  # bytes of a scheduler file (dask scheduler --schedu
 BEAT_S = 2.0  # the launcher's beat on a lifeline
 LOST_AFTER_S = 60.0  # a lifeline not beaten for this long: the launcher is gone, and the task stops its processes
 TASK_POLL_S = 1.0  # how often a task looks at its lifeline (and at its processes)
-COMMAND_STOP_S = 90.0  # how long a stopped `dmosim run` has to stop its own roles and write its files, then SIGKILL
-AGENTS_STOP_S = 5.0  # how long a stopped agent has to leave (Roles.stop_all's grace), then SIGKILL
 CUT = "cut"  # the lifeline's value once the launcher has cut it; before, the number of its beats
 CANCELLED = "cancelled before it started"  # a command's error when it was stopped before its process started
 
@@ -317,33 +315,26 @@ def _tether(name: str) -> Tether:
 
 def run_command(args: list[str], cwd: str, lifeline: str) -> tuple[int, str, str]:
     """On a worker: ``dmosim ARGS`` (this worker's dmosim) in directory ``cwd`` (the launcher's, if this worker has
-    it), to its end or until the lifeline is cut; its exit code, stdout and stderr. Stopped, it gets SIGTERM (a
-    ``dmosim run`` stops its roles), and SIGKILL to its group after ``COMMAND_STOP_S``."""
+    it), to its end or until the lifeline is cut; its exit code, stdout and stderr (``Command``: written to files,
+    read at its end). Stopped, it gets SIGTERM (a ``dmosim run`` stops its roles), and after ``COMMAND_STOP_S`` SIGKILL
+    with all it started (``stop_processes``)."""
     tether = _tether(lifeline)
     if tether.cut():  # stopped while this task waited for a thread
         return 1, "", CANCELLED
-    process = subprocess.Popen(dmosim_command(*args), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True, env=role_env(), process_group=0,
-                               cwd=cwd if os.path.isdir(cwd) else None)
+    command = Command(dmosim_command(*args), cwd=cwd if os.path.isdir(cwd) else None)
     try:
         while True:
             try:
-                out, err = process.communicate(timeout=TASK_POLL_S)
-                return process.returncode, out, err
+                code = command.wait(TASK_POLL_S)
+                break
             except subprocess.TimeoutExpired:
                 if tether.cut():
+                    stop_processes([command.process], COMMAND_STOP_S)
+                    code = command.poll()
                     break
-        process.terminate()
-        try:
-            out, err = process.communicate(timeout=COMMAND_STOP_S)
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)
-            out, err = process.communicate()
-        return process.returncode, out, err
-    finally:
-        if process.poll() is None:  # the task itself failed: nothing of the command may be left
-            os.killpg(process.pid, signal.SIGKILL)
-            process.wait()
+        return code, *command.output()
+    finally:  # the task itself failed: nothing of the command may be left
+        stop_processes([command.process], 0.0)
 
 
 class Commands:
@@ -439,7 +430,7 @@ def host_agents(agents: list[tuple[str, list[str], str]], bundles: dict[str, dic
                 continue
             codes[name] = code
             reported.put([name, code])
-        roles.stop_all(AGENTS_STOP_S)  # those still running once the lifeline is cut
+        roles.stop_all(ROLE_STOP_S)  # those still running once the lifeline is cut
     return {name: codes.get(name, roles.roles[name].process.returncode if name in roles.roles else None)
             for name, _, _ in agents}
 
@@ -527,7 +518,7 @@ class RemoteAgents:
     def stop(self) -> dict[str, int | None]:
         """Stop every agent still running (the lifeline cut) and wait for the tasks to end; each agent's exit code."""
         self.lifeline.cut()
-        _await(list(self.futures), AGENTS_STOP_S + 2 * TASK_POLL_S + 30)
+        _await(list(self.futures), ROLE_STOP_S + 2 * TASK_POLL_S + 30)
         self._done.set()
         if self._watcher is not None:
             self._watcher.join()

@@ -6,7 +6,12 @@ session of the command that started it, never a session of its own: Linux shares
 (autogroup, on by default), so a role in a session of its own got as much of them as every agent together, and a
 forked host's hundreds of agents, one session between them, were starved for up to a minute while the DMO, the
 routers and the recorder each had a share as large (docs/benchmarks.md, "fleet"). dmosim's other launchers (the
-agents' host, ``dmosim bench``, a cluster's task) start their processes so too (``process_group=0``)."""
+agents' host, ``dmosim bench``, a cluster's task) start their processes so too (``process_group=0``).
+
+Every one of them is stopped the same way (``stop_processes``): SIGTERM to its group, and after a grace SIGKILL to
+it and to everything below it, whatever each is doing (solving, blocked, ignoring SIGTERM). A command whose output
+its starter reads (``Command``: a ``dmosim run --json`` under a sweep or a benchmark) writes it to files, never to a
+pipe that nobody reads while it runs."""
 
 from __future__ import annotations
 
@@ -17,9 +22,10 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
-from contextlib import contextmanager, nullcontext
+from contextlib import contextmanager, nullcontext, suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +36,10 @@ SOURCE_ROOT = Path(__file__).resolve().parents[2]
 
 
 CLI_ENTRY = "dmosim.cli.main:main"  # what ``dmosim ARGS`` calls with ARGS: a group's thread calls it (host.py)
+ROLE_STOP_S = 5.0  # how long a stopped role has to leave (the recorder: to finish its file) before SIGKILL
+# How long a stopped ``dmosim run`` (a sweep's, a benchmark's) has to stop its roles (``ROLE_STOP_S``) and leave before
+# SIGKILL reaches it and all it started: a command stopped by Ctrl-C or SIGTERM ends within 10 s, whatever its runs do.
+COMMAND_STOP_S = 6.0
 
 
 def dmosim_command(*args: str) -> list[str]:
@@ -238,17 +248,9 @@ class Roles:
                              "killed or restarted alone")
         return role
 
-    def stop_all(self, grace_s: float = 5.0) -> None:
-        running = [r.process for r in self.roles.values() if r.process.poll() is None]
-        for p in running:
-            _signal_group(p, signal.SIGTERM)
-        deadline = time.monotonic() + grace_s
-        for p in running:
-            try:
-                p.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                _signal_group(p, signal.SIGKILL)
-                p.wait()
+    def stop_all(self, grace_s: float = ROLE_STOP_S) -> None:
+        """Stop every role still running (``stop_processes``), then the hosts they were forked from."""
+        stop_processes([r.process for r in self.roles.values()], grace_s)
         for host in self.hosts:
             host.stop(grace_s)
 
@@ -264,3 +266,121 @@ def _signal_group(process: subprocess.Popen | Forked, sig: int) -> None:
         os.killpg(process.pid, sig)
     except (ProcessLookupError, PermissionError):
         pass
+
+
+def stop_processes(processes: list, grace_s: float) -> None:
+    """Stop each of ``processes`` (a ``subprocess.Popen`` or a ``Forked``, each leading its process group) still
+    running: SIGTERM to its group, and to those still there ``grace_s`` later (one deadline for all), SIGKILL to
+    them and to everything below them (``kill_tree``); return once every one has ended. A Ctrl-C or SIGTERM that
+    comes meanwhile is held until then (``interrupts_held``): a second one must not cut the stopping short and leave
+    processes behind, and this ends within the grace anyway."""
+    with interrupts_held():
+        running = [p for p in processes if p.poll() is None]
+        for p in running:
+            _signal_group(p, signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for p in running:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                kill_tree(p.pid)
+                p.wait()
+
+
+def kill_tree(root: int) -> None:
+    """SIGKILL ``root``, every process below it and the process group of each (a role leads one: what it started
+    without a group of its own is in it). All are stopped first (SIGSTOP, again for any that appeared meanwhile), so
+    that none starts another while the rest are killed, and none escapes by being handed to init when its parent
+    dies. The group of this process is never signalled."""
+    stopped: set[int] = set()
+    while fresh := {pid for pid, _ in descendants(root)} - stopped:
+        for pid in fresh:
+            _signal_pid(pid, signal.SIGSTOP)
+        stopped |= fresh
+    ours = os.getpgrp()
+    groups = set()
+    for pid in stopped:
+        with suppress(ProcessLookupError, PermissionError):
+            groups.add(os.getpgid(pid))
+    for group in groups - {ours}:
+        with suppress(ProcessLookupError, PermissionError):
+            os.killpg(group, signal.SIGKILL)
+    for pid in stopped:
+        _signal_pid(pid, signal.SIGKILL)
+
+
+def _signal_pid(pid: int, sig: int) -> None:
+    with suppress(ProcessLookupError, PermissionError):
+        os.kill(pid, sig)
+
+
+def descendants(root: int) -> list[tuple[int, int]]:
+    """(pid, parent pid) of ``root`` and every process below it, from /proc."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            parent = _parent(int(entry))
+            if parent is not None:
+                children.setdefault(parent, []).append(int(entry))
+    out, todo = [], [(root, 0)]
+    while todo:
+        pid, parent = todo.pop()
+        out.append((pid, parent))
+        todo += [(child, pid) for child in children.get(pid, [])]
+    return out
+
+
+def proc_stat(pid: int) -> list[str]:
+    """The fields of /proc/PID/stat after the command name (the state first, then the parent's pid; the start time
+    is the 20th), or none if there is no such process."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rpartition(")")[2].split()
+    except OSError:
+        return []
+
+
+def _parent(pid: int) -> int | None:
+    fields = proc_stat(pid)
+    return int(fields[1]) if len(fields) > 1 else None
+
+
+class Command:
+    """A command started as a process leading its own group, whose exit code, stdout and stderr its starter reads
+    once it has ended (``output``). What it writes goes to two files of its own (unnamed, in the temporary
+    directory), never to a pipe: a pipe holds 64 KiB, and a child that writes more than that to one nobody reads
+    until it exits waits for ever (a two-day ``dmosim run --json`` writes 100 kB). Stopped with ``stop_processes``.
+    Start it inside ``interrupts_held`` with whatever records it, so that a Ctrl-C cannot leave it unknown."""
+
+    def __init__(self, argv: list[str], cwd: str | Path | None = None):
+        self._out, self._err = tempfile.TemporaryFile(), tempfile.TemporaryFile()
+        try:
+            self.process = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=self._out, stderr=self._err,
+                                            process_group=0, env=role_env(), cwd=cwd)
+        except BaseException:
+            self._close()
+            raise
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def poll(self) -> int | None:
+        return self.process.poll()
+
+    def wait(self, timeout_s: float | None = None) -> int:
+        """Its exit code once it has ended; ``subprocess.TimeoutExpired`` if it has not within ``timeout_s``."""
+        return self.process.wait(timeout=timeout_s)
+
+    def output(self) -> tuple[str, str]:
+        """What it wrote to stdout and to stderr (once it has ended)."""
+        said = []
+        for file in (self._out, self._err):
+            file.seek(0)
+            said.append(file.read().decode("utf-8", errors="replace"))
+        self._close()
+        return said[0], said[1]
+
+    def _close(self) -> None:
+        self._out.close()
+        self._err.close()

@@ -118,6 +118,15 @@ def fleet_of(experiment: Experiment) -> list[FleetMember]:
     return make_fleet(a.count, seed=experiment.seed)
 
 
+def placed_fleet(experiment: Experiment) -> list[FleetMember]:
+    """The agents of a (resolved) experiment (``fleet_of``), each at the bus the experiment places it at on its
+    feeder, if it has one (``network.buses``: every agent's, once resolved)."""
+    fleet = fleet_of(experiment)
+    if experiment.network.feeder is None:
+        return fleet
+    return [dataclasses.replace(m, bus=bus) for m, bus in zip(fleet, experiment.network.buses)]
+
+
 def fleet_written(experiment: Experiment, path: Path) -> Experiment:
     """A (resolved) experiment that generates its fleet (``agents.generate``), with that fleet written as the fleet
     file ``path`` and its cases beside it (``scenarios.fleet.write_fleet``), each member at the bus the experiment
@@ -126,9 +135,7 @@ def fleet_written(experiment: Experiment, path: Path) -> Experiment:
     a = experiment.agents
     if a.generate is None:
         return experiment
-    fleet = fleet_of(experiment)
-    if experiment.network.feeder is not None:  # resolved: network.buses holds every agent's bus
-        fleet = [dataclasses.replace(m, bus=bus) for m, bus in zip(fleet, experiment.network.buses)]
+    fleet = placed_fleet(experiment)
     comment = (f"dmosim fleet: {a.generate} microgrids drawn from {fleet[0].case} with seed {experiment.seed} "
                f"(docs/agent.md, \"Generated fleets\"); each case file is in {CASES_DIR}/")
     written = write_fleet(fleet, path, comment)

@@ -17,7 +17,11 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import ctypes
 import multiprocessing as mp
+import os
+import signal
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -77,7 +81,11 @@ class Subproblems:
         return h
 
 
-def _worker(conn, case, scen, params, indices) -> None:
+PR_SET_PDEATHSIG = 1  # prctl(2): the signal the kernel sends a process when its parent dies (linux/prctl.h)
+
+
+def _worker(conn, case, scen, params, indices, solver: int) -> None:
+    _dies_with(solver)
     sub = Subproblems(case, scen, params, indices)
     conn.send("ready")
     while True:
@@ -88,6 +96,17 @@ def _worker(conn, case, scen, params, indices) -> None:
             conn.send(("ok", sub.evaluate(x) if command == "evaluate" else sub.dispatch(x)))
         except Exception as exc:  # the parent re-raises it; the worker stays usable
             conn.send(("error", exc))
+
+
+def _dies_with(solver: int) -> None:
+    """Have the kernel SIGKILL this worker when the process that solves dies, however it dies (SIGTERM to ``dmosim
+    solve`` or a benchmark, SIGKILL): the worker waits on a pipe whose other end it holds itself (forked), so it never
+    sees that end close, and would wait for ever. Linux only (``PR_SET_PDEATHSIG``); elsewhere, nothing."""
+    if not sys.platform.startswith("linux"):
+        return
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != solver:  # it died before the line above: no signal will come
+        os._exit(1)
 
 
 class ScenarioPool:
@@ -105,7 +124,7 @@ class ScenarioPool:
         self.conns, self.procs = [], []
         for part in parts:
             parent, child = ctx.Pipe()
-            proc = ctx.Process(target=_worker, args=(child, case, scen, params, part), daemon=True)
+            proc = ctx.Process(target=_worker, args=(child, case, scen, params, part, os.getpid()), daemon=True)
             proc.start()
             self.conns.append(parent)
             self.procs.append(proc)

@@ -105,3 +105,14 @@ def test_dmosim_fleet_writes_the_fleet_a_run_would_and_keeps_what_is_there(tmp_p
     assert main(argv) == 2 and "cases/mg1.toml exists" in capsys.readouterr().err  # a case file is kept too
     assert main([*argv, "--overwrite"]) == 0 and out.read_text() == before
     assert "wrote" in capsys.readouterr().out
+
+
+def test_dmosim_fleet_json_without_out_writes_nothing_and_prints_what_it_would_write(tmp_path, monkeypatch, capsys):
+    argv = ["fleet", "--agents", "4", "--seed", "4", "--feeder", "feeder5", "--json"]
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert list(tmp_path.iterdir()) == []
+    assert (printed["fleet"], printed["cases"], printed["seed"]) == (None, None, 4)
+    assert main([*argv, "--out", "f.toml"]) == 0  # the same fleet, written and read back
+    assert json.loads(capsys.readouterr().out)["members"] == printed["members"]

@@ -3,6 +3,7 @@ roles forked from a pre-loaded host (dmosim/launch/host.py), started, restarted,
 
 from __future__ import annotations
 
+import contextlib
 import io
 import logging
 import os
@@ -108,6 +109,28 @@ def test_a_recorder_that_does_not_leave_is_killed_and_its_file_decides_whether_t
         assert said and said[0].startswith("the recorder finished its file but then ")
     else:
         assert failure.startswith("did not finish its file within 0.5 s of being stopped") and not said
+
+
+# A role that ignores SIGTERM and has started a process in a group of its own that ignores it too, as a `dmosim run`
+# stuck on its way out has its roles: SIGKILL to the role's group alone would leave that one running.
+DEAF = [sys.executable, "-c", "import signal, subprocess, sys, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+                              "below = subprocess.Popen([sys.executable, '-c', 'import signal, time; "
+                              "signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(120)'], process_group=0); "
+                              "print('below', below.pid, flush=True); time.sleep(120)"]
+
+
+def test_a_role_that_ignores_sigterm_is_killed_with_what_it_started_in_a_group_of_its_own(tmp_path):
+    below = None
+    try:
+        with Roles() as roles:
+            role = roles.start("run", DEAF, log=tmp_path / "run.log")
+            below = int(wait_for_line(role.log, r"below (\d+)", 30, lambda: role.process.poll() is None).group(1))
+            roles.stop_all(grace_s=0.5)
+            assert role.process.poll() == -signal.SIGKILL and gone(below)
+    finally:  # on a failure, nothing is left behind
+        if below is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(below, signal.SIGKILL)
 
 
 # --- roles forked from a pre-loaded host (dmosim run --hosting fork) ------------------------------------------

@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import select
+import signal
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import cvxpy as cp
 import numpy as np
@@ -273,3 +280,46 @@ def test_a_start_from_another_day_is_the_first_incumbent_and_one_the_master_forb
         check_schedule(small.case, small.scen, schedule).raise_if_failed()
         assert reference.bound * (1 - 1e-6) <= schedule.objective <= reference.objective * (1 + GAP) + 1e-6
         assert schedule.objective <= its_cost * (1 + 1e-9)  # never worse than where it started
+
+
+# A decomposed solve's scenario pool on two worker processes, their pids said, and then a long wait.
+POOL = """
+import sys, time
+from microgrid_agent.instance import make_instance
+from microgrid_agent.solvers.benders import ScenarioPool
+from scenarios.case import load_case
+small = make_instance(load_case("paper"), scenarios=3, sample_size=3, subperiods=2, seed=2, island_hours=1)
+pool = ScenarioPool(small.case, small.scen, small.params, 2)
+print("workers", *(p.pid for p in pool.procs), flush=True)
+time.sleep(600)
+"""
+
+
+def test_the_workers_of_a_decomposed_solve_die_with_the_process_that_solves():
+    """SIGTERM ends ``dmosim solve`` (or a benchmark) at once; its workers, waiting on their pipes, must not stay."""
+    solver = subprocess.Popen([sys.executable, "-c", POOL], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])})
+    workers = []
+    try:
+        workers = next([int(pid) for pid in line.split()[1:]] for line in solver.stdout if line.startswith("workers "))
+        solver.terminate()
+        solver.wait()
+        assert len(workers) == 2 and all(_ends(pid) for pid in workers)
+    finally:
+        solver.kill()
+        solver.wait()
+        for pid in workers:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _ends(pid: int) -> bool:
+    """Wait for a process that is not this one's child to end (its pidfd turns readable): whether it did within 30 s."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return True
+    try:
+        return bool(select.select([fd], [], [], 30)[0])
+    finally:
+        os.close(fd)
