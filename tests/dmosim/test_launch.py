@@ -7,7 +7,6 @@ import contextlib
 import io
 import logging
 import os
-import select
 import signal
 import sys
 import threading
@@ -119,7 +118,7 @@ DEAF = [sys.executable, "-c", "import signal, subprocess, sys, time; signal.sign
                               "print('below', below.pid, flush=True); time.sleep(120)"]
 
 
-def test_a_role_that_ignores_sigterm_is_killed_with_what_it_started_in_a_group_of_its_own(tmp_path):
+def test_a_role_that_ignores_sigterm_is_killed_with_what_it_started_in_a_group_of_its_own(tmp_path, gone):
     below = None
     try:
         with Roles() as roles:
@@ -156,18 +155,6 @@ def probe(tmp_path: Path, *args: str) -> list[str]:
     return [sys.executable, "-m", "probe", *args]
 
 
-def gone(pid: int) -> bool:
-    """Wait for a process that is not this one's child to end (its pidfd turns readable); True once it has."""
-    try:
-        fd = os.pidfd_open(pid)
-    except ProcessLookupError:
-        return True
-    try:
-        return bool(select.select([fd], [], [], 30)[0])
-    finally:
-        os.close(fd)
-
-
 def test_every_process_of_a_run_leads_a_group_of_its_own_in_the_launcher_s_session(tmp_path):
     """Not a session of its own: Linux shares the cores among sessions first (autogroup), which starved a host's
     hundreds of agents against the DMO and the routers (dmosim/launch/processes.py)."""
@@ -199,7 +186,7 @@ def test_a_forked_role_runs_its_command_in_its_directory_environment_and_log_as_
     assert host.process.returncode == 0  # stopped with the roles
 
 
-def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path):
+def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path, gone):
     with Roles() as roles:
         host = roles.fork_host(("json",), tmp_path / "host.log")
         log = tmp_path / "mg1.log"
@@ -216,7 +203,7 @@ def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path)
     assert host.process.returncode == 0
 
 
-def test_a_host_that_dies_takes_its_roles_with_it_and_they_fail(tmp_path):
+def test_a_host_that_dies_takes_its_roles_with_it_and_they_fail(tmp_path, gone):
     with Roles() as roles:
         host = roles.fork_host(("json",), tmp_path / "host.log")
         child = roles.start("mg1", probe(tmp_path, "stay"), log=tmp_path / "mg1.log", cwd=tmp_path, host=host).process
@@ -242,7 +229,7 @@ def test_a_host_that_cannot_start_or_a_log_that_cannot_be_opened_is_an_error_at_
 
 
 def test_agents_sharing_a_forked_process_each_write_their_own_log_end_with_their_own_code_and_stop_together(
-        tmp_path):
+        tmp_path, gone):
     run_id = "20260101T000000-abcdef"
     stay = ["agent", "--run-id", run_id, "--agents", "4", "--connect", f"tcp/127.0.0.1:{free_port()}",
             "--connect-timeout", "120"]  # nothing listens there: it keeps trying, and logs that it does
