@@ -18,7 +18,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict, TypeA
 
 from scenarios.horizon import HOURS
 from scenarios.names import DMO, NAME_PATTERN, RESERVED_NAMES
-from scenarios.network import MAX_BUSES
+from scenarios.network import MAX_BUSES, MAX_NAME_LENGTH
 
 # 2: the clock says which day of how many (a run of several market days); 3: awards and statements name their
 # settlement rule, and awards carry its price of a deviation; 4: every message is bound to its run (``run``) and
@@ -74,7 +74,7 @@ Hourly = Annotated[tuple[Float, ...], Field(min_length=HOURS, max_length=HOURS)]
 Congestion = Literal["none", "import", "export", "line", "voltage"]
 MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}$")]
 Piece = tuple[Float, Float]
-BusName = Annotated[str, Strict(), Field(min_length=1, max_length=64)]
+BusName = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_NAME_LENGTH)]  # as a feeder may name it
 PerBus = Annotated[tuple[Float, ...], Field(min_length=1, max_length=MAX_BUSES)]
 RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]
 # The run's token: 32 hex digits the DMO draws when a run starts (empty in messages older than version 4).
@@ -301,10 +301,10 @@ class ACCheck(_WireModel):
 
     converged: Annotated[Bool, Field(description="whether the Newton-Raphson power flow converged")]
     v_min_pu: Annotated[Float | None, Field(description="the lowest bus voltage, p.u.")]
-    v_min_bus: Annotated[Annotated[str, Strict(), Field(max_length=64)], Field(description=(
+    v_min_bus: Annotated[Annotated[str, Strict(), Field(max_length=MAX_NAME_LENGTH)], Field(description=(
         "the bus of the lowest voltage"))]
     v_max_pu: Annotated[Float | None, Field(description="the highest bus voltage, p.u.")]
-    v_max_bus: Annotated[Annotated[str, Strict(), Field(max_length=64)], Field(description=(
+    v_max_bus: Annotated[Annotated[str, Strict(), Field(max_length=MAX_NAME_LENGTH)], Field(description=(
         "the bus of the highest voltage"))]
     max_loading: Annotated[NonNeg | None, Field(description=(
         "the most loaded line's apparent power at its sending end over its limit"))]
@@ -332,7 +332,7 @@ class NetworkHour(_FromDmo):
     stage: Annotated[Literal["plan", "realised"], Field(description=(
         "\"plan\": the awards as cleared; \"realised\": the hour's mean metered transfers (a missing reading "
         "counts as 0 here: the grid, not the settlement)"))]
-    network: Annotated[Annotated[str, Strict(), Field(min_length=1, max_length=64)], Field(description=(
+    network: Annotated[Annotated[str, Strict(), Field(min_length=1, max_length=MAX_NAME_LENGTH)], Field(description=(
         "the feeder's name"))]
     buses: Annotated[tuple[BusName, ...], Field(min_length=2, max_length=MAX_BUSES), Field(description=(
         "the feeder's buses, in its order; every per-bus field follows it"))]

@@ -288,25 +288,33 @@ def load_case(name_or_path: str | Path) -> Case:
 def read_toml(path: Path, what: str, error: type[Exception], missing_hint: str = "") -> dict:
     """A TOML file (case, fleet, experiment...) as a dict; a file that is missing, unreadable, not a regular file,
     larger than ``MAX_TOML_BYTES`` or not TOML raises ``error`` with one line naming it."""
+    return parse_toml(read_text(path, what, error, MAX_TOML_BYTES, missing_hint), str(path), error)
+
+
+def read_text(path: Path, what: str, error: type[Exception], limit: int, missing_hint: str = "") -> str:
+    """A file's text, before anything parses it: a file that is missing, unreadable, not a regular file, larger than
+    ``limit`` bytes (its size is checked before it is read, and again as it is read: it may grow) or not UTF-8
+    raises ``error`` with one line naming it."""
     path = Path(path)
     try:
         raw = None
-        if stat.S_ISREG(path.stat().st_mode):  # not a FIFO or /dev/zero, which would block or never end
+        info = path.stat()
+        # a FIFO or /dev/zero would block or never end, and a file too large is not read at all
+        if stat.S_ISREG(info.st_mode) and info.st_size <= limit:
             with path.open("rb") as f:
-                raw = f.read(MAX_TOML_BYTES + 1)
+                raw = f.read(limit + 1)
     except FileNotFoundError:
         raise error(f"{what} file not found: {path}{missing_hint}") from None
     except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the path
         raise error(f"cannot read {what} file {path}: {getattr(exc, 'strerror', None) or exc}") from None
-    if raw is None:
+    if not stat.S_ISREG(info.st_mode):
         raise error(f"cannot read {what} file {path}: not a regular file")
-    if len(raw) > MAX_TOML_BYTES:
-        raise error(f"{path}: larger than {MAX_TOML_BYTES:,} bytes, the most a {what} file may hold")
+    if raw is None or len(raw) > limit:
+        raise error(f"{path}: larger than {limit:,} bytes, the most a {what} file may hold")
     try:
-        text = raw.decode()
+        return raw.decode()
     except UnicodeDecodeError as exc:
         raise error(f"cannot read {what} file {path}: {exc}") from None
-    return parse_toml(text, str(path), error)
 
 
 def parse_toml(text: str, source: str, error: type[Exception]) -> dict:

@@ -4,10 +4,12 @@ A ``Network`` is what the DMO clears on instead of the copper plate (docs/networ
 have a series resistance and reactance (ohm) and a thermal limit (MVA), whose buses have voltage limits (p.u.) and
 fixed non-microgrid loads (MW, Mvar, times an hourly profile), and whose substation bus is where the DMO trades
 with the ISO. Built in: the IEEE 33-bus feeder of Baran and Wu (1989), taken from pandapower's ``case33bw``, and
-``feeder5``, a five-bus feeder for tests. A user's feeder is a TOML file (docs/network.md) or a pandapower JSON.
+``feeder5``, a five-bus feeder for tests. A user's feeder is a TOML file (docs/network.md) or a pandapower JSON, read
+as data (``scenarios.pandapower_json``).
 
 Everything here is validated once, on load, with one line naming the file and what is wrong: a meshed or
-disconnected feeder, a line of zero impedance, a bus that does not exist, limits that are not limits.
+disconnected feeder, a line of zero impedance, a bus that does not exist, limits that are not limits, a name or a
+number the DMO's clearing and messages cannot carry. What loads is what a run can clear on.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import warnings
+from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
@@ -25,6 +28,7 @@ import numpy as np
 from scenarios import exact
 from scenarios.case import DATA_DIR, read_toml
 from scenarios.horizon import HOURS
+from scenarios.pandapower_json import Table, net_tables, read_tables
 
 S_BASE_MVA = 1.0  # the per-unit power base: MW and Mvar are per unit as they are
 # Lines a feeder file gives no rating get RATING_MARGIN times the nominal apparent power of the fixed load
@@ -34,6 +38,17 @@ MIN_RATING_MVA = 0.5
 UNRATED_KA = 9_999.0  # pandapower's way of saying "no rating" (case33bw gives 99,999 kA): at or above it, unrated
 V_MIN, V_MAX = 0.95, 1.05  # p.u., a bus's limits when its file gives none (ANSI C84.1 range A)
 MAX_BUSES = 5_000
+MAX_NAME_LENGTH = 64  # characters of a feeder's name and of each bus's: what the DMO's messages carry of them
+# The bounds of a feeder's numbers (docs/network.md, "Limits"): wider than a distribution feeder needs, and narrow
+# enough that every product and sum the clearing, its messages and the AC check make of them stays finite and within
+# what the LP solver resolves (a load of 1e308 MW is a finite number; twice it is not).
+KV_RANGE = (0.1, 1_000.0)  # base_kv, kV
+MAX_BUS_MW = 10_000.0  # |p_mw| and |q_mvar| of a bus's fixed load
+MAX_LOAD_TAN = 10.0  # |q_mvar| / p_mw of a bus whose fixed load consumes P: the clearing sheds its Q with its P
+MIN_LINE_OHM, MAX_LINE_OHM = 1e-6, 10_000.0  # a line's r_ohm + x_ohm at least, and each of them at most
+MAX_LINE_MVA = 1_000_000.0  # a line's s_max_mva
+MAX_MULTIPLIER = 10.0  # each of load_profile's multipliers, load_scale and rating_margin
+MIN_POWER_FACTOR = 0.5  # power_factor: a microgrid draws at most tan(acos(0.5)) = 1.73 Mvar per MW
 # A typical residential feeder's day, peak 1.0 at 19:00 (hour 20), night trough 0.55: the shape of every bus's
 # fixed load unless the network file gives its own ``load_profile``.
 LOAD_PROFILE = (0.62, 0.57, 0.55, 0.55, 0.56, 0.60, 0.68, 0.76, 0.80, 0.80, 0.79, 0.78,
@@ -196,15 +211,17 @@ def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], subst
           load_profile=LOAD_PROFILE, load_scale: float = 1.0, rating_margin: float = RATING_MARGIN,
           power_factor: float = 1.0, v_min: float = V_MIN, v_max: float = V_MAX) -> Network:
     """A checked ``Network`` from plain rows: ``buses`` [{name, p_mw, q_mvar, v_min?, v_max?}], ``lines``
-    [{from, to, r_ohm, x_ohm, s_max_mva?}] (either direction). NetworkError names what is wrong."""
-    _positive(base_kv, "base_kv", name)
-    _fraction(power_factor, "power_factor", name)
-    _positive(load_scale, "load_scale", name)
-    _positive(rating_margin, "rating_margin", name)
+    [{from, to, r_ohm, x_ohm, s_max_mva?}] (either direction). NetworkError names what is wrong: every name and
+    number is checked against what the DMO's clearing and messages can carry (docs/network.md, "Limits")."""
+    name = _label(name, "the network's name")
+    _within(base_kv, "base_kv", name, *KV_RANGE)
+    _within(power_factor, "power_factor", name, MIN_POWER_FACTOR, 1.0)
+    _within(load_scale, "load_scale", name, 0.0, MAX_MULTIPLIER, above=True)
+    _within(rating_margin, "rating_margin", name, 0.0, MAX_MULTIPLIER, above=True)
     profile = _profile(load_profile, name)
     if not 2 <= len(buses) <= MAX_BUSES:
         raise NetworkError(f"network {name}: {len(buses)} buses; a feeder has 2..{MAX_BUSES}")
-    names = [str(b["name"]) for b in buses]
+    names = [_label(b["name"], f"bus {k + 1}'s name", name) for k, b in enumerate(buses)]
     if len(set(names)) != len(names):
         dup = sorted(n for n in set(names) if names.count(n) > 1)[0]
         raise NetworkError(f"network {name}: bus {dup} is listed twice")
@@ -212,16 +229,21 @@ def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], subst
     if str(substation) not in index:
         raise NetworkError(f"network {name}: substation {substation!r} is not one of its buses ({_sample(names)})")
     root = index[str(substation)]
-    lo = np.array([_number(b.get("v_min", v_min), f"bus {b['name']} v_min", name) for b in buses])
-    hi = np.array([_number(b.get("v_max", v_max), f"bus {b['name']} v_max", name) for b in buses])
+    lo = np.array([_number(b.get("v_min", v_min), f"bus {n} v_min", name) for n, b in zip(names, buses)])
+    hi = np.array([_number(b.get("v_max", v_max), f"bus {n} v_max", name) for n, b in zip(names, buses)])
     bad = np.flatnonzero(~((0.5 <= lo) & (lo < hi) & (hi <= 1.5)))
     if bad.size:
         raise NetworkError(f"network {name}: bus {names[bad[0]]}: voltage limits {lo[bad[0]]:g}..{hi[bad[0]]:g} p.u. "
                            "are not limits (need 0.5 <= v_min < v_max <= 1.5)")
-    p = np.array([_number(b.get("p_mw", 0.0), f"bus {b['name']} p_mw", name) for b in buses])
-    q = np.array([_number(b.get("q_mvar", 0.0), f"bus {b['name']} q_mvar", name) for b in buses])
+    p, q = (np.array([_within(b.get(f, 0.0), f"bus {n} {f}", name, -MAX_BUS_MW, MAX_BUS_MW)
+                      for n, b in zip(names, buses)]) for f in ("p_mw", "q_mvar"))
     if p[root] or q[root]:
         raise NetworkError(f"network {name}: the substation bus {names[root]} carries no fixed load")
+    steep = np.flatnonzero((p > 0) & (np.abs(q) > MAX_LOAD_TAN * p))
+    if steep.size:
+        b = steep[0]
+        raise NetworkError(f"network {name}: bus {names[b]}: a fixed load of {p[b]:g} MW and {q[b]:g} Mvar; where it "
+                           f"consumes P, |q_mvar| is at most {MAX_LOAD_TAN:g} x p_mw (a load shed sheds its Q with it)")
 
     if len(lines) != len(names) - 1:
         what = "meshed" if len(lines) > len(names) - 1 else "not connected"
@@ -229,19 +251,20 @@ def build(name: str, base_kv: float, buses: list[dict], lines: list[dict], subst
                            f"line fewer than buses (this one is {what})")
     ends, r, x, s = [], [], [], []
     for k, line in enumerate(lines):
-        where = f"line {k + 1} ({line.get('from')}-{line.get('to')})"
         a, b = (str(line.get(end)) for end in ("from", "to"))
+        where = f"line {k + 1} ({a[:MAX_NAME_LENGTH]}-{b[:MAX_NAME_LENGTH]})"
         for end in (a, b):
             if end not in index:
-                raise NetworkError(f"network {name}: {where}: no bus {end!r} ({_sample(names)})")
+                raise NetworkError(f"network {name}: {where}: no bus {end[:MAX_NAME_LENGTH]!r} ({_sample(names)})")
         if a == b:
             raise NetworkError(f"network {name}: {where}: a line from a bus to itself")
-        rk, xk = (_number(line.get(f, None), f"{where} {f}", name) for f in ("r_ohm", "x_ohm"))
-        if rk < 0 or xk < 0 or rk + xk <= 0:
-            raise NetworkError(f"network {name}: {where}: impedance {rk:g} + j{xk:g} ohm; a line needs r, x >= 0 and "
-                               "not both zero (join the buses instead)")
+        rk, xk = (_within(line.get(f, None), f"{where} {f}", name, 0.0, MAX_LINE_OHM) for f in ("r_ohm", "x_ohm"))
+        if rk + xk < MIN_LINE_OHM:
+            raise NetworkError(f"network {name}: {where}: impedance {rk:g} + j{xk:g} ohm; a line needs r + x >= "
+                               f"{MIN_LINE_OHM:g} ohm (join the buses instead)")
         rating = line.get("s_max_mva")
-        s.append(math.nan if rating is None else _positive(rating, f"{where} s_max_mva", name))
+        s.append(math.nan if rating is None else _within(rating, f"{where} s_max_mva", name, 0.0, MAX_LINE_MVA,
+                                                          above=True))
         ends.append((index[a], index[b]))
         r.append(rk)
         x.append(xk)
@@ -283,33 +306,43 @@ def _orient(ends, root: int, n: int, name: str, names) -> tuple[list[int], list[
     return [parent_of[c] for c in child], child
 
 
+def _label(value, what: str, network: str | None = None) -> str:
+    """A feeder's or a bus's name: a string (or an integer, as pandapower numbers its buses) of 1..MAX_NAME_LENGTH
+    printable characters, as the DMO's messages carry it; NetworkError, one line, otherwise."""
+    text = str(value) if isinstance(value, (str, int)) and not isinstance(value, bool) else None
+    if text is None or not 1 <= len(text) <= MAX_NAME_LENGTH or not text.isprintable():
+        shown = _shown(value) if text is None or len(text) <= MAX_NAME_LENGTH else f"{text[:MAX_NAME_LENGTH]!r}..."
+        size = "" if text is None else f" ({len(text)} characters)"
+        raise NetworkError(("" if network is None else f"network {network}: ") + f"{what} {shown}{size}: a name is "
+                           f"1..{MAX_NAME_LENGTH} printable characters, as the DMO's messages carry it")
+    return text
+
+
 def _number(value, what: str, name: str) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise NetworkError(f"network {name}: {what} must be a finite number, got {value!r}")
+        raise NetworkError(f"network {name}: {what} must be a finite number, got {_shown(value)}")
     return float(value)
 
 
-def _positive(value, what: str, name: str) -> float:
-    value = _number(value, what, name)
-    if value <= 0:
-        raise NetworkError(f"network {name}: {what} must be > 0, got {value:g}")
-    return value
+def _shown(value) -> str:
+    """A value a file gave, as an error line shows it: its repr, cut short."""
+    text = repr(value)
+    return text if len(text) <= 80 else f"{text[:80]}..."
 
 
-def _fraction(value, what: str, name: str) -> float:
+def _within(value, what: str, name: str, lo: float, hi: float, above: bool = False) -> float:
+    """``value`` as a finite number in lo..hi (above lo, with ``above``), else NetworkError naming ``what``."""
     value = _number(value, what, name)
-    if not 0 < value <= 1:
-        raise NetworkError(f"network {name}: {what} must be in (0, 1], got {value:g}")
+    if not (lo < value if above else lo <= value) or value > hi:
+        most = f" and <= {hi:,g}" if hi < math.inf else ""
+        raise NetworkError(f"network {name}: {what} must be {'>' if above else '>='} {lo:,g}{most}, got {value:g}")
     return value
 
 
 def _profile(profile, name: str) -> tuple[float, ...]:
     if isinstance(profile, (str, bytes)) or not hasattr(profile, "__len__") or len(profile) != HOURS:
         raise NetworkError(f"network {name}: load_profile must list {HOURS} hourly multipliers")
-    out = tuple(_number(v, f"load_profile hour {h + 1}", name) for h, v in enumerate(profile))
-    if min(out) < 0:
-        raise NetworkError(f"network {name}: load_profile must be >= 0")
-    return out
+    return tuple(_within(v, f"load_profile hour {h + 1}", name, 0.0, MAX_MULTIPLIER) for h, v in enumerate(profile))
 
 
 # --- files ----------------------------------------------------------------------------------------------------
@@ -334,51 +367,102 @@ def parse_network(data: dict, name: str) -> Network:
             raise NetworkError(f"network {name}: {key}: missing field")
     options = {k: data[k] for k in ("load_profile", "load_scale", "rating_margin", "power_factor", "v_min", "v_max")
                if k in data}
-    return build(str(data.get("name", name)), data["base_kv"], data["buses"], data["lines"], str(data["substation"]),
+    return build(data.get("name", name), data["base_kv"], data["buses"], data["lines"], str(data["substation"]),
                  **options)
 
 
 def from_pandapower(net, name: str, **options) -> Network:
-    """A network from a pandapower net: its in-service lines (r and x per km times length over parallel
-    circuits; ``max_i_ka`` at or above ``UNRATED_KA`` is no rating), loads less static generators summed per bus,
-    bus voltage limits where given, the ext_grid's bus as the substation. Transformers are refused (a feeder here
-    is one voltage level)."""
-    if len(net.trafo) or len(getattr(net, "trafo3w", ())):
+    """A network from a pandapower net in memory (``from_tables`` of its tables)."""
+    return from_tables(net_tables(net), name, **options)
+
+
+def from_tables(tables: Mapping[str, Table], name: str, **options) -> Network:
+    """A network from a pandapower net's tables (``scenarios.pandapower_json``), as docs/network.md reads them: the
+    buses in service (named by their index, all at one voltage: ``base_kv``), the one external grid in service (its
+    bus the substation), the lines in service (r and x per km times length over parallel circuits; ``max_i_ka`` NaN
+    or at least ``UNRATED_KA`` is no rating), loads less static generators in service, times their scaling, summed
+    per bus, and the buses' voltage limits where given. Transformers are refused (a feeder here is one voltage
+    level), and so is an element in service at a bus that is not."""
+    if len(tables["trafo"]) or len(tables["trafo3w"]):
         raise NetworkError(f"network {name}: has transformers; a feeder here is one voltage level")
-    grids = net.ext_grid[net.ext_grid.in_service]
-    if len(grids) != 1:
-        raise NetworkError(f"network {name}: needs exactly one external grid (the substation), has {len(grids)}")
-    levels = set(net.bus.vn_kv[net.bus.in_service])
+    bus = tables["bus"]
+    live = {}  # bus index -> its row, for the buses in service, in the table's order
+    for k, i in enumerate(bus.index):
+        if isinstance(i, bool) or not isinstance(i, int):
+            raise NetworkError(f"network {name}: table bus: row {k + 1} is labelled {_shown(i)}, not a bus number")
+        if _flag(bus.columns["in_service"][k], f"bus {i} in_service", name):
+            live[i] = k
+    if not 2 <= len(live) <= MAX_BUSES:
+        raise NetworkError(f"network {name}: {len(live)} buses in service; a feeder has 2..{MAX_BUSES}")
+    levels = {_number(bus.columns["vn_kv"][k], f"bus {i} vn_kv", name) for i, k in live.items()}
     if len(levels) != 1:
         raise NetworkError(f"network {name}: buses at several voltages {sorted(levels)} kV; a feeder here is one level")
-    kv = float(levels.pop())
-    label = {i: str(i) for i in net.bus.index[net.bus.in_service]}
-    p = dict.fromkeys(label, 0.0)
-    q = dict.fromkeys(label, 0.0)
-    for table, sign in ((net.load, 1.0), (net.sgen, -1.0)):
-        live = table[table.in_service]
-        for bus, pk, qk, scaling in zip(live.bus, live.p_mw, live.q_mvar, live.scaling):
-            p[bus] += sign * pk * scaling
-            q[bus] += sign * qk * scaling
+    kv = levels.pop()
+    p, q = dict.fromkeys(live, 0.0), dict.fromkeys(live, 0.0)
+    for table, sign in (("load", 1.0), ("sgen", -1.0)):
+        for k, row in _in_service(tables[table], table, name):
+            at = _at_bus(row["bus"], f"{table} {k}", live, name)
+            scaling = _within(row["scaling"], f"{table} {k} scaling", name, 0.0, MAX_MULTIPLIER)
+            p[at] += sign * _number(row["p_mw"], f"{table} {k} p_mw", name) * scaling
+            q[at] += sign * _number(row["q_mvar"], f"{table} {k} q_mvar", name) * scaling
     buses = []
-    for i in label:
-        row = {"name": label[i], "p_mw": p[i], "q_mvar": q[i]}
+    for i, k in live.items():
+        row = {"name": str(i), "p_mw": p[i], "q_mvar": q[i]}
         for col, key in (("min_vm_pu", "v_min"), ("max_vm_pu", "v_max")):
-            value = net.bus.at[i, col] if col in net.bus else math.nan
-            if not math.isnan(value):
-                row[key] = float(value)
+            value = bus.columns[col][k] if col in bus.columns else math.nan
+            if not (isinstance(value, float) and math.isnan(value)):
+                row[key] = value
         buses.append(row)
-    root = int(grids.bus.iloc[0])
-    buses[list(label).index(root)].update(p_mw=0.0, q_mvar=0.0, v_min=0.5, v_max=1.5)  # held at its set point
+    grids = list(_in_service(tables["ext_grid"], "ext_grid", name))
+    if len(grids) != 1:
+        raise NetworkError(f"network {name}: needs exactly one external grid (the substation), has {len(grids)}")
+    root = _at_bus(grids[0][1]["bus"], f"ext_grid {grids[0][0]}", live, name)
+    buses[list(live).index(root)].update(p_mw=0.0, q_mvar=0.0, v_min=0.5, v_max=1.5)  # held at its set point
     lines = []
-    for _, ln in net.line[net.line.in_service].iterrows():
-        factor = ln.length_km / ln.parallel
-        row = {"from": label[ln.from_bus], "to": label[ln.to_bus], "r_ohm": ln.r_ohm_per_km * factor,
-               "x_ohm": ln.x_ohm_per_km * factor}
-        if ln.max_i_ka < UNRATED_KA:
-            row["s_max_mva"] = math.sqrt(3) * kv * ln.max_i_ka * ln.parallel
+    for k, ln in _in_service(tables["line"], "line", name):
+        where = f"line {k}"
+        length = _within(ln["length_km"], f"{where} length_km", name, 0.0, math.inf, above=True)
+        parallel = ln["parallel"]
+        if isinstance(parallel, bool) or not isinstance(parallel, (int, float)) or not (
+                parallel >= 1 and float(parallel).is_integer()):
+            raise NetworkError(f"network {name}: {where} parallel must be a whole number of circuits >= 1, got "
+                               f"{_shown(parallel)}")
+        factor = length / parallel
+        ends = (str(_at_bus(ln[end], where, live, name)) for end in ("from_bus", "to_bus"))
+        row = dict(zip(("from", "to"), ends),
+                   r_ohm=_number(ln["r_ohm_per_km"], f"{where} r_ohm_per_km", name) * factor,
+                   x_ohm=_number(ln["x_ohm_per_km"], f"{where} x_ohm_per_km", name) * factor)
+        rating = ln["max_i_ka"]  # NaN, pandas' "not given", leaves the line unrated as UNRATED_KA does
+        if not (isinstance(rating, float) and math.isnan(rating)) and _number(rating, f"{where} max_i_ka",
+                                                                                name) < UNRATED_KA:
+            row["s_max_mva"] = math.sqrt(3) * kv * rating * parallel
         lines.append(row)
-    return build(name, kv, buses, lines, label[root], **options)
+    return build(name, kv, buses, lines, str(root), **options)
+
+
+def _in_service(table: Table, what: str, name: str):
+    """(row label, row as a dict of the columns read) of each row of ``table`` in service."""
+    for k, label in enumerate(table.index):
+        row = {c: values[k] for c, values in table.columns.items()}
+        label = str(label)[:MAX_NAME_LENGTH]  # a row's label in messages: pandapower's are numbers
+        if _flag(row["in_service"], f"{what} {label} in_service", name):
+            yield label, row
+
+
+def _flag(value, what: str, name: str) -> bool:
+    if not isinstance(value, bool):
+        raise NetworkError(f"network {name}: {what} must be true or false, got {_shown(value)}")
+    return value
+
+
+def _at_bus(value, what: str, live: Mapping[int, int], name: str) -> int:
+    """The bus an element in service is at: a bus in service, else NetworkError."""
+    bus = int(value) if isinstance(value, (int, float)) and not isinstance(value, bool) and float(value).is_integer() \
+        else None
+    if bus not in live:
+        raise NetworkError(f"network {name}: {what} is in service at bus {_shown(value)}, which is not a bus in "
+                           "service")
+    return bus
 
 
 @contextmanager
@@ -424,22 +508,18 @@ NETWORKS = {"ieee33": ieee33, "feeder5": lambda **options: _toml(DATA_DIR / "fee
 
 
 def load_network(source: str | Path, **options) -> Network:
-    """A built-in network by name (``NETWORKS``), or a file: ``*.json`` a pandapower net, anything else a network
-    TOML. ``options`` (load_scale, rating_margin, ...) override the file's. NetworkError names what is wrong."""
+    """A built-in network by name (``NETWORKS``), or a file: ``*.json`` a pandapower net (read as data,
+    ``scenarios.pandapower_json``), anything else a network TOML. ``options`` (load_scale, rating_margin, ...)
+    override the file's. NetworkError names what is wrong."""
     if isinstance(source, str) and source in NETWORKS:
         return NETWORKS[source](**options)
     path = Path(source)
     if path.suffix.lower() == ".json":
+        tables = read_tables(path, NetworkError)
         try:
-            with quiet_pandapower():
-                import pandapower as pp
-
-                net = pp.from_json(str(path))
-        except FileNotFoundError:
-            raise NetworkError(f"network file not found: {path}") from None
-        except Exception as exc:  # pandapower raises what its JSON reader meets: say so in one line
-            raise NetworkError(f"network file {path}: not a pandapower JSON ({type(exc).__name__}: {exc})") from None
-        return from_pandapower(net, path.stem, **options)
+            return from_tables(tables, path.stem, **options)
+        except NetworkError as exc:
+            raise NetworkError(f"{path}: {exc}") from None
     if not path.suffix and not path.exists():
         raise NetworkError(f"unknown network {source!r}: not a built-in ({', '.join(NETWORKS)}) nor a file")
     return _toml(path, options)

@@ -267,20 +267,24 @@ TRUST_FLAG = "--trust-rules"
 
 def add_trust_flag(p: argparse.ArgumentParser) -> None:
     """The one flag that lets a file's own code run, its settlement rules (``settle``, ``replay --as-dmo``, ``run
-    --from``) and its agents' bidding strategies (``run --from``)."""
+    --from``) and its agents' bidding strategies (``run --from``), and a feeder file it names be read (``run
+    --from``)."""
     p.add_argument(TRUST_FLAG, dest="trust_rules", action="store_true",
                    help="load and run a settlement rule (path/to/rules.py:function or module:function) or bidding "
-                        "strategy (path/to/strategy.py:Class) of its own that the recording names; without it only a "
-                        "built-in, or one you name yourself, runs (docs/settlement.md, \"Rules named by recordings\"; "
-                        "docs/strategies.md, \"Trust\")")
+                        "strategy (path/to/strategy.py:Class) of its own that the recording names, and read a feeder "
+                        "file it names; without it only a built-in, or one you name yourself, is used "
+                        "(docs/settlement.md, \"Rules named by recordings\"; docs/strategies.md, \"Trust\"; "
+                        "docs/network.md, \"A feeder in an experiment\")")
 
 
-def untrusted(subject: str, spec: str, naming: str, what: str = "rule", doc: str = "docs/settlement.md") -> UsageError:
-    """The one line of a file that names code of its own that the user did not: ``subject`` says where the file
-    names ``spec``, ``what`` it is (``rule``, ``strategy``), ``doc`` where trust is explained; ``naming`` is the flag
-    by which the user names such code (``--rule``, ``--settlement``, ``--strategy``), or empty."""
+def untrusted(subject: str, spec: str, naming: str, what: str = "rule", doc: str = "docs/settlement.md",
+              use: str = "run") -> UsageError:
+    """The one line of a file that names code (or a file) of its own that the user did not: ``subject`` says where
+    the file names ``spec``, ``what`` it is (``rule``, ``strategy``, ``feeder file``), ``use`` what dmosim would do
+    with it (``run``, ``read``), ``doc`` where trust is explained; ``naming`` is the flag by which the user names it
+    (``--rule``, ``--settlement``, ``--strategy``, ``--feeder``), or empty."""
     how = f"name it yourself ({naming} {spec}) or pass {TRUST_FLAG}" if naming else f"pass {TRUST_FLAG}"
-    return UsageError(f"{subject}, a {what} of the recording's own, which dmosim does not run unless you {how} "
+    return UsageError(f"{subject}, a {what} of the recording's own, which dmosim does not {use} unless you {how} "
                       f"({doc})")
 
 

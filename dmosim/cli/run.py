@@ -19,6 +19,7 @@ from messages.keys import new_run_id
 from microgrid_agent.agent.strategies import strategy_name
 from scenarios.case import load_case, parse_toml
 from scenarios.fleet import FleetError
+from scenarios.network import NETWORKS
 
 from ..console import Progress, UsageError, print_json, stop_on_terminate
 from ..experiment.rundir import RunDir, RunDirError
@@ -91,6 +92,7 @@ def experiment_of(args) -> Experiment:
     except ExperimentError as exc:
         raise UsageError(str(exc)) from None
     _load_rule(args, experiment.market.settlement)
+    _trust_feeder(args, experiment.network.feeder)
     return experiment
 
 
@@ -115,6 +117,15 @@ def _load_rule(args, spec: str | None) -> None:
                         "--settlement") from None
     except ValueError as err:
         raise UsageError(f"{where}: {err}") from None
+
+
+def _trust_feeder(args, feeder: str | None) -> None:
+    """A feeder file that only the recording of ``--from`` names is read with ``--trust-rules`` only, as its code
+    would be run: the user names a feeder with ``--feeder`` (docs/network.md, "A feeder in an experiment"). A
+    built-in feeder is no file."""
+    if args.source and args.feeder is None and feeder is not None and feeder not in NETWORKS and not args.trust_rules:
+        raise untrusted(f"{args.source}: its experiment.toml names the feeder file {feeder}", feeder, "--feeder",
+                        "feeder file", "docs/network.md, \"A feeder in an experiment\"", "read")
 
 
 def _load_strategies(args, experiment: Experiment, fleet) -> None:

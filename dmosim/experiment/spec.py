@@ -27,6 +27,7 @@ from scenarios.days import MAX_SEED, market_days
 from scenarios.fleet import MAX_SCALE, MAX_STRATEGY
 from scenarios.generation import MAX_SCENARIOS
 from scenarios.horizon import HOURS
+from scenarios.network import MAX_NAME_LENGTH
 from scenarios.tomltext import toml_text
 
 # Bounds of the settings defined here (the others are where theirs are: docs/experiments.md, "Bounds").
@@ -189,7 +190,7 @@ class NetworkSettings(_Section):
     feeder: PathText | None = None
     load_scale: Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)] = 1.0
     voltage_margin: Annotated[float, Field(ge=0, le=MAX_VOLTAGE_MARGIN, allow_inf_nan=False)] = 0.0
-    buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=64)]], Field(max_length=MAX_AGENTS)] = []
+    buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=MAX_NAME_LENGTH)]], Field(max_length=MAX_AGENTS)] = []
 
 
 class Experiment(_Section):

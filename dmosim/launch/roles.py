@@ -14,7 +14,7 @@ import functools
 from pathlib import Path
 
 from dmo.market.choice import choose
-from dmo.market.rules import MAX_MW
+from dmo.market.clearing import IsoCurve
 from dmo.operator.config import DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
 from scenarios.case import load_case
@@ -61,25 +61,42 @@ def bus_of(experiment: Experiment, member: FleetMember) -> str | None:
 
 
 def network_of(experiment: Experiment) -> Network | None:
-    """The feeder the run's market clears on, at the experiment's load scale (None: the copper plate);
-    ExperimentError, one line, if it cannot be used."""
-    n = experiment.network
-    return None if n.feeder is None else _feeder(n.feeder, n.load_scale, n.voltage_margin)
+    """The feeder the run's market clears on, at the experiment's load scale (None: the copper plate), checked as
+    the DMO will clear it; ExperimentError, one line, if it cannot be used."""
+    n, m = experiment.network, experiment.market
+    if n.feeder is None:
+        return None
+    iso_price = tuple(load_case(m.case).grid.iso_price)
+    return _feeder(n.feeder, n.load_scale, n.voltage_margin, iso_price, *substation_limits(experiment), m.iso_curve)
 
 
 @functools.lru_cache(maxsize=4)  # a run resolves, checks and configures its DMO from one feeder: load it once
-def _feeder(source: str, load_scale: float, margin: float) -> Network:
+def _feeder(source: str, load_scale: float, margin: float, iso_price: tuple[float, ...], import_limit: float,
+            export_limit: float, curve: IsoCurve) -> Network:
+    """The feeder loaded and cleared once with no bids on the DMO's own terms (its ISO prices, the substation's
+    limits, the ISO's curve, the voltage margin): what no clearing of the run can serve, even shedding all its fixed
+    load, fails here and not in the DMO (a bus's v_min above the substation's voltage; generation the feeder cannot
+    send out within the export limit, which no shedding of load helps). Bids only add what may also be 0."""
     from dmo.market.distflow import clear_network  # noqa: PLC0415  (scipy's LP: 40 MiB no copper-plate role needs)
 
     try:
         network = load_network(source, load_scale=load_scale)
         voltage_band(network, margin)  # a margin that leaves a bus no band fails here, not in the DMO
-        # a feeder no clearing can serve, even shedding all its load (a bus's v_min above the substation's voltage),
-        # fails here too: with no bids and no limit at the substation, only its own limits can exclude every hour
-        clear_network([], network, {}, 0.0, MAX_MW, MAX_MW, margin=margin)
-    except ValueError as exc:  # NetworkError among them
+    except NetworkError as exc:
         raise ExperimentError(f"network.feeder: {exc}") from None
+    try:
+        clear_network([], network, {}, iso_price, import_limit, export_limit, margin=margin, curve=curve)
+    except ValueError as exc:
+        raise ExperimentError(f"network.feeder: {exc}, within the substation's import limit {import_limit:g} MW and "
+                              f"export limit {export_limit:g} MW (market.import_limit, market.export_limit)") from None
     return network
+
+
+def substation_limits(experiment: Experiment) -> tuple[float, float]:
+    """The market's import and export limits at the substation, MW: the experiment's, else per agent."""
+    m, agents = experiment.market, len(fleet_of(experiment))
+    return (m.import_limit if m.import_limit is not None else IMPORT_LIMIT_PER_AGENT * agents,
+            m.export_limit if m.export_limit is not None else EXPORT_LIMIT_PER_AGENT * agents)
 
 
 def placement_of(experiment: Experiment, network: Network | None) -> dict[str, str]:
@@ -178,10 +195,10 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
     agents = len(fleet_of(e))
     network = network_of(e)
     rule = None if m.settlement is None else with_market_terms(choose(m.settlement), m, case.grid.penalty)
+    import_limit, export_limit = substation_limits(e)
     return DayConfig(
         market_day=e.market_day, agents=agents, iso_price=tuple(case.grid.iso_price),
-        import_limit=m.import_limit if m.import_limit is not None else IMPORT_LIMIT_PER_AGENT * agents,
-        export_limit=m.export_limit if m.export_limit is not None else EXPORT_LIMIT_PER_AGENT * agents,
+        import_limit=import_limit, export_limit=export_limit,
         penalty=case.grid.penalty if m.penalty is None else m.penalty, credit=m.credit, subperiods=m.subperiods,
         islanded_hours=(), days=e.days, islanding_by_day=islanding_by_day(m.island_hours, e.seed, e.days),
         fixed_awards=tuple(case.grid.p_sch) if m.mode == "fixed" else None,

@@ -24,7 +24,7 @@ from scenarios.generation import MAX_SAMPLE, MAX_SCENARIOS
 ROOT = Path(__file__).resolve().parents[2]
 # The modules that define bounds of settings; each MAX_ constant they define must be in the table.
 BOUND_MODULES = ("scenarios/case.py", "scenarios/days.py", "scenarios/fleet.py", "scenarios/generation.py",
-                 "scenarios/network.py",
+                 "scenarios/network.py", "scenarios/pandapower_json.py",
                  "dmosim/experiment/spec.py", "dmosim/experiment/sweep.py", "dmosim/cli/solve.py", "dmo/market/rules.py",
                  "messages/transport/credentials.py")
 

@@ -109,6 +109,15 @@ def test_protocol_md_holds_the_message_reference_the_types_generate():
                                  "paste the output of `dmosim schemas --markdown` between its markers")
 
 
+def test_every_protocol_version_the_docs_give_is_the_codes():
+    """Wherever a document says which protocol version is current, it says the one the code speaks."""
+    from messages.schemas import SCHEMA_VERSION  # noqa: PLC0415
+
+    said = [(doc.name, int(n)) for doc in DOCS for n in re.findall(r"\bcurrently (\d+)\b", text(doc))]
+    assert ("protocol.md", SCHEMA_VERSION) in said
+    assert all(n == SCHEMA_VERSION for _, n in said), said
+
+
 def test_ci_runs_the_readmes_test_command():
     """README.md opens with two commands; the second is the test command, and .ci/run runs exactly it."""
     commands = text(ROOT / "README.md").split("```bash\n", 1)[1].split("```", 1)[0].splitlines()

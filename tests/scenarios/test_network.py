@@ -89,7 +89,7 @@ def test_synthetic_feeder_is_radial_and_shallow():
     (lambda b, l: l.append({"from": "3", "to": "4", "r_ohm": 1, "x_ohm": 1}), "meshed"),
     (lambda b, l: l.pop(), "not connected"),
     (lambda b, l: l.__setitem__(3, {"from": "2", "to": "3", "r_ohm": 1, "x_ohm": 1}), "radial"),
-    (lambda b, l: l[1].update(r_ohm=0.0, x_ohm=0.0), "not both zero"),
+    (lambda b, l: l[1].update(r_ohm=0.0, x_ohm=0.0), r"needs r \+ x >= 1e-06 ohm"),
     (lambda b, l: l[1].update(to="9"), "no bus '9'"),
     (lambda b, l: l[1].update(to="1"), "to itself"),
     (lambda b, l: b[0].update(p_mw=1.0), "substation bus 0 carries no fixed load"),
@@ -97,6 +97,15 @@ def test_synthetic_feeder_is_radial_and_shallow():
     (lambda b, l: b.append({"name": "2"}), "listed twice"),
     (lambda b, l: l[0].update(s_max_mva=-1), "must be > 0"),
     (lambda b, l: l[0].update(r_ohm=float("nan")), "finite number"),
+    # what the DMO's clearing and messages cannot carry (docs/network.md, "Limits")
+    (lambda b, l: b[4].update(name="x" * 65), r"bus 5's name 'x{64}'... \(65 characters\): a name is 1..64"),
+    (lambda b, l: b[4].update(name="a\nb"), r"bus 5's name 'a\\nb' \(3 characters\): a name is 1..64 printable"),
+    (lambda b, l: b[4].update(name=""), "bus 5's name '' \\(0 characters\\)"),
+    (lambda b, l: b[4].update(name=True), "bus 5's name True: a name"),
+    (lambda b, l: b[3].update(p_mw=1e308), r"bus 3 p_mw must be >= -10,000 and <= 10,000, got 1e\+308"),
+    (lambda b, l: b[3].update(p_mw=0.001, q_mvar=0.5), r"bus 3: .* \|q_mvar\| is at most 10 x p_mw"),
+    (lambda b, l: l[0].update(x_ohm=1e5), r"x_ohm must be >= 0 and <= 10,000, got 100000"),
+    (lambda b, l: l[0].update(s_max_mva=1e7), r"s_max_mva must be > 0 and <= 1e\+06"),
 ])
 def test_bad_feeders_are_refused_in_one_line(change, message):
     buses, lines = _rows()
@@ -128,3 +137,27 @@ def test_bus_of_refuses_missing_buses_and_the_substation():
         net.bus_of("7")
     with pytest.raises(NetworkError, match="substation"):
         net.bus_of("0")
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"base_kv": 0.05}, "base_kv must be >= 0.1 and <= 1,000, got 0.05"),
+    ({"power_factor": 0.4}, "power_factor must be >= 0.5 and <= 1, got 0.4"),
+    ({"load_scale": 11.0}, "load_scale must be > 0 and <= 10, got 11"),
+    ({"rating_margin": 0.0}, "rating_margin must be > 0 and <= 10, got 0"),
+    ({"load_profile": (1.0,) * 23 + (1e308,)}, r"load_profile hour 24 must be >= 0 and <= 10, got 1e\+308"),
+    ({"name": "n" * 65}, r"the network's name 'n{64}'... \(65 characters\)"),
+])
+def test_options_beyond_their_limits_are_refused_in_one_line(options, message):
+    buses, lines = _rows()
+    settings = {"name": "t", "base_kv": 12.47, **options}
+    with pytest.raises(NetworkError, match=message) as err:
+        build(settings.pop("name"), settings.pop("base_kv"), buses, lines, "0", **settings)
+    assert "\n" not in str(err.value)
+
+
+def test_names_of_64_characters_and_loads_at_the_limits_load():
+    buses, lines = _rows()
+    buses[4]["name"] = lines[3]["to"] = "x" * 64
+    buses[3].update(p_mw=10_000.0, q_mvar=-10_000.0)
+    net = build("n" * 64, 1_000.0, buses, lines, "0", power_factor=0.5, load_scale=10.0)
+    assert net.name == "n" * 64 and net.buses[4] == "x" * 64 and net.fixed_p.max() == 10_000.0 * 10.0

@@ -40,17 +40,19 @@ def rule(day, **params):
 '''
 
 
-def craft(path: Path, rule: str) -> Path:
-    """A recorded day of one agent whose awards, statements and experiment.toml name ``rule``."""
+def craft(path: Path, rule: str | None, feeder: str | None = None) -> Path:
+    """A recorded day of one agent whose awards, statements and experiment.toml name ``rule`` (None: as recorded, the
+    paper's rule), and whose experiment.toml names ``feeder`` (None: none)."""
     run_id = new_run_id()
     day = []
     for key, payload in synthetic_day(run_id, 1, 1, market_day=DAY):
         message = decode(payload)
-        if hasattr(message, "settlement_rule"):
+        if rule is not None and hasattr(message, "settlement_rule"):
             payload = encode(message.model_copy(update={"settlement_rule": rule}))
         day.append((key, payload))
-    experiment = (f'market_day = "{DAY}"\n\n[agents]\ncount = 1\n\n[market]\nsettlement = "{rule}"\n\n'
-                  "[schedule]\nscenarios = 1\n").encode()
+    experiment = (f'market_day = "{DAY}"\n\n[agents]\ncount = 1\n\n'
+                  + (f'[market]\nsettlement = "{rule}"\n\n' if rule is not None else "")
+                  + "[schedule]\nscenarios = 1\n" + (f'\n[network]\nfeeder = "{feeder}"\n' if feeder else "")).encode()
     with RecordingWriter(path, run_id) as writer:
         writer.start({"market_day": DAY, "agents": "mg1"}, [("experiment.toml", "application/toml", experiment)])
         for i, (key, payload) in enumerate(day):
