@@ -79,6 +79,15 @@ def scales(text: str) -> tuple[float, ...]:
     return values
 
 
+def budget(text: str) -> tuple[int, int]:
+    """MESSAGES,BYTES: what one sender may send in a phase or hour (messages/budget.py), each a positive integer."""
+    try:
+        messages, size = (positive_int(x) for x in text.split(",", 2))
+    except (ValueError, argparse.ArgumentTypeError):
+        raise argparse.ArgumentTypeError(f"expected MESSAGES,BYTES (two integers >= 1), got {_shown(text)}") from None
+    return messages, size
+
+
 def market_day(text: str) -> str:
     try:
         return dt.date.fromisoformat(text).isoformat()

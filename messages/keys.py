@@ -186,6 +186,15 @@ def parse_key(key: str) -> ParsedKey:
     raise MessageError(f"key {key!r} is not a dmosim key", "wrong_key")
 
 
+def agent_of(key: str) -> str | None:
+    """The agent whose ``agent/<agent>/...`` key this is, if it is one and names a valid agent id (anything can
+    arrive on the wire: only a valid id may go into an incident, a Rejection or a budget); else None."""
+    parts = str(key).split("/", 4)
+    if len(parts) > 3 and parts[2] == "agent" and is_agent_id(parts[3]):
+        return parts[3]
+    return None
+
+
 def sender_matches_key(key: str, msg: Envelope) -> bool:
     """Whether the message's sender (and, on per-agent DMO keys, its addressee) is the one its key names."""
     try:

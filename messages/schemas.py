@@ -657,7 +657,8 @@ class DaySummary(_FromDmo):
 
 
 class Rejection(_FromDmo):
-    """DMO -> all: a received payload was refused; says which, where and why, so the recording keeps it."""
+    """DMO -> the recording: a received payload was refused; says which, where and why, so the recording keeps it
+    (agents do not hear it: each learns of its own refusals from its receipts)."""
 
     kind: Annotated[Literal["rejection"], Field(description=KIND)] = "rejection"
     key: Annotated[str, Strict(), Field(min_length=1, max_length=512), Field(description=(

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from messages.budget import BUDGET_BYTES, BUDGET_MESSAGES
 from messages.schemas import PRICE_CAP, PRICE_FLOOR
 from scenarios.days import day_seed, market_days
 from scenarios.horizon import HOURS
@@ -53,6 +54,7 @@ class DayConfig:
     placement: Mapping[str, str] = field(default_factory=dict)  # agent -> its bus on the feeder
     voltage_margin: float = 0.0  # p.u. the clearing keeps inside every bus's voltage limits (docs/network.md)
     iso_curve: IsoCurve = FLAT  # the ISO's blocks around its price at the substation (docs/market.md)
+    budget: tuple[int, int] = (BUDGET_MESSAGES, BUDGET_BYTES)  # what one agent may send in a phase or hour
 
     def __post_init__(self):
         if self.days < 1:

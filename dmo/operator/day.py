@@ -23,12 +23,14 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from messages import PHASES, Bid, GridState, make_receipt, make_rejection, sha256
+from messages.budget import SenderBudget
 from messages.codec import MessageError
+from messages.keys import agent_of
 from messages.schemas import AgentDay
 from messages.transport import Bus
 from messages.transport.heap import return_free_memory
 from scenarios.horizon import HOURS
-from scenarios.names import RECORDER, check_agent_id
+from scenarios.names import RECORDER
 
 from ..market.acceptance import PHASE_ORDER
 from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
@@ -75,7 +77,8 @@ class DayResult:
             "day_summary": self.totals.as_dict(),
             "expected_cost": {a: m.expected_cost for a, m in s.schedules.items()},
             "rejected_messages": s.rejected, "rejected_by_code": dict(s.rejected_by_code),
-            "accepted_messages": dict(s.accepted), "received_again": s.again, "locked_out": list(self.locked_out),
+            "accepted_messages": dict(s.accepted), "received_again": s.again, "dropped_messages": dict(s.dropped),
+            "locked_out": list(self.locked_out),
             "incidents": [i.model_dump() for i in s.incidents],
             "phase_s": self.phase_s,
         }
@@ -118,6 +121,7 @@ class RunResult:
                 "rejected_by_code": dict(sum((Counter(d["rejected_by_code"]) for d in days), Counter())),
                 "accepted_messages": dict(sum((Counter(d["accepted_messages"]) for d in days), Counter())),
                 "received_again": sum(d["received_again"] for d in days),
+                "dropped_messages": dict(sum((Counter(d["dropped_messages"]) for d in days), Counter())),
                 "locked_out": sorted({a for d in days for a in d["locked_out"]}),
                 "incidents": [{**i, "market_day": d["market_day"]} for d in days for i in d["incidents"]]}
 
@@ -176,8 +180,10 @@ class MarketDay:
         self.history: DayHistory | None = None  # opened by run(), on the journal if there is one
         self.finished: FinishedDays | None = None  # opened by run()
         self._resumed: tuple[str, int | None] | None = None
+        self.budget = SenderBudget(*config.budget)  # what each agent may send in a phase or hour (messages/budget.py)
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
         bus.tap = self._traffic
+        bus.gate = self._admit
 
     # --- the days and their phases -----------------------------------------------------------------------------
 
@@ -398,11 +404,26 @@ class MarketDay:
         if self.history is not None:
             self.history.record(key, payload, at)
 
+    def _admit(self, key: str, size: int) -> bool:
+        """Whether a payload received on ``key`` is within its sender's budget (the bus's gate, on Zenoh's threads):
+        the first one over it in a phase or hour tells the day (one incident); it and the rest are dropped unread."""
+        sender = agent_of(key)
+        dropped = self.budget.admit(sender, size)
+        if dropped == 1:
+            self.events.put(("over_budget", sender))
+        return not dropped
+
+    def _next_window(self) -> None:
+        """A new phase or hour: every agent's budget starts afresh; what the last window dropped of each is the
+        day's ``dropped_messages``."""
+        self.state.dropped.update({a: n for a, n in self.budget.next_window().items() if a is not None})
+
     def _publish(self, msg) -> None:
         self.bus.publish(msg)
 
     def _clock(self, phase: str, deadline_s: float, hour: int | None = None) -> None:
         s = self.state
+        self._next_window()
         s.phase, s.hour = phase, hour
         if self.journal is not None:
             self.journal.clock(phase, hour, s.day, s.market_day)
@@ -456,9 +477,13 @@ class MarketDay:
 
     def _handle(self, event, accept) -> None:
         kind = event[0]
-        if kind == "reject":
+        if kind == "over_budget":
+            self._incident(event[1], f"over its budget of {self.budget.messages} messages and {self.budget.size} bytes "
+                                     f"in this {'hour' if self.state.hour else 'phase'}: what it sends more until the "
+                                     "next is dropped unread (dropped_messages)")
+        elif kind == "reject":
             _, key, payload, err = event
-            self._reject(key, payload, err, _offender(key))
+            self._reject(key, payload, err, agent_of(key))
         elif kind == "join":
             self._joined(event[1])
         elif kind == "leave":
@@ -503,8 +528,9 @@ class MarketDay:
                 break
             if event[0] == "leave":
                 waiting.discard(event[1])
-            elif event[0] in ("msg", "reject"):
+            elif event[0] in ("msg", "reject", "over_budget"):
                 self._handle(event, accept)
+        self._next_window()
         recorder = RECORDER in self.bus.present(timeout_s=PRESENCE_CHECK_S)
         if recorder and not self.history.wait_answered(RECORDER_CHECK_S):
             log.warning("the recorder did not ask for the run's last messages within %g s: the recording may lack "
@@ -524,15 +550,3 @@ def _outage(since: tuple[str, int | None] | None, hour: int | None) -> str:
     if since and since[1] and hour and hour > since[1]:
         return f", {hour - since[1]} hour(s) later"
     return ""
-
-
-def _offender(key: str) -> str | None:
-    """The agent a refused payload's key names, if it names one: any text can arrive there, and only a valid
-    agent id may go into an incident or a Rejection."""
-    parts = key.split("/")
-    if len(parts) > 3 and parts[2] == "agent":
-        try:
-            return check_agent_id(parts[3])
-        except ValueError:
-            return None
-    return None

@@ -21,7 +21,7 @@ from collections.abc import Iterable, Iterator
 
 import zenoh
 
-from messages.keys import HISTORY, SINCE, parse_key
+from messages.keys import HISTORY, ROOT, SINCE, parse_key
 from messages.transport.bus import Entry
 
 from .journal import Journal, line_of, traffic, traffic_entry
@@ -88,6 +88,8 @@ class DayHistory:
             return matches[key]
 
         if HISTORY in given:
+            if not _whole_run(key_expr):
+                raise ValueError(f"{HISTORY} is answered for the whole run only ({ROOT}/<run>/**), not {key_expr[:200]}")
             since = _nanoseconds(given.get(SINCE, "0"))
             return (e for e in traffic(map(json.loads, self._lines_since(since))) if e[2] >= since and matching(e[0]))
         with self._lock:
@@ -147,10 +149,16 @@ MARK_EVERY = 1000  # lines of traffic between two marks: a day of 100 agents is 
 _WILD = re.compile(r"[*$]")
 
 
-def asks_history(parameters: str) -> bool:
-    """Whether a query's parameters ask for the traffic, not the latest: an answer that takes long
-    (``Bus.serve``'s ``slow``)."""
-    return HISTORY in _parameters(parameters)
+def asks_history(key_expr: str, parameters: str) -> bool:
+    """Whether a query asks for the traffic of the whole run, not the latest: an answer that takes long
+    (``Bus.serve``'s ``slow``). One for less than the whole run is refused at once (``answer``): only a reader,
+    whom the router's access control lets ask for the whole run, gets the traffic."""
+    return HISTORY in _parameters(parameters) and _whole_run(key_expr)
+
+
+def _whole_run(key_expr: str) -> bool:
+    parts = key_expr.split("/")
+    return len(parts) == 3 and parts[0] == ROOT and parts[2] == "**"
 
 
 def _parameters(parameters: str) -> dict[str, str]:

@@ -39,6 +39,7 @@ class DayState:
     vanished: dict[str, tuple[str, int | None]] = field(default_factory=dict)
     rescheduling: set[str] = field(default_factory=set)  # rejoined agents whose new schedule is awaited
     again: int = 0  # exact copies of accepted messages received (sent again for want of a receipt), this day
+    dropped: collections.Counter = field(default_factory=collections.Counter)  # agent -> over its budget, this day
     run_token: str = ""
     phase: str = "registration"
     hour: int | None = None
@@ -52,7 +53,7 @@ class DayState:
         self.day, self.market_day, self.phase, self.hour = day, market_day, "bidding", None
         self.bids, self.schedules, self.rescheduling = {}, {}, set()
         self.meter = {agent: {} for agent in self.registered}
-        self.log, self.accepted, self.again = IncidentLog(), collections.Counter(), 0
+        self.log, self.accepted, self.again, self.dropped = IncidentLog(), collections.Counter(), 0, collections.Counter()
         return closed
 
     @property

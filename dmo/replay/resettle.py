@@ -2,10 +2,12 @@
 
 What the DMO settled on is read back from the recording: the awards (P_sch, clearing prices and the settlement
 terms: penalty, credit, sub-periods, rules version), the registrations (each agent's max import, the P_M assumed
-for a missing sub-period) and the meter reports the DMO accepted. A meter report the DMO refused is recorded too,
-with a ``Rejection`` naming its key and SHA-256: of the copies of one payload on one key, as many are left out as
-there were rejections (identical payloads settle identically, so which copies does not matter), and of what
-remains the first report per agent and hour counts, as the DMO counts it.
+for a missing sub-period) and the meter reports the DMO accepted: those whose SHA-256 its receipts to their
+sender accepted, so that nothing the DMO refused, or never took up (its sender over its budget), counts, whatever
+else a participant put on the wire; of those the first report per agent and hour counts, as the DMO counts it. A
+recording of before receipts says only what the DMO refused, by a ``Rejection`` naming the key and SHA-256: of the
+copies of one payload on one key, as many are left out as there were rejections (identical payloads settle
+identically, so which copies does not matter).
 """
 
 from __future__ import annotations
@@ -166,10 +168,9 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
         raise ResettleError(f"{rec.path}: settlement rules version {first.rules_version}; this dmosim settles by "
                             f"version {RULES_VERSION}")
 
-    refused = _refused(rec)
     registered: dict[str, Registration] = {}
-    for m, msg in day_messages(rec, None, "registration"):  # registered on the run's first day
-        if not _take(refused, m.relative_key, m.payload, msg):
+    for _, msg, refused in _judged(rec, "registration", None):  # registered on the run's first day
+        if not refused:
             registered.setdefault(msg.sender, msg)
     meter: dict[str, dict[int, tuple[float, ...]]] = {a: {} for a in awards}
     reports, left_out = accepted_meter_reports(rec, first.market_day, agents=set(awards), subperiods=first.subperiods)
@@ -217,10 +218,25 @@ def accepted_meter_reports(rec: Recording, day: str | None = None, *, agents: se
 
 
 def _judged(rec: Recording, kind: str, day: str | None) -> Iterator[tuple[RecordedMessage, object, bool]]:
-    """``day_messages``, each with whether the DMO refused it (using up one of its recorded rejections)."""
-    refused = _refused(rec)
+    """``day_messages``, each with whether the DMO refused it. What the DMO took is what it receipted as accepted
+    (the SHA-256 of the payload as received, from its sender): a payload it never saw (one the network lost on its
+    way to the DMO, or dropped unread, its sender over its budget) or refused is not. A recording of before
+    receipts (protocol 3 and older) says only what the DMO refused: each recorded rejection uses up one copy."""
+    accepted = _receipted(rec)
+    refused = _refused(rec) if accepted is None else None
     for m, msg in day_messages(rec, day, kind):
-        yield m, msg, _take(refused, m.relative_key, m.payload, msg)
+        if accepted is not None:
+            yield m, msg, (msg.sender, hashlib.sha256(m.payload).hexdigest()) not in accepted
+        else:
+            yield m, msg, _take(refused, m.relative_key, m.payload, msg)
+
+
+def _receipted(rec: Recording) -> set[tuple[str, str]] | None:
+    """(agent, sha256) of every payload the DMO receipted as accepted; None if the recording holds no receipt."""
+    receipts = list(rec.decoded("receipt"))
+    if not receipts:
+        return None
+    return {(msg.agent, msg.payload_sha256) for _, msg in receipts if msg.accepted}
 
 
 def _refused(rec: Recording) -> collections.Counter:

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import threading
 from pathlib import Path
 
 from dmo.operator.config import DayConfig
+from messages.budget import BUDGET_BYTES, BUDGET_MESSAGES
 from messages.transport import Bus
 
-from ..arguments import wait
+from ..arguments import budget, wait
 from ..console import UsageError
 from ..experiment.spec import Experiment
 from ..launch.roles import day_config, fleet_of
@@ -33,6 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--await-recorder", type=wait, default=0.0, metavar="S",
                    help="wait up to S seconds for a recorder of this run before the first message (default: 0, "
                         "do not wait)")
+    p.add_argument("--budget", type=budget, default=(BUDGET_MESSAGES, BUDGET_BYTES), metavar="MESSAGES,BYTES",
+                   help="what one agent may send in a phase or real-time hour before what it sends more is dropped "
+                        f"unread (default: {BUDGET_MESSAGES},{BUDGET_BYTES}; docs/protocol.md, \"Budgets\")")
     p.add_argument("--quiet", action="store_true", help="log warnings only")
     add_fault_flags(p)
     add_bus_flags(p, "router")
@@ -53,7 +58,7 @@ def run(args) -> int:
     check_bus_flags(args, "router")
     experiment = role_experiment(args)
     names = [m.id for m in fleet_of(experiment)]
-    config = day_config_of(experiment, args.journal)
+    config = dataclasses.replace(day_config_of(experiment, args.journal), budget=args.budget)
     run_id = run_id_of(args)
     credentials_for(args, run_id, names, dmo_client=False)
     settings = bus_config(args, "router", "dmo", run_id)

@@ -30,16 +30,22 @@ MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
 METADATA_NAME = "dmosim"
 BACKFILL_METADATA = "dmosim.backfill"  # a late recorder's record of what the DMO's history gave it
+DROPPED_METADATA = "dmosim.dropped"  # sender -> payloads the recorder dropped unread, the sender over its budget
 INVALID_KEY = "recorder/invalid"        # relative to the run prefix; not a key anyone publishes on
 INVALID_SCHEMA_NAME = "dmosim.invalid_payload"
 ANY_SCHEMA_NAME = "dmosim.any"
 CHUNK_MESSAGES = 500
 FLUSH_INTERVAL_S = 1.0
 CHUNK_BYTES = 1 << 20
+# An invalid payload is kept whole up to this size (ten times an honest message's), a larger one to its first this
+# many bytes; once a file holds KEPT_INVALID_TOTAL bytes of invalid payloads, later ones keep none (their key, code,
+# reason, size and SHA-256 only).
+KEPT_INVALID_BYTES = 64 << 10
+KEPT_INVALID_TOTAL = 16 << 20
 
 # What reading a file may take, whatever it declares (docs/recording.md, "Reading is bounded and checked"). The
-# writer's chunks close at CHUNK_BYTES, so the largest holds 1 MiB plus one message; its largest message is an
-# invalid payload kept to the wire's MAX_PAYLOAD_BYTES + 1, in base64 (1.4 MiB). Measured on real recordings: a chunk
+# writer's chunks close at CHUNK_BYTES, so the largest holds 1 MiB plus one message; its largest message is a valid
+# one at the wire's MAX_PAYLOAD_BYTES (an invalid one keeps at most KEPT_INVALID_BYTES). Measured on real recordings: a chunk
 # compresses 3.5x to 6.5x, and a whole file expands to 1.0-3.7x its size (to 24x for a day under a flood of
 # oversized junk, every message charged MESSAGE_COST_BYTES), so the budget below leaves room for what dmosim
 # writes while a 26 KB file can no longer expand to gigabytes.
@@ -60,9 +66,13 @@ INVALID_SCHEMA = {
     "required": ["key", "code", "reason", "payload_size", "payload_base64"],
     "properties": {"key": {"type": "string"}, "code": {"type": "string"}, "reason": {"type": "string"},
                    "payload_size": {"type": "integer", "minimum": 0},
+                   "payload_sha256": {"type": "string", "pattern": "^[0-9a-f]{64}$",
+                                      "description": "of the whole payload as received (absent in older files)"},
                    "payload_base64": {"type": "string", "contentEncoding": "base64",
-                                      "description": "the payload; one over the wire's size limit is kept to its "
-                                                     "first limit + 1 bytes (payload_size is its whole size)"}},
+                                      "description": f"the payload, whole up to {KEPT_INVALID_BYTES} bytes, else its "
+                                                     f"first {KEPT_INVALID_BYTES}; empty once the file holds "
+                                                     f"{KEPT_INVALID_TOTAL} bytes of invalid payloads (payload_size "
+                                                     "is its whole size)"}},
 }
 SCHEMA_ID = re.compile(r"^urn:dmosim:[a-z_]+:v([0-9]+)$")
 

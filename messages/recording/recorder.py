@@ -17,9 +17,11 @@ import time
 from array import array
 from typing import Callable
 
-from ..keys import HISTORY, SINCE, parse_key
+from ..budget import SenderBudget
+from ..keys import HISTORY, SINCE, agent_of, parse_key
 from ..schemas import DMO
 from ..transport.heap import return_free_memory
+from .layout import DROPPED_METADATA
 from .writer import RecordingWriter
 
 log = logging.getLogger("dmosim.recorder")
@@ -85,6 +87,9 @@ class Recorder:
         self.caught_up = 0  # payloads the network lost on the way here, asked of the DMO afterwards
         self.seen = Seen()  # the payloads queued in the current catch-up window and the one before
         self._summary = bus.keys.summary()  # once a day's summary is written, the memory the day used goes back
+        self._clock = bus.keys.clock()  # each clock message starts a new window of the agents' budgets
+        self.budget = SenderBudget()  # what each agent may send in a window before the rest is dropped unread
+        self.dropped: collections.Counter[str] = collections.Counter()  # sender ("" for a key naming none) -> how many
         self._wake = threading.Event()  # a day summary came, or an agent left: check the DMO's history
         self._dmo_gone = threading.Event()  # the DMO left: a check under way waits for an answer that cannot come
         self._closing = False
@@ -97,6 +102,7 @@ class Recorder:
         what the subscription did not get (``backfilled``, which this returns). Each backfilled payload keeps the
         time the DMO saw it as its log time."""
         self._live = collections.Counter() if backfill else None
+        self.bus.gate = self._admit
         self._subscription = self.bus.subscribe_raw(self.bus.keys.everything(), self._received)
         if backfill:
             self.backfilled = self._backfill(timeout_s)
@@ -107,7 +113,16 @@ class Recorder:
             self._token = self.bus.session.liveliness().declare_token(self.bus.keys.alive(self.bus.name))
         return self.backfilled
 
+    def _admit(self, key: str, size: int) -> bool:
+        """The bus's gate: the DMO's messages always; an agent's within its budget of the window (the DMO's phase or
+        hour, as its clock messages say), as the DMO keeps it: what one agent sends cannot swell the recorder's
+        queue or the file (messages/budget.py)."""
+        parsed = _parsed(key)
+        return (parsed is not None and parsed.role == DMO) or not self.budget.admit(agent_of(key), size)
+
     def _received(self, key: str, payload: bytes, at: int) -> None:
+        if key == self._clock:
+            self.dropped.update({a or "": n for a, n in self.budget.next_window().items()})
         parsed = _parsed(key)
         with self._live_lock:
             if self._live is not None:
@@ -224,6 +239,9 @@ class Recorder:
                 except queue.Empty:
                     break
                 self._write(*item, on_write)
+            self.dropped.update({a or "": n for a, n in self.budget.next_window().items()})
+            if self.dropped:
+                writer.add_metadata(DROPPED_METADATA, self.dropped)
             writer.close()
             self.stop()
 

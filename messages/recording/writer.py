@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import collections
 import datetime as _dt
+import hashlib
 import json
 import os
 import tempfile
@@ -25,8 +26,8 @@ from ..codec import MAX_PAYLOAD_BYTES, MessageError, decode
 from ..keys import Keys, parse_key
 from ..schemas import SCHEMA_VERSION, SCHEMAS
 from .layout import (ANY_SCHEMA, ANY_SCHEMA_NAME, CHUNK_BYTES, CHUNK_MESSAGES, FLUSH_INTERVAL_S, INVALID_KEY,
-                     INVALID_SCHEMA, INVALID_SCHEMA_NAME, MESSAGE_ENCODING, METADATA_NAME, SCHEMA_ENCODING, library,
-                     versions)
+                     INVALID_SCHEMA, INVALID_SCHEMA_NAME, KEPT_INVALID_BYTES, KEPT_INVALID_TOTAL, MESSAGE_ENCODING,
+                     METADATA_NAME, SCHEMA_ENCODING, library, versions)
 
 
 class RecordingWriter:
@@ -52,6 +53,7 @@ class RecordingWriter:
         self.counts: collections.Counter[str] = collections.Counter()  # per key (invalid ones under their key)
         self.messages = 0
         self.invalid = 0
+        self._invalid_kept = 0  # bytes of invalid payloads kept in the file
         self._pending = 0
         self._pending_bytes = 0
         self._chunk_opened = time.monotonic()
@@ -109,10 +111,14 @@ class RecordingWriter:
             schema = self._schema(INVALID_SCHEMA_NAME, INVALID_SCHEMA)
             self._invalid_channel = self._mcap.register_channel(f"{self.keys.prefix}/{INVALID_KEY}", MESSAGE_ENCODING,
                                                                 schema, {"kind": "invalid_payload"})
-        # An oversized payload is kept to one byte over the limit: it replays as the same fault, and every message
-        # of the file stays under the reader's MAX_MESSAGE_BYTES whatever a peer sends.
-        kept = payload[:MAX_PAYLOAD_BYTES + 1]
+        # Kept whole up to KEPT_INVALID_BYTES (a garbled honest message replays as the same fault), a larger one to
+        # its first KEPT_INVALID_BYTES, and none of it once the file holds KEPT_INVALID_TOTAL of such bytes: what a
+        # peer sends cannot make the file expand past what the reader accepts. Its size and SHA-256 are kept always.
+        room = max(0, KEPT_INVALID_TOTAL - self._invalid_kept)
+        kept = payload[:min(KEPT_INVALID_BYTES, room)]
+        self._invalid_kept += len(kept)
         wrapped = json.dumps({"key": key, "code": code, "reason": reason, "payload_size": len(payload),
+                              "payload_sha256": hashlib.sha256(payload).hexdigest(),
                               "payload_base64": base64.b64encode(kept).decode("ascii")}).encode()
         self.invalid += 1
         self._add(self._invalid_channel, key, wrapped, log_time, log_time, 0)

@@ -40,9 +40,9 @@ READERS = ("recorder",)              # processes that may hear everything of the
 # The common name of the routers' own certificate. Zenoh authenticates only the side that connects, so a router knows
 # the router it connected to by that certificate alone; no process can be named so (a space), nor present it.
 ROUTER_CERT_NAME = "dmosim router"
-# What the DMO says to every agent. A rejection carries the key, code and reason of a refused message (never its
-# payload); it is public so an agent learns why its own message was refused, e.g. a refused rejoin.
-PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "network", "summary", "rejected")
+# What the DMO says to every agent. Not its rejections (``dmo/rejected``, for the recording): an agent learns why its
+# own message was refused from its receipt, and one agent's junk, refused by the thousand, reaches no other agent.
+PUBLIC_TOPICS = ("call_for_bids", "clock", "grid", "network", "summary")
 PRIVATE_TOPICS = ("award", "statement", "receipt")  # what the DMO says to one agent, each on dmo/<topic>/<id>
 AGENT_TOPICS = ("register", "bid", "schedule", "meter", "day")      # what an agent says, each on agent/<id>/<topic>
 

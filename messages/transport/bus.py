@@ -13,6 +13,7 @@ import atexit
 import collections
 import json
 import logging
+import queue
 import threading
 import time
 import weakref
@@ -175,9 +176,15 @@ class Bus:
         self._answering: set[threading.Thread] = set()  # answering a slow query (serve)
         self._rejected: collections.Counter[str] = collections.Counter()
         self.faults = faults
-        # called with every payload this bus puts on the wire (after faults) and every one it receives (before it
-        # is decoded): the DMO keeps its day's traffic this way, to answer late joiners (dmo/operator/history.py)
+        # called with every payload this bus puts on the wire (after faults) and every valid one it receives (a
+        # raw subscription's: every one): the DMO keeps its day's traffic this way, to answer late joiners
+        # (dmo/operator/history.py); an invalid payload is told by the refusal it gets, not kept whole
         self.tap: Tap | None = None
+        # asked gate(key, size) of every payload received, before anything else: False drops it unread (a sender
+        # over its budget: messages/budget.py)
+        self.gate: Callable[[str, int], bool] | None = None
+        self._dropped = 0
+        self._slow: queue.Queue | None = None  # the slow queries waiting for the one thread that answers them
 
     # --- lifetime ----------------------------------------------------------------------------------------
 
@@ -217,6 +224,10 @@ class Bus:
             subscription.close()
         with self._state_lock:
             answering, self._answering = self._answering, set()
+            slow, self._slow = self._slow, None
+        if slow is not None:  # the answering thread ends after the query it is answering, if any
+            _drain(slow)
+            slow.put(None)
         for thread in answering:  # a thread left in Zenoh's code at interpreter exit aborts the process
             thread.join(ANSWERING_STOP_S)
         with self._send_lock:
@@ -335,6 +346,7 @@ class Bus:
             except MessageError as err:
                 self._reject(key, data, err)
                 return
+            self._tapped(key, data, received_at)
             with self._state_lock:
                 self._received += 1
             try:
@@ -350,6 +362,7 @@ class Bus:
         """Deliver every payload as it arrived, valid or not, as handler(key, payload, received_at_ns)."""
 
         def on_put(key: str, payload: bytes, received_at: int) -> None:
+            self._tapped(key, payload, received_at)
             try:
                 handler(key, payload, received_at)
             except Exception:
@@ -360,16 +373,19 @@ class Bus:
         return self._declare(pattern, on_put)
 
     def _declare(self, pattern: str, on_put: RawHandler) -> Subscription:
-        """Subscribe ``on_put(key, payload, received_at_ns)`` to every put on ``pattern``, each tapped first."""
+        """Subscribe ``on_put(key, payload, received_at_ns)`` to every put on ``pattern`` that passes the gate."""
         self._own(pattern)
 
         def on_sample(sample: zenoh.Sample) -> None:
             received_at = time.time_ns()
             if sample.kind != zenoh.SampleKind.PUT:
                 return
-            key, payload = str(sample.key_expr), sample.payload.to_bytes()
-            self._tapped(key, payload, received_at)
-            on_put(key, payload, received_at)
+            key, payload = str(sample.key_expr), sample.payload
+            if self.gate is not None and not self.gate(key, len(payload)):
+                with self._state_lock:
+                    self._dropped += 1
+                return
+            on_put(key, payload.to_bytes(), received_at)
 
         subscription = Subscription(self, self.session.declare_subscriber(pattern, on_sample))
         with self._state_lock:
@@ -399,19 +415,22 @@ class Bus:
 
     # --- queries ---------------------------------------------------------------------------------------
 
-    def serve(self, pattern: str, answer: Answer, slow: Callable[[str], bool] | None = None) -> Subscription:
+    def serve(self, pattern: str, answer: Answer, slow: Callable[[str, str], bool] | None = None) -> Subscription:
         """Answer queries on keys matching ``pattern``: ``answer(key_expr, parameters)`` gives the replies, each
         (key, payload, ns); the time travels as the reply's attachment, 8 bytes big-endian. A reply whose key
         does not intersect the query's is skipped (Zenoh refuses it). A query ``answer`` refuses with a ValueError
-        (a bad parameter) gets an error reply saying why. A query whose parameters ``slow`` says are slow to answer
-        is answered on a thread of its own: Zenoh hands a queryable its queries one at a time, and a day's
-        traffic of a thousand agents (a few hundred thousand replies) held up every agent's query behind it."""
+        (a bad parameter) gets an error reply saying why. A query that ``slow(key_expr, parameters)`` says is slow
+        to answer is answered by one thread of its own, in turn: Zenoh hands a queryable its queries one at a time,
+        and a day's traffic of a thousand agents (a few hundred thousand replies) held up every agent's query
+        behind it. At most ``SLOW_WAITING`` slow queries wait for that thread; one more gets an error reply at once
+        (busy), so that no asker can make the answerer hold, or start, more."""
         def on_query(query: zenoh.Query) -> None:
-            if slow is not None and slow(str(query.parameters)):
-                thread = threading.Thread(target=answering, args=(query,), name="answering", daemon=True)
-                with self._state_lock:  # started under the lock: close() joins only threads that have started
-                    self._answering = {t for t in self._answering if t.is_alive()} | {thread}
-                    thread.start()
+            if slow is not None and slow(str(query.key_expr), str(query.parameters)):
+                try:
+                    self._slow_queue(answering).put_nowait(query)
+                except queue.Full:
+                    query.reply_err(f"busy: {SLOW_WAITING} slow queries already wait for an answer; ask again later")
+                    query.drop()
             else:
                 answering(query)
 
@@ -439,6 +458,22 @@ class Bus:
         with self._state_lock:
             self._subscriptions.append(subscription)
         return subscription
+
+    def _slow_queue(self, answering: Callable[[zenoh.Query], None]) -> queue.Queue:
+        """The queue of slow queries, and the one thread that answers them until the bus closes (started with the
+        first)."""
+        with self._state_lock:
+            if self._slow is None:
+                self._slow = queue.Queue(maxsize=SLOW_WAITING)
+                thread = threading.Thread(target=self._answer_slow, args=(self._slow, answering), name="answering",
+                                          daemon=True)
+                self._answering.add(thread)
+                thread.start()
+            return self._slow
+
+    def _answer_slow(self, waiting: queue.Queue, answering: Callable[[zenoh.Query], None]) -> None:
+        while (query := waiting.get()) is not None:
+            answering(query)
 
     def fetch(self, selector: str, timeout_s: float = 5.0) -> list[tuple[str, bytes, int | None]]:
         """Query ``selector`` (a key expression of this run, with ``?parameters`` if any) and return every reply
@@ -504,11 +539,23 @@ class Bus:
     # --- counters ----------------------------------------------------------------------------------------
 
     def stats(self) -> dict:
-        """Counters since the bus opened: published, received (valid), rejected by code, handler_errors."""
+        """Counters since the bus opened: published, received (valid), dropped by the gate, rejected by code,
+        handler_errors."""
         with self._state_lock:
-            return {"published": self._published, "received": self._received,
+            return {"published": self._published, "received": self._received, "dropped": self._dropped,
                     "rejected": dict(self._rejected), "rejected_total": sum(self._rejected.values()),
                     "handler_errors": self._handler_errors}
+
+
+def _drain(waiting: queue.Queue) -> None:
+    """Refuse the queries still waiting for an answer: the bus closes."""
+    while True:
+        try:
+            query = waiting.get_nowait()
+        except queue.Empty:
+            return
+        if query is not None:
+            _quietly(lambda: (query.reply_err("closing"), query.drop()), "refuse a waiting query")
 
 
 def wait_matching(publisher: zenoh.Publisher, timeout_s: float) -> bool:
@@ -528,6 +575,7 @@ def _quietly(action: Callable[[], object], what: str) -> None:
 
 
 ANSWERING_STOP_S = 10.0  # how long closing waits for a slow query's answer to stop (it stops at its next reply)
+SLOW_WAITING = 1  # slow queries (the traffic of a day) that may wait while one is answered: a recorder asks one at a time
 
 # A process opens its sessions one at a time. The agents forked ten to a process (dmosim run --hosting fork) would
 # otherwise all shake hands at once: a thousand TLS handshakes at once on 2 cores left an agent unconnected after

@@ -13,7 +13,7 @@ from dmo.market.settlement import RULES, RULES_VERSION, settle
 from dmo.operator import incidents, outbox
 from dmo.operator.config import DayConfig, draw_islanding
 from dmo.operator.guard import REMEMBERED, SequenceGuard
-from dmo.operator.history import DayHistory
+from dmo.operator.history import DayHistory, asks_history
 from dmo.operator.incidents import IncidentLog
 from dmo.operator.journal import Journal, restore, traffic
 from dmo.operator.rejoin import AWARD, CALL_FOR_BIDS, GRID_STATE, readmit, rejoin_refusal, resend_plan
@@ -199,7 +199,9 @@ def test_the_history_answers_the_latest_of_the_dmo_or_the_whole_traffic_and_surv
         assert history.answer(f"{p}/dmo/clock", "") == [entries[2]], how  # the latest clock
         assert history.answer(f"{p}/**", "") == [entries[2], entries[4], entries[5]], how  # the DMO's, in time order
         assert list(history.answer(f"{p}/**", "history")) == entries, how  # everything, payloads as they came
-        assert list(history.answer(f"{p}/agent/*/bid", "history;since=0")) == [entries[3]], how
+        with pytest.raises(ValueError, match="history is answered for the whole run only"):
+            history.answer(f"{p}/agent/*/bid", "history;since=0")  # an agent may ask only for what it hears
+        assert asks_history(f"{p}/**", "history;since=0") and not asks_history(f"{p}/dmo/clock", "history")
         assert list(history.answer(f"{p}/**", "history;since=4")) == entries[3:], how  # what it saw from then on
         with pytest.raises(ValueError, match="since='-1': not a time in whole nanoseconds"):
             history.answer(f"{p}/**", "history;since=-1")

@@ -9,6 +9,8 @@ none of them is ever whole in this process's memory either.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import os
 import struct
 import subprocess
@@ -30,7 +32,7 @@ from dmosim.cli import main
 from messages import MAX_PAYLOAD_BYTES, MeterReport, encode
 from messages.keys import new_run_id
 from messages.recording import RecordingError, RecordingWriter, read_recording
-from messages.recording.layout import (MAGIC, MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES, MESSAGE_COST_BYTES,
+from messages.recording.layout import (KEPT_INVALID_BYTES, MAGIC, MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES, MESSAGE_COST_BYTES,
                                        READ_BUDGET_FLOOR_BYTES, READ_BUDGET_RATIO)
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -321,19 +323,31 @@ def test_what_the_writer_writes_is_far_inside_the_caps(tmp_path):
     assert largest < MAX_CHUNK_BYTES / 8 and charged < READ_BUDGET_RATIO / 4 * path.stat().st_size
 
 
-def test_the_writer_keeps_an_oversized_payload_to_one_byte_over_the_limit(tmp_path):
-    """Whatever size a peer sends, what the recorder writes stays under the reader's cap on a message, and replays
-    as the same fault (still over the wire's limit)."""
+def test_the_writer_keeps_an_invalid_payload_to_its_first_bytes_and_none_past_the_files_share(tmp_path,
+                                                                                               monkeypatch):
+    """Whatever a peer sends, what the recorder writes of an invalid payload is bounded: whole up to
+    KEPT_INVALID_BYTES, else its first KEPT_INVALID_BYTES, and nothing once the file holds KEPT_INVALID_TOTAL bytes
+    of them; its size and SHA-256 are kept always (60 refused payloads of 1 MiB once made a 174 KB file that no
+    verb could read)."""
+    monkeypatch.setattr("messages.recording.writer.KEPT_INVALID_TOTAL", 3 * KEPT_INVALID_BYTES)
     run_id, path = new_run_id(), tmp_path / "flood.mcap"
     huge = b'{"kind":"meter_report","pad":"' + b"x" * (3 * MAX_MESSAGE_BYTES) + b'"}'
+    small = b'{"kind":"meter_report"}'
+    sent = [(f"dmosim/{run_id}/agent/mg1/meter", huge), (f"dmosim/{run_id}/somewhere/else", huge),
+            (f"dmosim/{run_id}/agent/mg1/meter", small), (f"dmosim/{run_id}/agent/mg1/meter", huge),
+            (f"dmosim/{run_id}/agent/mg1/meter", small)]
     with RecordingWriter(path, run_id) as writer:
         writer.start()
-        writer.write(f"dmosim/{run_id}/agent/mg1/meter", huge, 1)       # a key of a kind
-        writer.write(f"dmosim/{run_id}/somewhere/else", huge, 2)         # a key of none
+        for at, (key, payload) in enumerate(sent):
+            writer.write(key, payload, at + 1)
     rec = read_recording(path)
-    assert [m.invalid[0] for m in rec.messages] == ["oversize", "oversize"]
-    assert all(m.payload == huge[:MAX_PAYLOAD_BYTES + 1] for m in rec.messages)
-
+    assert [m.invalid[0] for m in rec.messages] == ["oversize", "oversize", "invalid", "oversize", "invalid"]
+    kept = [huge[:KEPT_INVALID_BYTES], huge[:KEPT_INVALID_BYTES], small, huge[:KEPT_INVALID_BYTES - len(small)], b""]
+    assert [m.payload for m in rec.messages] == kept
+    with open(path, "rb") as f:
+        wrapped = [json.loads(m.data) for _, _, m in make_reader(f).iter_messages()]
+    assert [(w["payload_size"], w["payload_sha256"]) for w in wrapped] == [
+        (len(payload), hashlib.sha256(payload).hexdigest()) for _, payload in sent]
 
 def test_the_caps_are_documented_as_they_are():
     doc = (ROOT / "docs" / "recording.md").read_text()

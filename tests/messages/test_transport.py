@@ -17,6 +17,7 @@ import pytest
 
 from messages import HOURS, Award, Bid, BidStep, Keys, Schedule, encode, new_run_id
 from messages.transport import Bus, BusConfig
+from messages.transport.bus import SLOW_WAITING
 from messages.transport.faults import injector
 
 DAY = "2024-07-01"
@@ -186,7 +187,7 @@ def test_a_query_slow_to_answer_holds_up_no_other(net, slow_apart):
             return [(dmo.keys.clock(), b"[]", 1)]
         return [(dmo.keys.clock(), b"{}", 2)]
 
-    dmo.serve(dmo.keys.everything(), answer, slow=(lambda p: p == "history") if slow_apart else None)
+    dmo.serve(dmo.keys.everything(), answer, slow=(lambda k, p: p == "history") if slow_apart else None)
     history = threading.Thread(target=lambda: answered.put(agent.fetch(f"{agent.keys.clock()}?history", 15)))
     history.start()
     try:
@@ -197,6 +198,40 @@ def test_a_query_slow_to_answer_holds_up_no_other(net, slow_apart):
         history.join(20)
     assert latest == ([(agent.keys.clock(), b"{}", 2)] if slow_apart else [])
     assert answered.get(timeout=1) == [(agent.keys.clock(), b"[]", 1)]
+
+
+def test_slow_queries_are_answered_in_turn_by_one_thread_and_one_more_than_may_wait_is_refused_at_once(net):
+    """However many slow queries come, one thread answers them, one at a time, and at most ``SLOW_WAITING`` wait:
+    a query beyond gets an error reply at once, not a thread (a hundred history queries once started a hundred)."""
+    dmo, agent, _, _ = net
+    working, release, asked = threading.Event(), threading.Event(), []
+
+    def answer(key: str, parameters: str):
+        asked.append(parameters)
+        working.set()
+        release.wait(10)
+        return [(dmo.keys.clock(), b"{}", 1)]
+
+    arrived: queue.Queue = queue.Queue()
+    dmo.serve(dmo.keys.everything(), answer, slow=lambda k, p: arrived.put(p) is None)
+    answers: queue.Queue = queue.Queue()
+    askers = [threading.Thread(target=lambda n=n: answers.put((n, agent.fetch(f"{agent.keys.clock()}?n={n}", 15))))
+              for n in range(SLOW_WAITING + 1)]
+    try:
+        askers[0].start()
+        assert working.wait(10)  # the first is being answered
+        for t in askers[1:]:
+            t.start()
+        assert sorted(_get(arrived) for _ in askers) == sorted(f"n={n}" for n in range(len(askers)))  # one waits
+        refused = agent.fetch(f"{agent.keys.clock()}?n=late", timeout_s=5.0)  # and one more is refused at once
+        assert refused == [] and "n=late" not in asked
+        assert len([t for t in threading.enumerate() if t.name == "answering"]) == 1
+    finally:
+        release.set()
+        for t in askers:
+            t.join(20)
+    got = dict(answers.get(timeout=1) for _ in askers)
+    assert all(replies == [(agent.keys.clock(), b"{}", 1)] for replies in got.values())
 
 
 def test_closing_stops_a_slow_answer_at_its_next_reply_and_waits_for_it(net):
@@ -212,7 +247,7 @@ def test_closing_stops_a_slow_answer_at_its_next_reply_and_waits_for_it(net):
             started.set()
             time.sleep(0.01)  # a long answer: ten seconds in all
 
-    dmo.serve(dmo.keys.everything(), answer, slow=lambda p: True)
+    dmo.serve(dmo.keys.everything(), answer, slow=lambda k, p: True)
     asking = threading.Thread(target=lambda: got.put(agent.fetch(f"{agent.keys.clock()}?history", 20)))
     asking.start()
     assert started.wait(10)

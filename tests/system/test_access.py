@@ -43,7 +43,7 @@ def test_rules_give_each_agent_its_own_keys_and_the_public_topics_only():
     assert all(r["permission"] == "allow" for r in acl["rules"])
     mg1 = _grants(acl, "mg1")
     assert _keys(mg1, "put", "ingress") == {f"dmosim/r1/agent/mg1/{t}" for t in AGENT_TOPICS}
-    hears = {f"dmosim/r1/dmo/{t}" for t in ("call_for_bids", "clock", "grid", "network", "summary", "rejected", "award/mg1",
+    hears = {f"dmosim/r1/dmo/{t}" for t in ("call_for_bids", "clock", "grid", "network", "summary", "award/mg1",
                                              "statement/mg1", "receipt/mg1")}
     assert _keys(mg1, "declare_subscriber", "ingress") == hears == _keys(mg1, "put", "egress")
     assert _keys(mg1, "liveliness_token", "ingress") == {"dmosim/r1/alive/mg1"}
@@ -263,6 +263,7 @@ def test_an_agent_can_neither_speak_for_nor_listen_to_another(tmp_path):
     # mg1's credentials never heard mg2's award or statement, nor anything through a wider pattern.
     # (The wider patterns are refused by the router; they only see, inside the spy's own session, what arrives for
     # its one allowed subscription.)
-    # It does hear the DMO's rejection of the forgery on its own key: an agent learns why it was refused.
-    assert {key for _, key in spied} == {k.award("mg1"), k.rejected()}
-    assert {p for p, _ in spied} <= {k.award("mg1"), k.award("*"), k.dmo_all(), k.everything(), k.rejected()}
+    # Nor the DMO's rejections, even of the forgery on its own key: those are for readers (its own refusals come in
+    # its receipts), so one agent's refused junk reaches no other agent.
+    assert {key for _, key in spied} == {k.award("mg1")}
+    assert {p for p, _ in spied} <= {k.award("mg1"), k.award("*"), k.dmo_all(), k.everything()}

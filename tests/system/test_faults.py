@@ -32,7 +32,10 @@ from dmo.operator.day import MarketDay
 from messages import (HOURS, Bid, CallForBids, DaySummary, GridState, MessageError, MeterReport, Receipt,
                       Registration, Schedule, decode, encode)
 from messages.keys import Keys, new_run_id
-from messages.recording import read_recording
+from dmo.replay.resettle import recording_days, resettled_differences
+from messages.budget import BUDGET_BYTES, BUDGET_MESSAGES
+from messages.recording import Recorder, RecordingWriter, read_recording
+from messages.recording.layout import DROPPED_METADATA
 from messages.transport import Bus, BusConfig
 from messages.transport.faults import FaultInjector, FaultSpecError, MessageFault, corrupt, parse_message_fault
 from microgrid_agent.agent.delivery import Delivery
@@ -217,14 +220,17 @@ class ScriptedAgent:
 
 
 @contextlib.contextmanager
-def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=None, resend_s=0.5):
+def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=None, resend_s=0.5, journal=None,
+                 recording=None, budget=(BUDGET_MESSAGES, BUDGET_BYTES)):
     """A DMO (in a thread) and scripted agents; yields (day, agents, outcome) and closes everything on exit.
-    ``outcome`` fills in with "result" (the DayResult) or "error" once the DMO's day is over."""
+    ``outcome`` fills in with "result" (the DayResult) or "error" once the DMO's day is over. ``journal``: where the
+    DMO journals; ``recording``: a file a recorder writes the day to (closed once the day is over); ``budget``: what
+    one agent may send the DMO in a phase or hour (messages/budget.py)."""
     run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
     config = DayConfig(market_day=DAY, agents=len(agents), iso_price=(50.0,) * HOURS, import_limit=100.0,
                        export_limit=100.0, penalty=150.0, credit=0.0, subperiods=K, islanded_hours=(7,),
                        fixed_awards=(AWARD,) * HOURS, registration_s=20.0, bids_s=10.0, schedule_s=10.0,
-                       hour_s=hour_s, linger_s=1.0)
+                       hour_s=hour_s, linger_s=1.0, journal=journal, budget=budget)
     outcome: dict = {}
     done = threading.Event()
     with contextlib.ExitStack() as stack:
@@ -238,6 +244,8 @@ def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=No
                 outcome["error"] = exc
             done.set()
 
+        if recording is not None:
+            stack.enter_context(recorder_of(run_id, endpoint, recording, done))
         threading.Thread(target=run, daemon=True).start()
         scripted = {}
         for name in agents:
@@ -249,6 +257,25 @@ def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=No
         outcome["endpoint"], outcome["run_id"], outcome["done"] = endpoint, run_id, done
         yield day, scripted, outcome
         assert done.wait(120), "the DMO's day did not end"
+
+
+@contextlib.contextmanager
+def recorder_of(run_id: str, endpoint: str, path, done: threading.Event):
+    """A recorder of the run, in this process, that listens from before the DMO's day starts and closes ``path``
+    once ``done`` is set (it announces nothing: the DMO does not wait for it to ask for what it missed)."""
+    with Bus(run_id, "recorder", BusConfig(mode="client", connect=(endpoint,)), announce=False) as bus:
+        recorder = Recorder(bus, RecordingWriter(path, run_id), announce=False)
+        recorder.writer.start({"market_day": DAY, "days": "1"}, [])
+        recorder.start(backfill=False)
+        stop = threading.Event()
+        loop = threading.Thread(target=recorder.run, args=(stop,))
+        loop.start()
+        try:
+            yield recorder
+        finally:
+            done.wait(120)
+            stop.set()
+            loop.join(30)
 
 
 def finished(outcome):
@@ -294,7 +321,10 @@ def test_copies_change_nothing_and_replays_with_other_content_are_refused_once_e
                 forged.append(key)
 
     faults = {"mg1": ["duplicate:agent/**:1"], "mg2": ["duplicate:agent/*/meter:0.5"]}
-    with scripted_day(faults=faults, before_meter=replay_the_past) as (day, agents, outcome):
+    # the replays of the whole day so far are more than an agent may send in an hour: this test is of copies and
+    # replays, each decided; the budget has its own test (below)
+    budget = (100 * BUDGET_MESSAGES, 100 * BUDGET_BYTES)
+    with scripted_day(faults=faults, before_meter=replay_the_past, budget=budget) as (day, agents, outcome):
         tap = Bus(outcome["run_id"], "tap", BusConfig(mode="client", connect=(outcome["endpoint"],)), announce=False)
         with tap.open():
             seen = set()
@@ -335,6 +365,45 @@ def test_a_meter_report_delayed_past_its_hour_is_rejected_as_late_and_settled_as
     assert set(result.state.rejected_by_code) <= {"late"} and result.state.rejected <= delayed
     assert result.state.accepted["meter_report"] == 2 * HOURS - delayed
     assert sum(1 for i in result.state.incidents if "late" in i.reason and i.agent == "mg2") >= delayed
+
+
+def test_an_agent_flooding_the_dmo_is_held_to_its_budget_and_costs_no_one_else_anything(baseline, tmp_path):
+    """At hour 3, mg1 sends 60 junk payloads of 256 KiB, 60 refused registrations and 60 copies of one payload, all
+    on its own keys, then its meter report. The DMO and the recorder take 32 messages and 128 KiB of it in that
+    hour (messages/budget.py) and drop the rest unread: mg1's own report of the hour among them (it is missing),
+    nothing of the junk in the journal, a recording that reads and re-settles, and mg2's bill as undisturbed."""
+    junk = b"\xff" * (256 << 10)
+
+    def flood(agent, hour):
+        if agent.name != "mg1" or hour != 3:
+            return
+        k = agent.bus.keys
+        for _ in range(60):
+            agent.bus.publish_raw(k.meter(agent.name), junk)
+        for _ in range(60):  # distinct seqs: each one valid, and refused (registration is over)
+            agent.bus.publish(Registration(sender=agent.name, market_day=DAY, case="scripted", max_import_mw=CAP,
+                                           max_export_mw=CAP))
+        copy = agent.bus.publish(Registration(sender=agent.name, market_day=DAY, case="scripted", max_import_mw=CAP,
+                                              max_export_mw=CAP))
+        for _ in range(60):  # a resend storm of one payload
+            agent.bus.republish(k.register(agent.name), encode(copy))
+
+    journal, recording = tmp_path / "dmo.journal", tmp_path / "day.mcap"
+    with scripted_day(before_meter=flood, journal=str(journal), recording=recording) as (day, agents, outcome):
+        pass
+    result = finished(outcome)
+    assert totals(result)["mg2"] == totals(baseline)["mg2"]
+    assert result.statements["mg1"].missing_subperiods == K  # its hour-3 report came after its budget was spent
+    assert result.state.dropped["mg1"] >= 3 * 60 + 1 - BUDGET_MESSAGES and set(result.state.dropped) == {"mg1"}
+    assert result.state.rejected <= BUDGET_MESSAGES  # what it got through was refused, and no more
+    assert journal.stat().st_size < 1 << 20  # of 15 MiB of junk, none
+
+    rec = read_recording(recording)  # within the reader's budget, whatever mg1 sent
+    assert resettled_differences(rec, recording_days(rec)) == []
+    assert 0 < int(rec.other_metadata[DROPPED_METADATA]["mg1"]) <= 3 * 60 + 1
+    assert recording.stat().st_size < 1 << 20
+    print(f"\nflooded day: the DMO dropped {result.state.dropped['mg1']} of mg1's payloads and refused "
+          f"{result.state.rejected}; journal {journal.stat().st_size:,} bytes, recording {recording.stat().st_size:,}")
 
 
 @pytest.mark.parametrize("noticed", [True, False], ids=["after-it-vanished", "before-it-is-noticed"])

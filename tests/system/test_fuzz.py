@@ -375,6 +375,9 @@ def start_day(roles: Roles, tmp: Path, run_id: str, recorded: bool = False):
     roles.start("dmo", dmosim("dmo", *common, "--listen", endpoint, "--agents", str(len(AGENTS)), "--subperiods", "1",
                               "--fault", "delay:dmo/grid:0.5",
                               "--result", str(tmp / "result.json"), *DEADLINES, "--insecure",  # hostile peers join
+                              # on the honest agents' keys (no credentials here), more than their budgets allow: what
+                              # is tested is that each is refused and counted; the budget, in test_faults.py
+                              "--budget", "1000000,1000000000",
                               *(["--await-recorder", "60"] if recorded else [])), log=tmp / "dmo.log", env=ENV)
     wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
     return endpoint
