@@ -55,6 +55,9 @@ class DayConfig:
     voltage_margin: float = 0.0  # p.u. the clearing keeps inside every bus's voltage limits (docs/network.md)
     iso_curve: IsoCurve = FLAT  # the ISO's blocks around its price at the substation (docs/market.md)
     budget: tuple[int, int] = (BUDGET_MESSAGES, BUDGET_BYTES)  # what one agent may send in a phase or hour
+    # agents the run restarts (its restart faults): one that vanishes is waited for until a new process of it is
+    # back, at most registration_s, as a new agent is at registration
+    restarting: frozenset[str] = frozenset()
 
     def __post_init__(self):
         if self.days < 1:

@@ -180,6 +180,7 @@ class MarketDay:
         self.history: DayHistory | None = None  # opened by run(), on the journal if there is one
         self.finished: FinishedDays | None = None  # opened by run()
         self._resumed: tuple[str, int | None] | None = None
+        self._returning: dict[str, float] = {}  # agent the run restarts -> until when it is waited for (monotonic)
         self.budget = SenderBudget(*config.budget)  # what each agent may send in a phase or hour (messages/budget.py)
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
         bus.tap = self._traffic
@@ -280,7 +281,7 @@ class MarketDay:
         self._clock("bidding", c.bids_s)
         self._bids_due = time.monotonic() + c.bids_s
         self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
-        self._wait(self._bids_due, lambda: [a for a in s.live() if a not in s.bids], "bid",
+        self._wait(self._bids_due, lambda: [a for a in self._awaited() if a not in s.bids], "bid",
                    intake.first_of_each(s, s.bids))
 
     def _clearing(self) -> None:
@@ -300,7 +301,7 @@ class MarketDay:
     def _scheduling(self) -> None:
         s, c = self.state, self.config
         self._clock("scheduling", c.schedule_s)
-        self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in s.live() if a not in s.schedules],
+        self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in self._awaited() if a not in s.schedules],
                    "schedule", intake.first_of_each(s, s.schedules))
 
     def _realtime(self) -> None:
@@ -315,7 +316,7 @@ class MarketDay:
             self._publish(self._grid)
 
             accept = intake.meter_report(s, hour, c.subperiods, self._grid)
-            self._wait(time.monotonic() + c.hour_s, lambda: [a for a in s.live() if (hour - 1) not in s.meter[a]],
+            self._wait(time.monotonic() + c.hour_s, lambda: [a for a in self._awaited() if (hour - 1) not in s.meter[a]],
                        f"meter report for hour {hour}", accept)
 
     def _settlement(self) -> tuple[dict[str, Statement], DayTotals, tuple[str, ...]]:
@@ -373,8 +374,19 @@ class MarketDay:
                 return  # an earlier process of it left; a restarted one is here (their tokens share the key)
             s.gone.add(name)
             s.vanished[name] = (s.phase, s.hour)
+            if name in self.config.restarting:  # the run restarts it: a new process is on its way
+                self._returning[name] = time.monotonic() + self.config.registration_s
             self._incident(name, "vanished (liveliness lost); what it does not report is settled by the "
                                  "missing-data rule")
+
+    def _awaited(self) -> list[str]:
+        """The agents a phase or hour waits for: the live ones, and one the run restarts (``restarting``) from when
+        it vanishes until it is back or a new process of it would be past the registration deadline; a phase or
+        hour still ends at its own deadline. Without this a fast day ran its remaining hours in a second while the
+        restarted process was still starting, and settled it as missing for 11 to 24 of them."""
+        now, s = time.monotonic(), self.state
+        back = [a for a, until in self._returning.items() if a in s.gone and now < until]
+        return sorted({*s.live(), *back})
 
     def _resend(self, agent: str) -> str:
         """Send an agent that comes back what it needs to go on; say what was sent."""

@@ -20,10 +20,11 @@ from messages.transport.faults import MessageFault
 from scenarios.case import load_case
 from scenarios.diverse import generate_fleet
 from scenarios.fleet import CASES_DIR, FleetMember, load_fleet, make_fleet, write_fleet
+from scenarios.names import DMO
 from scenarios.network import NETWORKS, Network, NetworkError, load_network, voltage_band
 
 from ..experiment.spec import Experiment, ExperimentError, with_market_terms
-from .faults import parse_fault
+from .faults import Fault, parse_fault
 
 IMPORT_LIMIT_PER_AGENT = 8.0  # MW of feeder import per agent, where the experiment sets no import limit
 EXPORT_LIMIT_PER_AGENT = 5.0  # MW of feeder export per agent, where the experiment sets no export limit
@@ -204,7 +205,9 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
         fixed_awards=tuple(case.grid.p_sch) if m.mode == "fixed" else None,
         registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, journal=journal,
         settlement=rule, network=network, placement=placement_of(e, network),
-        voltage_margin=e.network.voltage_margin, iso_curve=m.iso_curve)
+        voltage_margin=e.network.voltage_margin, iso_curve=m.iso_curve,
+        restarting=frozenset(f.agent for f in map(parse_fault, e.faults) if isinstance(f, Fault) and f.kind == "restart"
+                             and f.agent != DMO))
 
 
 def message_faults(experiment: Experiment) -> list[MessageFault]:

@@ -221,16 +221,17 @@ class ScriptedAgent:
 
 @contextlib.contextmanager
 def scripted_day(agents=("mg1", "mg2"), hour_s=2.0, faults=None, before_meter=None, resend_s=0.5, journal=None,
-                 recording=None, budget=(BUDGET_MESSAGES, BUDGET_BYTES)):
+                 recording=None, budget=(BUDGET_MESSAGES, BUDGET_BYTES), restarting=()):
     """A DMO (in a thread) and scripted agents; yields (day, agents, outcome) and closes everything on exit.
     ``outcome`` fills in with "result" (the DayResult) or "error" once the DMO's day is over. ``journal``: where the
     DMO journals; ``recording``: a file a recorder writes the day to (closed once the day is over); ``budget``: what
-    one agent may send the DMO in a phase or hour (messages/budget.py)."""
+    one agent may send the DMO in a phase or hour (messages/budget.py); ``restarting``: the agents the run restarts."""
     run_id, endpoint = new_run_id(), f"tcp/127.0.0.1:{free_port()}"
     config = DayConfig(market_day=DAY, agents=len(agents), iso_price=(50.0,) * HOURS, import_limit=100.0,
                        export_limit=100.0, penalty=150.0, credit=0.0, subperiods=K, islanded_hours=(7,),
                        fixed_awards=(AWARD,) * HOURS, registration_s=20.0, bids_s=10.0, schedule_s=10.0,
-                       hour_s=hour_s, linger_s=1.0, journal=journal, budget=budget)
+                       hour_s=hour_s, linger_s=1.0, journal=journal, budget=budget,
+                       restarting=frozenset(restarting))
     outcome: dict = {}
     done = threading.Event()
     with contextlib.ExitStack() as stack:
@@ -447,6 +448,36 @@ def test_a_restarted_agent_rejoins_gets_its_award_again_and_reports_on(baseline,
     assert result.state.accepted["meter_report"] == 2 * HOURS - len(missing)
     assert result.state.rejected == 0
     assert totals(result)["mg1"] == totals(baseline)["mg1"]
+
+
+def test_an_agent_the_run_restarts_is_waited_for_while_its_new_process_starts(baseline):
+    """mg2 dies before reporting hour 5 and its new process registers 3 s later. The run restarts it, so the DMO
+    waits for it (within the hour's deadline) instead of running the day on with mg1 alone, which answers at once:
+    it rejoins in hour 5, is sent that hour's grid state, and reports every hour."""
+    died = {}
+
+    def crash(agent, hour):
+        if agent.name == "mg2" and hour == 5 and not died:
+            died["old"] = agent
+            raise RuntimeError("mg2 crashes before reporting hour 5")
+
+    with scripted_day(hour_s=8.0, before_meter=crash, restarting=("mg2",)) as (day, agents, outcome):
+        deadline = time.monotonic() + 30
+        while "old" not in died and time.monotonic() < deadline:
+            time.sleep(0.01)
+        died["old"].close()
+        while "mg2" not in day.state.vanished and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(3); new = ScriptedAgent(outcome["run_id"], "mg2", outcome["endpoint"])  # a new process starting
+        try:
+            new.register()
+            assert new.summary.wait(60)
+        finally:
+            new.close()
+    result = finished(outcome)
+    (rejoined,) = [i.hour for i in result.state.incidents if i.agent == "mg2" and i.reason.startswith("rejoined")]
+    assert rejoined == 5 and result.statements["mg2"].missing_subperiods == 0
+    assert totals(result) == totals(baseline)
 
 
 def test_an_agent_that_may_not_join_is_told_why_and_exits_1(tmp_path):
