@@ -41,6 +41,8 @@ import threading
 import time
 from pathlib import Path
 
+import zenoh
+
 from messages import Bid, MeterReport, Registration, Schedule, decode, encode
 from messages.codec import MAX_PAYLOAD_BYTES, MessageError
 from messages.keys import new_run_id
@@ -368,6 +370,8 @@ def report(experiment: Experiment, args, runs: dict[str, dict], verbs: list[dict
         "runs": rows,
         "flood": {"flooded_s": round(counts["flooded_s"], 1), "token_learned": counts["token_learned"],
                   "flooder_cpu_s": flooded["samples"]["cpu_s"].get(FLOODER),
+                  "link_closed": counts["link"]["closed"], "link_down_s": counts["link"]["down_s"],
+                  "reached_dmo": reached(honest["result"], flooded["result"]),
                   "patterns": flood_rows(counts), "history": history_rows(counts)},
         "dmo_refused": {"by_code": flooded["result"].get("rejected_by_code", {}),
                         "transport": flooded["result"].get("transport", {})},
@@ -426,6 +430,13 @@ def history_rows(counts: dict | None) -> list[dict]:
             for selector, c in counts["patterns"]["history"]["selectors"].items()]
 
 
+def reached(honest: dict, flooded: dict) -> int:
+    """How many of the flooder's messages reached the DMO: every one is refused (it never registers) or dropped
+    unread by the DMO's gate (``transport.dropped``, where there is one), less what the honest run refused."""
+    return (flooded["rejected_messages"] + flooded["transport"].get("dropped", 0)
+            - honest["rejected_messages"] - honest["transport"].get("dropped", 0))
+
+
 def compare_bills(honest: dict, flooded: dict, agents: list[str]) -> dict:
     """The honest agents' settlements (every figure of the DMO's result) in the two runs, to the cent; a differing
     figure is listed as agent.figure: honest -> flooded."""
@@ -469,6 +480,24 @@ class Flood:
         self.counts = {name: {"sent": 0, "bytes": 0, "errors": 0} for name in FLOOD_PATTERNS}
         self.counts["history"]["selectors"] = {}
         self.lock = threading.Lock()  # the counts of the history's replies, which Zenoh's threads update
+        self.link = {"closed": 0, "down_s": 0.0}  # the flooder's own link to the DMO, closed by Zenoh and reopened
+        self._down_since: float | None = None
+        self._link_events = None
+
+    def watch_link(self) -> None:
+        """Count the times Zenoh closes this session's link to the DMO and how long it stays down: a put that waits
+        longer than Zenoh's ``wait_before_close`` (5 s) for room on a congested link closes it (the client then
+        connects again), and a put meanwhile goes nowhere: it counts as sent, but never arrived."""
+        self._link_events = self.bus.session.info.declare_transport_events_listener(self._on_transport)
+
+    def _on_transport(self, event) -> None:
+        with self.lock:
+            if event.kind == zenoh.SampleKind.DELETE:
+                self.link["closed"] += 1
+                self._down_since = time.monotonic()
+            elif self._down_since is not None:
+                self.link["down_s"] += time.monotonic() - self._down_since
+                self._down_since = None
 
     def learn(self, timeout_s: float) -> None:
         """Ask for the DMO's clock, as an agent does, until it answers: the run's token and market day."""
@@ -552,8 +581,6 @@ class Flood:
         """``QUERIES_AT_ONCE`` queries of each selector in flight at once; the next round once all are done. Replies
         are counted as they come, each query as answered (a reply), refused (error replies only) or unanswered
         (nothing within ``QUERY_TIMEOUT_S``: access control drops a query it refuses) when Zenoh finishes it."""
-        import zenoh  # noqa: PLC0415  (the flooder's own process only)
-
         prefix = self.bus.keys.prefix
         tallies = [counts["selectors"].setdefault(s, {"queries": 0, "answered": 0, "refused": 0, "unanswered": 0,
                                                       "replies": 0, "error_replies": 0, "reply_bytes": 0})
@@ -593,9 +620,11 @@ class Flood:
                     return
 
     def snapshot(self) -> dict:
-        """What was sent so far, copied whole (the history's replies are counted on Zenoh's threads)."""
+        """What was sent so far, and the link's closures, copied whole (Zenoh's threads count replies and closures)."""
         with self.lock:
-            return json.loads(json.dumps(self.counts))
+            down = 0.0 if self._down_since is None else time.monotonic() - self._down_since
+            return json.loads(json.dumps({"patterns": self.counts,
+                                          "link": {**self.link, "down_s": round(self.link["down_s"] + down, 2)}}))
 
     def _meter(self, hour: int) -> MeterReport:
         return MeterReport(sender=self.bus.name, market_day=self.market_day, hour=hour, subperiods=1, p_m_mw=(0.5,),
@@ -618,6 +647,7 @@ def flooder_main(run_id: str, agent: str, endpoint: str, auth: str, seconds: flo
                        overrides=bundle_settings(auth, agent))
     with Bus(run_id, agent, config) as bus:
         flood = Flood(bus, stop)
+        flood.watch_link()
         flood.learn(TOKEN_WAIT_S)
         began = time.monotonic()
         threads = flood.threads()
@@ -632,7 +662,7 @@ def flooder_main(run_id: str, agent: str, endpoint: str, auth: str, seconds: flo
         out = Path(counts_file)
         tmp = out.with_suffix(".tmp")
         tmp.write_text(json.dumps({"agent": agent, "token_learned": flood.token_learned, "flooded_s": flooded_s,
-                                   "patterns": flood.snapshot()}, indent=2))
+                                   **flood.snapshot()}, indent=2))
         tmp.replace(out)
     return 0
 
