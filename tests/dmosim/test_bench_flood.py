@@ -25,7 +25,8 @@ def test_a_short_flood_is_measured_beside_the_honest_day_and_its_recording_still
     assert honest["rejected"] == 0 < flooded["rejected"]
     assert out["flood"]["token_learned"] and 0 < out["flood"]["flooded_s"]
     assert [p["pattern"] for p in out["flood"]["patterns"]] == list(FLOOD_PATTERNS)
-    assert all(p["sent"] > 0 for p in out["flood"]["patterns"])
+    assert all(p["puts"] > 0 for p in out["flood"]["patterns"])
+    assert out["flood"]["reached_dmo"] > 0 and out["flood"]["link_closed"] >= 0
     assert [h["selector"] for h in out["flood"]["history"]] == ["dmo/clock?history", "**?history"]
     assert all(h["queries"] >= h["answered"] + h["refused"] + h["unanswered"] for h in out["flood"]["history"])
     assert [(v["verb"], v["exit"]) for v in out["verbs"]] == [("info", 0), ("settle", 0), ("export", 0)]
