@@ -35,7 +35,7 @@ def render(result: dict, indent: str = "") -> str:
     """Nested dicts as indented sections; lists of dicts (rows) as aligned tables."""
     lines = []
     for key, value in result.items():
-        if isinstance(value, dict):
+        if isinstance(value, dict) and value:
             lines += [f"{indent}{key}:", render(value, indent + "  ")]
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
             cols = list(dict.fromkeys(c for row in value for c in row))  # a row may lack a column: "-"
