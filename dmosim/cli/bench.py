@@ -11,10 +11,11 @@ HELP = "benchmarks that print ratios and absolute times measured side by side (d
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """One sub-command per benchmark module of dmosim/bench/, its flags its own."""
-    from ..bench import clearing, day, fleet, messaging, recording, recovery, solver, start, week  # noqa: PLC0415  (solver: the solver stack)
+    from ..bench import (  # noqa: PLC0415  (solver: the solver stack)
+        clearing, day, fleet, flood, messaging, recording, recovery, solver, start, week)
 
     sub = p.add_subparsers(dest="bench", required=True, parser_class=type(p))
-    for module in (day, week, fleet, messaging, recording, recovery, solver, start, clearing):
+    for module in (day, week, fleet, messaging, recording, recovery, flood, solver, start, clearing):
         bench = sub.add_parser(module.__name__.rsplit(".", 1)[1], help=module.__doc__.splitlines()[0])
         module.add_arguments(bench)
         bench.add_argument("--json", action="store_true", help="print one JSON object")
@@ -34,7 +35,7 @@ def render(result: dict, indent: str = "") -> str:
     """Nested dicts as indented sections; lists of dicts (rows) as aligned tables."""
     lines = []
     for key, value in result.items():
-        if isinstance(value, dict):
+        if isinstance(value, dict) and value:
             lines += [f"{indent}{key}:", render(value, indent + "  ")]
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
             cols = list(dict.fromkeys(c for row in value for c in row))  # a row may lack a column: "-"
