@@ -204,7 +204,8 @@ def _member(path: Path, index: int, entry, seen: set[str]) -> FleetMember:
     if strategy is not None and (not isinstance(strategy, str) or not 1 <= len(strategy.strip()) <= MAX_STRATEGY):
         _fail(path, f"{where}.strategy", f"must be a strategy's name of 1..{MAX_STRATEGY} characters, got {strategy!r}")
     bus = entry.get("bus")
-    if bus is not None and (isinstance(bus, bool) or not isinstance(bus, (str, int)) or not 1 <= len(str(bus)) <= MAX_NAME_LENGTH):
+    if bus is not None and (isinstance(bus, bool) or not isinstance(bus, (str, int))
+                            or not 1 <= len(str(bus)) <= MAX_NAME_LENGTH):
         _fail(path, f"{where}.bus", f"must be a bus's name (a string or an integer), got {bus!r}")
     member = FleetMember(agent, case, float(scale), shift, seed, strategy, None if bus is None else str(bus))
     try:

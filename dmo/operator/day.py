@@ -316,7 +316,8 @@ class MarketDay:
             self._publish(self._grid)
 
             accept = intake.meter_report(s, hour, c.subperiods, self._grid)
-            self._wait(time.monotonic() + c.hour_s, lambda: [a for a in self._awaited() if (hour - 1) not in s.meter[a]],
+            self._wait(time.monotonic() + c.hour_s,
+                       lambda: [a for a in self._awaited() if (hour - 1) not in s.meter[a]],
                        f"meter report for hour {hour}", accept)
 
     def _settlement(self) -> tuple[dict[str, Statement], DayTotals, tuple[str, ...]]:

@@ -89,7 +89,8 @@ class DayHistory:
 
         if HISTORY in given:
             if not _whole_run(key_expr):
-                raise ValueError(f"{HISTORY} is answered for the whole run only ({ROOT}/<run>/**), not {key_expr[:200]}")
+                raise ValueError(f"{HISTORY} is answered for the whole run only ({ROOT}/<run>/**), "
+                                 f"not {key_expr[:200]}")
             since = _nanoseconds(given.get(SINCE, "0"))
             return (e for e in traffic(map(json.loads, self._lines_since(since))) if e[2] >= since and matching(e[0]))
         with self._lock:

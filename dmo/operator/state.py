@@ -53,7 +53,8 @@ class DayState:
         self.day, self.market_day, self.phase, self.hour = day, market_day, "bidding", None
         self.bids, self.schedules, self.rescheduling = {}, {}, set()
         self.meter = {agent: {} for agent in self.registered}
-        self.log, self.accepted, self.again, self.dropped = IncidentLog(), collections.Counter(), 0, collections.Counter()
+        self.log, self.accepted, self.again = IncidentLog(), collections.Counter(), 0
+        self.dropped = collections.Counter()
         return closed
 
     @property

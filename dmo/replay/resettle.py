@@ -222,21 +222,13 @@ def _judged(rec: Recording, kind: str, day: str | None) -> Iterator[tuple[Record
     (the SHA-256 of the payload as received, from its sender): a payload it never saw (one the network lost on its
     way to the DMO, or dropped unread, its sender over its budget) or refused is not. A recording of before
     receipts (protocol 3 and older) says only what the DMO refused: each recorded rejection uses up one copy."""
-    accepted = _receipted(rec)
+    accepted = rec.receipted
     refused = _refused(rec) if accepted is None else None
     for m, msg in day_messages(rec, day, kind):
         if accepted is not None:
             yield m, msg, (msg.sender, hashlib.sha256(m.payload).hexdigest()) not in accepted
         else:
             yield m, msg, _take(refused, m.relative_key, m.payload, msg)
-
-
-def _receipted(rec: Recording) -> set[tuple[str, str]] | None:
-    """(agent, sha256) of every payload the DMO receipted as accepted; None if the recording holds no receipt."""
-    receipts = list(rec.decoded("receipt"))
-    if not receipts:
-        return None
-    return {(msg.agent, msg.payload_sha256) for _, msg in receipts if msg.accepted}
 
 
 def _refused(rec: Recording) -> collections.Counter:

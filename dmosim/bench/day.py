@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
@@ -184,6 +185,22 @@ def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict
     compute = {agent: [{**entry, "day": day["day"]} for day in realised[agent] for entry in day["compute"]]
                for agent in result["agents"]}
     return compute, {agent: realised[agent][-1]["messages"] for agent in result["agents"]}
+
+
+@contextlib.contextmanager
+def bench_root(out: str | None, name: str) -> Iterator[Path]:
+    """The directory a bench's runs go in: ``out`` (the user's ``--out``), kept; else a scratch one, removed when
+    the block ends unless a run failed or was stopped (a RuntimeError, which names its directory: it stays)."""
+    root = Path(out) if out else Path(tempfile.mkdtemp(prefix=f"dmosim-bench-{name}-"))
+    keep = bool(out)
+    try:
+        yield root
+    except RuntimeError:
+        keep = True
+        raise
+    finally:
+        if not keep:
+            shutil.rmtree(root, ignore_errors=True)
 
 
 def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, watch=None) -> dict:

@@ -57,6 +57,7 @@ from ..experiment.spec import Agents, Deadlines, Experiment, Market, ScheduleSet
 from ..launch.processes import (COMMAND_STOP_S, ROLE_STOP_S, Command, Roles, dmosim_command, free_port,
                                 interrupts_held, memory_mib, proc_stat, role_env, stop_processes, wait_listening)
 from ..launch.roles import fleet_of
+from .day import bench_root
 
 FLOOD_S = 60.0  # how long the flooder floods, unless the DMO is gone first
 FLOOD_PATTERNS = ("oversized", "resent", "sequenced", "history")
@@ -101,26 +102,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> dict:
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="dmosim-bench-flood-"))
-    kept = bool(args.out)
     experiment = Experiment(
         name="flood", seed=args.seed, days=args.days, market_day=args.market_day or today(),
         agents=Agents(count=args.agents), market=Market(subperiods=args.subperiods),
         schedule=ScheduleSettings(scenarios=args.scenarios, gap=args.gap),
         # generous deadlines: a slowed day shows in its wall time, not as reports missed
         deadlines=Deadlines(registration=300.0, bid=600.0, schedule=600.0, hour=120.0))
-    try:
-        with stopping_on_terminate():
-            runs = {name: run_day(experiment, root / name, args, flood=args.flood if name == "flooded" else None)
-                    for name in ("honest", "flooded")}
-            verbs = run_verbs(runs["flooded"]["recording"], root / "flooded" / "tables")
-    except RuntimeError:  # a run failed or was stopped: the error names its directory, which stays
-        kept = True
-        raise
-    finally:
-        if not kept:
-            shutil.rmtree(root, ignore_errors=True)
-    return report(experiment, args, runs, verbs, root if kept else None)
+    with bench_root(args.out, "flood") as root, stopping_on_terminate():
+        runs = {name: run_day(experiment, root / name, args, flood=args.flood if name == "flooded" else None)
+                for name in ("honest", "flooded")}
+        verbs = run_verbs(runs["flooded"]["recording"], root / "flooded" / "tables")
+    return report(experiment, args, runs, verbs, Path(args.out) if args.out else None)
 
 
 # --- one run: the roles as docs/hosts.md starts them ---------------------------------------------------------------

@@ -12,15 +12,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
-import tempfile
-from pathlib import Path
 
 from dmo.replay.reproduce import differences
 from messages.recording import read_recording
 
 from ..arguments import nonneg_float
-from .day import add_run_flags, run_and_read, run_flags
+from .day import add_run_flags, bench_root, run_and_read, run_flags
 
 GOAL_RATIO = 1.3  # wall time with drops / without: what a lost message may cost
 
@@ -44,19 +41,11 @@ def _probability(text: str) -> float:
 
 
 def run(args) -> dict:
-    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="dmosim-bench-recovery-"))
     flags = run_flags(args)
-    kept = bool(args.out)
-    try:
+    with bench_root(args.out, "recovery") as root:
         runs = {name: run_and_read(flags + more, args.timeout, keep=root / name)
                 for name, more in (("fault-free", []), ("dropped", ["--fault", f"drop:**:{args.drop!r}"]))}
         changed = differences(*(read_recording(root / name / "recording.mcap") for name in runs))
-    except RuntimeError:  # a run failed or was stopped: the error names its directory, which stays
-        kept = True
-        raise
-    finally:
-        if not kept:
-            shutil.rmtree(root, ignore_errors=True)
     rows = [_row(name, run) for name, run in runs.items()]
     ratio = rows[1]["wall_s"] / rows[0]["wall_s"]
     return {

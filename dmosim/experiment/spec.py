@@ -190,7 +190,8 @@ class NetworkSettings(_Section):
     feeder: PathText | None = None
     load_scale: Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)] = 1.0
     voltage_margin: Annotated[float, Field(ge=0, le=MAX_VOLTAGE_MARGIN, allow_inf_nan=False)] = 0.0
-    buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=MAX_NAME_LENGTH)]], Field(max_length=MAX_AGENTS)] = []
+    buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=MAX_NAME_LENGTH)]],
+                     Field(max_length=MAX_AGENTS)] = []
 
 
 class Experiment(_Section):

@@ -45,8 +45,8 @@ KEPT_INVALID_TOTAL = 16 << 20
 
 # What reading a file may take, whatever it declares (docs/recording.md, "Reading is bounded and checked"). The
 # writer's chunks close at CHUNK_BYTES, so the largest holds 1 MiB plus one message; its largest message is a valid
-# one at the wire's MAX_PAYLOAD_BYTES (an invalid one keeps at most KEPT_INVALID_BYTES). Measured on real recordings: a chunk
-# compresses 3.5x to 6.5x, and a whole file expands to 1.0-3.7x its size (to 24x for a day under a flood of
+# one at the wire's MAX_PAYLOAD_BYTES (an invalid one keeps at most KEPT_INVALID_BYTES). Measured on real recordings:
+# a chunk compresses 3.5x to 6.5x, and a whole file expands to 1.0-3.7x its size (to 24x for a day under a flood of
 # oversized junk, every message charged MESSAGE_COST_BYTES), so the budget below leaves room for what dmosim
 # writes while a 26 KB file can no longer expand to gigabytes.
 MAX_CHUNK_BYTES = 16 << 20

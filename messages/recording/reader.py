@@ -71,6 +71,8 @@ class Recording:
     bytes_read: int = 0
     cut_reason: str | None = None
     _run_token: tuple[str | None] | None = field(default=None, init=False, repr=False, compare=False)
+    _receipted: tuple[frozenset[tuple[str, str]] | None] | None = field(default=None, init=False, repr=False,
+                                                                      compare=False)
 
     @property
     def run_token(self) -> str | None:
@@ -81,6 +83,19 @@ class Recording:
             clocks = (m for m in self.in_log_order() if m.kind == "clock" and m.invalid is None)
             self._run_token = (next((msg.run for msg in map(_clock, clocks) if msg is not None), None),)
         return self._run_token[0]
+
+    @property
+    def receipted(self) -> frozenset[tuple[str, str]] | None:
+        """(agent, SHA-256 of the payload as received) of every payload the DMO's recorded receipts say it accepted;
+        None if the recording holds no receipt (one of before protocol 4). Read once: every day and kind asks."""
+        if self._receipted is None:
+            accepted, any_receipt = set(), False
+            for _, receipt in self.decoded("receipt"):
+                any_receipt = True
+                if receipt.accepted:
+                    accepted.add((receipt.agent, receipt.payload_sha256))
+            self._receipted = (frozenset(accepted) if any_receipt else None,)
+        return self._receipted[0]
 
     @property
     def prefix(self) -> str:

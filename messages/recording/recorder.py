@@ -120,9 +120,14 @@ class Recorder:
         parsed = _parsed(key)
         return (parsed is not None and parsed.role == DMO) or not self.budget.admit(agent_of(key), size)
 
+    def _next_window(self) -> None:
+        """The DMO's clock moved on (or the recording ends): every agent's budget starts afresh, and what the window
+        dropped of each is added to ``dropped``."""
+        self.dropped.update({a or "": n for a, n in self.budget.next_window().items()})
+
     def _received(self, key: str, payload: bytes, at: int) -> None:
         if key == self._clock:
-            self.dropped.update({a or "": n for a, n in self.budget.next_window().items()})
+            self._next_window()
         parsed = _parsed(key)
         with self._live_lock:
             if self._live is not None:
@@ -239,7 +244,7 @@ class Recorder:
                 except queue.Empty:
                     break
                 self._write(*item, on_write)
-            self.dropped.update({a or "": n for a, n in self.budget.next_window().items()})
+            self._next_window()
             if self.dropped:
                 writer.add_metadata(DROPPED_METADATA, self.dropped)
             writer.close()

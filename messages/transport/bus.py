@@ -575,7 +575,7 @@ def _quietly(action: Callable[[], object], what: str) -> None:
 
 
 ANSWERING_STOP_S = 10.0  # how long closing waits for a slow query's answer to stop (it stops at its next reply)
-SLOW_WAITING = 1  # slow queries (the traffic of a day) that may wait while one is answered: a recorder asks one at a time
+SLOW_WAITING = 1  # slow queries (a day's traffic) that may wait while one is answered: a recorder asks one at a time
 
 # A process opens its sessions one at a time. The agents forked ten to a process (dmosim run --hosting fork) would
 # otherwise all shake hands at once: a thousand TLS handshakes at once on 2 cores left an agent unconnected after

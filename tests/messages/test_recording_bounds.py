@@ -32,8 +32,8 @@ from dmosim.cli import main
 from messages import MAX_PAYLOAD_BYTES, MeterReport, encode
 from messages.keys import new_run_id
 from messages.recording import RecordingError, RecordingWriter, read_recording
-from messages.recording.layout import (KEPT_INVALID_BYTES, MAGIC, MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES, MESSAGE_COST_BYTES,
-                                       READ_BUDGET_FLOOR_BYTES, READ_BUDGET_RATIO)
+from messages.recording.layout import (KEPT_INVALID_BYTES, MAGIC, MAX_CHUNK_BYTES, MAX_MESSAGE_BYTES,
+                                       MESSAGE_COST_BYTES, READ_BUDGET_FLOOR_BYTES, READ_BUDGET_RATIO)
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
