@@ -17,10 +17,16 @@ from ..market.choice import ChosenRule, paper_rule
 from ..market.clearing import FLAT, IsoCurve
 
 
+LOGICAL, WALL = "logical", "wall"
+CLOCKS = (LOGICAL, WALL)  # how a phase ends: when every live agent has answered, or at the latest at its deadline
+
+
 @dataclass(frozen=True)
 class DayConfig:
-    """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. Deadlines are
-    wall-clock seconds per phase (per hour in real time). What an experiment sets has no default here: its defaults
+    """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. On the ``logical``
+    clock a phase (an hour in real time) ends when every live agent has answered, however long that takes, and the
+    deadlines are only what the clock messages announce; on the ``wall`` clock a phase ends at the latest when its
+    deadline, wall-clock seconds, passes (docs/experiments.md, "Logical and wall-clock time"). What an experiment sets has no default here: its defaults
     are the experiment's (dmosim/experiment/spec.py). ``settlement`` is the rule, checked (``market.choice``).
     ``fixed_awards`` (24 MW) replaces clearing by those
     awards for every agent (the paper's Table I). ``islanded_hours`` holds for every day unless
@@ -58,8 +64,16 @@ class DayConfig:
     # agents the run restarts (its restart faults): one that vanishes is waited for until a new process of it is
     # back, at most registration_s, as a new agent is at registration
     restarting: frozenset[str] = frozenset()
+    clock: str = "wall"  # one of CLOCKS; the experiment's default is the logical clock
+
+    @property
+    def logical(self) -> bool:
+        """Whether phases end when every live agent has answered (the logical clock), never by seconds."""
+        return self.clock == LOGICAL
 
     def __post_init__(self):
+        if self.clock not in CLOCKS:
+            raise ValueError(f"the clock is one of {', '.join(CLOCKS)}, not {self.clock!r}")
         if self.days < 1:
             raise ValueError(f"a run has at least one day, not {self.days}")
         if self.islanding_by_day is not None and len(self.islanding_by_day) != self.days:

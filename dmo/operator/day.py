@@ -3,7 +3,9 @@
 
 The DMO reads everything it receives from one queue on its main thread, so the day's state is touched by one
 thread only; Zenoh's callback threads just enqueue. Each phase ends when every live registered agent has
-answered or its deadline passes. What the day accepts is decided by intake.py, on the market's rules
+answered (accepted, or refused: an agent told no is not waited for) or, on the wall clock, its deadline passes;
+on the logical clock a phase has no deadline, so a loaded machine makes a run slower, never different
+(docs/experiments.md, "Logical and wall-clock time"). What the day accepts is decided by intake.py, on the market's rules
 (market/acceptance.py) and the replay guard (guard.py); what it publishes is built by outbox.py; the journal
 (journal.py) lets a restarted DMO resume the day, and rejoin.py decides what an agent that comes back is sent
 again. A settled day goes to disk as its report (finished.py), and so does each realised day an agent reports, so
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import queue
 import secrets
 import time
@@ -181,6 +184,10 @@ class MarketDay:
         self.finished: FinishedDays | None = None  # opened by run()
         self._resumed: tuple[str, int | None] | None = None
         self._returning: dict[str, float] = {}  # agent the run restarts -> until when it is waited for (monotonic)
+        # (agent, kind, hour) of the answers refused in this phase or hour, and agents over their budget in it: an
+        # agent told no does not send it again, so it is not waited for
+        self._refused: set[tuple[str, str, int | None]] = set()
+        self._over: set[str] = set()
         self.budget = SenderBudget(*config.budget)  # what each agent may send in a phase or hour (messages/budget.py)
         bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
         bus.tap = self._traffic
@@ -270,7 +277,7 @@ class MarketDay:
             return refusal
 
         missing = lambda: [f"{c.agents - len(s.registered)} more agent(s)"] if len(s.registered) < c.agents else []
-        self._wait(time.monotonic() + c.registration_s, missing, "registration", accept, name_late=False)
+        self._wait(c.registration_s, missing, "registration", accept, name_late=False)
         if len(s.registered) < c.agents:
             self._incident(None, f"only {len(s.registered)} of {c.agents} agents registered by the deadline")
         if not s.registered:
@@ -281,8 +288,7 @@ class MarketDay:
         self._clock("bidding", c.bids_s)
         self._bids_due = time.monotonic() + c.bids_s
         self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
-        self._wait(self._bids_due, lambda: [a for a in self._awaited() if a not in s.bids], "bid",
-                   intake.first_of_each(s, s.bids))
+        self._wait(c.bids_s, lambda: self._unanswered(s.bids, "bid"), "bid", intake.first_of_each(s, s.bids))
 
     def _clearing(self) -> None:
         self._clock("clearing", self.config.bids_s)
@@ -301,8 +307,8 @@ class MarketDay:
     def _scheduling(self) -> None:
         s, c = self.state, self.config
         self._clock("scheduling", c.schedule_s)
-        self._wait(time.monotonic() + c.schedule_s, lambda: [a for a in self._awaited() if a not in s.schedules],
-                   "schedule", intake.first_of_each(s, s.schedules))
+        self._wait(c.schedule_s, lambda: self._unanswered(s.schedules, "schedule"), "schedule",
+                   intake.first_of_each(s, s.schedules))
 
     def _realtime(self) -> None:
         s, c = self.state, self.config
@@ -316,8 +322,8 @@ class MarketDay:
             self._publish(self._grid)
 
             accept = intake.meter_report(s, hour, c.subperiods, self._grid)
-            self._wait(time.monotonic() + c.hour_s,
-                       lambda: [a for a in self._awaited() if (hour - 1) not in s.meter[a]],
+            self._wait(c.hour_s, lambda: self._unanswered({a for a in s.meter if hour - 1 in s.meter[a]},
+                                                          "meter_report", hour),
                        f"meter report for hour {hour}", accept)
 
     def _settlement(self) -> tuple[dict[str, Statement], DayTotals, tuple[str, ...]]:
@@ -371,19 +377,25 @@ class MarketDay:
     def _left(self, name: str) -> None:
         s = self.state
         if name in s.registered and name not in s.gone:
-            if name in self.bus.present(timeout_s=PRESENCE_CHECK_S):
+            if name in self.bus.present(timeout_s=self._presence_s):
                 return  # an earlier process of it left; a restarted one is here (their tokens share the key)
             s.gone.add(name)
             s.vanished[name] = (s.phase, s.hour)
             if name in self.config.restarting:  # the run restarts it: a new process is on its way
-                self._returning[name] = time.monotonic() + self.config.registration_s
+                self._returning[name] = self._deadline(self.config.registration_s)
             self._incident(name, "vanished (liveliness lost); what it does not report is settled by the "
                                  "missing-data rule")
 
+    def _unanswered(self, answered, kind: str, hour: int | None = None) -> list[str]:
+        """The agents a phase or hour still waits for (``_awaited``) that have neither an accepted answer (in
+        ``answered``) nor one of ``kind`` (for ``hour``) refused, nor gone over their budget in it."""
+        return [a for a in self._awaited()
+                if a not in answered and (a, kind, hour) not in self._refused and a not in self._over]
+
     def _awaited(self) -> list[str]:
         """The agents a phase or hour waits for: the live ones, and one the run restarts (``restarting``) from when
-        it vanishes until it is back or a new process of it would be past the registration deadline; a phase or
-        hour still ends at its own deadline. Without this a fast day ran its remaining hours in a second while the
+        it vanishes until it is back (on the wall clock, at most until a new process of it would be past the
+        registration deadline; a phase or hour still ends at its own deadline). Without this a fast day ran its remaining hours in a second while the
         restarted process was still starting, and settled it as missing for 11 to 24 of them."""
         now, s = time.monotonic(), self.state
         back = [a for a, until in self._returning.items() if a in s.gone and now < until]
@@ -430,6 +442,16 @@ class MarketDay:
         """A new phase or hour: every agent's budget starts afresh; what the last window dropped of each is the
         day's ``dropped_messages``."""
         self.state.dropped.update({a: n for a, n in self.budget.next_window().items() if a is not None})
+        self._refused, self._over = set(), set()
+
+    @property
+    def _presence_s(self) -> float:
+        """How long a presence check may take."""
+        return PRESENCE_CHECK_LOGICAL_S if self.config.logical else PRESENCE_CHECK_S
+
+    def _deadline(self, seconds: float) -> float:
+        """When, on the monotonic clock, a wait of ``seconds`` ends: never on the logical clock."""
+        return math.inf if self.config.logical else time.monotonic() + seconds
 
     def _publish(self, msg) -> None:
         self.bus.publish(msg)
@@ -451,9 +473,12 @@ class MarketDay:
         log.warning("%s%s: %s%s", s.phase, f" hour {s.hour}" if s.hour else "", f"{agent}: " if agent else "",
                     incident.reason)
 
-    def _reject(self, key: str, payload: bytes, err: MessageError, offender: str | None) -> None:
+    def _reject(self, key: str, payload: bytes, err: MessageError, offender: str | None, msg=None) -> None:
         """A payload refused: counted, listed, published as a Rejection, and its sender (the agent the key names)
         gets the refusal as its receipt."""
+        if msg is not None and err.code not in REPLAYS:  # (a payload that could not be read is no answer: its sender
+            # cannot tell that the refusal is of it, and sends it again)
+            self._refused.add((offender, msg.kind, msg.hour if msg.kind == "meter_report" else None))
         listed = self.state.log.count_rejection(err.code)
         if self.journal is not None:
             self.journal.rejected(err.code)
@@ -465,25 +490,28 @@ class MarketDay:
         if offender is not None:
             self._publish(make_receipt(offender, payload, err, market_day=self.state.market_day))
 
-    def _wait(self, deadline: float, waiting_for: Callable[[], list[str]], what: str, accept,
+    def _wait(self, seconds: float, waiting_for: Callable[[], list[str]], what: str, accept,
               name_late: bool = True) -> None:
-        """Handle events until nobody is ``waiting_for`` or the deadline passes; then name the late agents.
+        """Handle events until nobody is ``waiting_for`` or, on the wall clock, ``seconds`` pass; then name the
+        late agents.
 
-        Halfway to the deadline the DMO logs who it is waiting for, so a stall is never silent.
+        Halfway to a deadline (on the logical clock, every ``STILL_WAITING_S``) the DMO logs who it is waiting for,
+        so a stall is never silent.
         """
-        warned = False
         start = time.monotonic()
+        deadline = self._deadline(seconds)
+        say_at = start + (seconds / 2 if math.isfinite(deadline) else STILL_WAITING_S)
         while waiting_for():
             now = time.monotonic()
             if now >= deadline:
                 for agent in waiting_for() if name_late else ():
                     self._incident(agent, f"late: no {what} by the deadline")
                 return
-            if not warned and now >= start + (deadline - start) / 2:
+            if now >= say_at:
                 log.warning("%s: still waiting for %s from %s", self.state.phase, what, ", ".join(waiting_for()))
-                warned = True
+                say_at = deadline if math.isfinite(deadline) else now + STILL_WAITING_S
             try:
-                event = self.events.get(timeout=min(deadline - now, max(0.05, (deadline - start) / 2 - (now - start))))
+                event = self.events.get(timeout=max(0.05, min(deadline, say_at) - now))
             except queue.Empty:
                 continue
             self._handle(event, accept)
@@ -491,6 +519,7 @@ class MarketDay:
     def _handle(self, event, accept) -> None:
         kind = event[0]
         if kind == "over_budget":
+            self._over.add(event[1])
             self._incident(event[1], f"over its budget of {self.budget.messages} messages and {self.budget.size} bytes "
                                      f"in this {'hour' if self.state.hour else 'phase'}: what it sends more until the "
                                      "next is dropped unread (dropped_messages)")
@@ -512,7 +541,7 @@ class MarketDay:
                                  self.config.placement)
         if outcome.what == intake.REFUSED:
             code, reason = outcome.refusal
-            return self._reject(key, payload, MessageError(reason, code), msg.sender)
+            return self._reject(key, payload, MessageError(reason, code), msg.sender, msg)
         if outcome.taken and self.journal is not None:
             self.journal.accepted(key, payload)
         if outcome.taken and isinstance(msg, AgentDay):
@@ -530,27 +559,35 @@ class MarketDay:
         ``RECORDER_CHECK_S``) until it has asked for the traffic to its end (it asks as agents leave): what the
         network lost on its way there, the last day's statements and summary too, reaches the recording."""
         # an agent whose presence the DMO cannot see (a client that declares no liveliness token) is not waited for
-        waiting = set(self.state.live()) & self.bus.present(timeout_s=PRESENCE_CHECK_S)
         c = self.config
-        deadline = time.monotonic() + (c.hour_s if c.linger_s is None else c.linger_s)
+        waiting = set(self.state.live()) & self.bus.present(timeout_s=self._presence_s)
+        deadline = self._deadline(c.hour_s if c.linger_s is None else c.linger_s)
         accept = intake.out_of_phase(self.state)
         while waiting and (left := deadline - time.monotonic()) > 0:
             try:
-                event = self.events.get(timeout=left)
+                event = self.events.get(timeout=min(left, STILL_WAITING_S))
             except queue.Empty:
-                break
+                if math.isfinite(deadline):
+                    break
+                log.warning("settlement: still waiting for %s to leave", ", ".join(sorted(waiting)))
+                continue
             if event[0] == "leave":
                 waiting.discard(event[1])
             elif event[0] in ("msg", "reject", "over_budget"):
                 self._handle(event, accept)
         self._next_window()
-        recorder = RECORDER in self.bus.present(timeout_s=PRESENCE_CHECK_S)
+        recorder = RECORDER in self.bus.present(timeout_s=self._presence_s)
         if recorder and not self.history.wait_answered(RECORDER_CHECK_S):
             log.warning("the recorder did not ask for the run's last messages within %g s: the recording may lack "
                         "what the network lost on its way there", RECORDER_CHECK_S)
 
 
-PRESENCE_CHECK_S = 0.5  # how long a presence check may hold the DMO up (an answer on one host takes milliseconds)
+PRESENCE_CHECK_S = 0.5  # how long a presence check may hold the DMO up (an answer on one host takes milliseconds) ...
+PRESENCE_CHECK_LOGICAL_S = 30.0  # ... on the logical clock, where one that a loaded machine delays must not misjudge
+# Refusals of what is not an agent's answer of now: a copy or replay of an earlier message, a message of a process of
+# it that is gone, or one overtaken by a later one (guard.py). Its answer may still come, so it is still waited for.
+REPLAYS = ("duplicate", "stale", "late")
+STILL_WAITING_S = 60.0  # on the logical clock, how often the DMO says who it is still waiting for
 RECORDER_CHECK_S = 10.0  # how long a leaving DMO waits for the recorder to ask for what it may have missed
 
 

@@ -9,6 +9,7 @@ import argparse
 from typing import Iterable
 
 from dmo.market.rules import MAX_MW, MAX_RATE
+from dmo.operator.config import CLOCKS
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.solvers.routes import METHODS, auto_rule
@@ -30,7 +31,8 @@ DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "sc
 RUN_SETTINGS = ("agents.count", "agents.fleet", "agents.generate", "days", "market_day", "seed")
 MARKET_SETTINGS = tuple(k for k in FLAGS if k.startswith("market."))
 NETWORK_SETTINGS = tuple(k for k in FLAGS if k.startswith("network."))
-DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + NETWORK_SETTINGS + tuple(f"deadlines.{name}" for name, _ in DEADLINES)
+DMO_SETTINGS = RUN_SETTINGS + MARKET_SETTINGS + NETWORK_SETTINGS + ("deadlines.clock",) + tuple(
+    f"deadlines.{name}" for name, _ in DEADLINES)
 AGENT_SETTINGS = RUN_SETTINGS + ("agents.strategy", "market.island_hours", "network.feeder") + tuple(
     k for k in FLAGS if k.startswith(("schedule.", "profiles.")))
 
@@ -91,8 +93,9 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
                                                    help=f"scenarios of each agent's schedule, at most "
                                                         f"{MAX_SCENARIOS} (default: {s.scenarios})")),
         "schedule.gap": ("--gap", dict(type=gap, help=f"relative MIP gap of each schedule (default: {s.gap:g})")),
-        "schedule.time_limit": ("--time-limit", dict(type=seconds, help=f"seconds per agent solve (default: "
-                                                                        f"{s.time_limit:g})")),
+        "schedule.time_limit": ("--time-limit", dict(type=seconds, help=(
+            "seconds at most per agent solve: a solve cut by it gives a schedule that depends on how busy the machine "
+            "is (default: none, the gap alone ends a solve)"))),
         "schedule.method": ("--method", dict(choices=METHODS,
                                              help="route of the agents' solves: extensive, one MILP; benders, "
                                                   "decomposed (docs/solver.md); tree, decomposed in one SCIP tree "
@@ -116,9 +119,15 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
             "p.u. the clearing keeps inside every bus's voltage limits, for what LinDistFlow neglects "
             f"(default: {default.network.voltage_margin:g})"))),
     }
+    flags["deadlines.clock"] = ("--clock", dict(choices=CLOCKS, help=(
+        "how a phase ends: logical, when every live agent has answered, however long that takes, so a busy machine "
+        "makes a run slower, never different; wall, at the latest at its deadline (--*-timeout), for roles started "
+        "by hand that may never come and agents of other languages (docs/experiments.md, \"Logical and wall-clock "
+        f"time\"; default: {default.deadlines.clock})")))
     for name, what in DEADLINES:
         flags[f"deadlines.{name}"] = (f"--{name}-timeout", dict(
-            type=seconds, metavar="S", help=f"deadline for {what}, s (default: {getattr(default.deadlines, name):g})"))
+            type=seconds, metavar="S", help=f"with --clock wall, deadline for {what}, s (default: "
+                                            f"{getattr(default.deadlines, name):g})"))
     return flags
 
 

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
 from dmo.market.clearing import MAX_BLOCKS, IsoCurve
 from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
+from dmo.operator.config import CLOCKS, LOGICAL
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
 from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
@@ -156,7 +157,8 @@ class ScheduleSettings(_Section):
 
     scenarios: Annotated[int, Field(ge=1, le=MAX_SCENARIOS)] = 5
     gap: Annotated[float, Field(ge=0, lt=1)] = 0.01
-    time_limit: Seconds = 600.0
+    # None: no limit of seconds, the gap alone ends a solve, so its schedule is the same on any machine at any load
+    time_limit: Seconds | None = None
     method: Literal[METHODS] = "auto"  # type: ignore[valid-type]
     workers: Annotated[int, Field(ge=1, le=MAX_WORKERS)] = 1
 
@@ -174,8 +176,11 @@ class Profiles(_Section):
 
 
 class Deadlines(_Section):
-    """Seconds each phase may take: registration, bids, schedules, each hour's meter reports."""
+    """How a phase ends (``clock``), and the seconds each may take on the wall clock: registration, bids,
+    schedules, each hour's meter reports. On the logical clock (the default) a phase ends when every live agent has
+    answered, so a run is the same however busy the machine is; on the wall clock, at the latest at its deadline."""
 
+    clock: Literal[CLOCKS] = LOGICAL  # type: ignore[valid-type]
     registration: Seconds = 60.0
     bid: Seconds = 600.0
     schedule: Seconds = 1800.0
@@ -260,7 +265,7 @@ FLAGS = {
     "schedule.scenarios": "scenarios", "schedule.gap": "gap", "schedule.time_limit": "time_limit",
     "schedule.method": "method", "schedule.workers": "workers",
     "profiles.load_scale": "load_scale", "profiles.renewable_scale": "renewable_scale",
-    "deadlines.registration": "registration_timeout", "deadlines.bid": "bid_timeout",
+    "deadlines.clock": "clock", "deadlines.registration": "registration_timeout", "deadlines.bid": "bid_timeout",
     "deadlines.schedule": "schedule_timeout", "deadlines.hour": "hour_timeout",
     "network.feeder": "feeder", "network.load_scale": "network_load_scale",
     "network.voltage_margin": "voltage_margin",

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from dmo.market.choice import Trust, UntrustedRule
+from dmo.operator.config import LOGICAL, WALL
 from dmo.replay.resettle import resettled_differences
 from dmo.replay.reproduce import differences, statements_of
 from messages import HOURS, Clock, Schedule
@@ -37,7 +38,7 @@ from scenarios.case import case_path
 from scenarios.fleet import FleetMember
 
 from ..experiment.rundir import RunDir
-from ..experiment.spec import Experiment, load_experiment, to_toml
+from ..experiment.spec import MAX_SECONDS, Experiment, load_experiment, to_toml
 from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
 from .cluster import Cluster, RemoteAgents, endpoint
@@ -49,7 +50,11 @@ from .roles import fleet_of, fleet_written, resolved
 OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
 RECORDER_STOP_S = 60.0  # how long the recorder may take to finish its file once the run is over
-AWAIT_RECORDER = ("--await-recorder", "60")  # the DMO's first message waits for the recorder (seconds)
+AWAIT_RECORDER = "--await-recorder"  # the DMO's first message waits for the recorder (seconds: STARTING_S)
+# How long a role may take to start (the DMO to listen, the recorder to join, the DMO's first message), every role
+# watched meanwhile: on the wall clock, a minute; on the logical clock, as long as the roles are alive (a day), for on a
+# loaded machine importing the solver stack alone has taken over a minute, and a slow start must not fail a run.
+STARTING_S = {WALL: 60.0, LOGICAL: MAX_SECONDS}
 # What the host of forked agents imports before it forks them: what `dmosim agent` imports to run a day
 # (docs/benchmarks.md, "Hosting agents"), by name: the launcher itself does not load the solver stack.
 AGENT_MODULES = ("dmosim.cli.main", "dmosim.cli.agent", "microgrid_agent.agent.process",
@@ -122,6 +127,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     parsed = [parse_fault(f) for f in e.faults]
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     began = time.monotonic()
+    starting_s = STARTING_S[e.deadlines.clock]
     rundir.experiment.write_text(to_toml(e))
     names = router_names(e.agents.routers)  # none: the DMO is the router
     tls = tls or len(names) > 1  # routers of a mesh relay for one another over mutual TLS only
@@ -153,11 +159,11 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         roles.start("dmo", dmosim_command(
             "dmo", *common, *login, *(("--mode", "client", "--connect", local) if routers else ("--listen", listen)),
             "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"),
-            *(AWAIT_RECORDER if record else ())), log=logs / "dmo.log")
+            *((AWAIT_RECORDER, repr(starting_s)) if record else ())), log=logs / "dmo.log")
         fork = e.agents.hosting == "fork"
         host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if fork and remote is None else None
         if not routers:
-            wait_listening(port, 60, lambda: roles.roles["dmo"].process.poll() is None)
+            wait_listening(port, starting_s, lambda: roles.roles["dmo"].process.poll() is None)
         if cluster:
             cluster.check_reaches(port)
         observer_config = BusConfig(mode="client", connect=(local,), overrides=bundle_settings(auth, OBSERVER))
@@ -171,7 +177,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                 roles.start("recorder", dmosim_command(
                     "record", "--out", str(record), "--run-id", run_id, "--overwrite", "--connect", local,
                     *login, *_recording_metadata(e, fleet, rundir)), log=logs / "recorder.log")
-                _wait_until(watch.started, roles, ("dmo", "recorder"), 90, "the DMO's first message")
+                _wait_until(watch.started, roles, ("dmo", "recorder"), 1.5 * starting_s, "the DMO's first message")
             router_of = spread([m.id for m in fleet], len(routers)) if routers else {}
             agents = [(m.id, ["agent", *common, "--id", m.id, "--connect",
                               routers[router_of[m.id]] if routers else reach, "--lease", repr(AGENT_LEASE_S)],
@@ -472,9 +478,9 @@ class _Watch:
         elif f.kind == "restart" and f.agent == "dmo":
             self.say(f"fault: restarting the DMO (SIGKILL, then start again) {DMO_KILL_AFTER_S:g} s into {when}")
             recorder, dmo = self.roles.roles.get("recorder"), self.roles.roles["dmo"]
-            if recorder is not None and recorder.process.poll() is not None and AWAIT_RECORDER[0] in dmo.argv:
-                at = dmo.argv.index(AWAIT_RECORDER[0])  # the recorder is gone: the DMO must not wait for it again
-                dmo.argv = dmo.argv[:at] + dmo.argv[at + len(AWAIT_RECORDER):]
+            if recorder is not None and recorder.process.poll() is not None and AWAIT_RECORDER in dmo.argv:
+                at = dmo.argv.index(AWAIT_RECORDER)  # the recorder is gone: the DMO must not wait for it again
+                dmo.argv = dmo.argv[:at] + dmo.argv[at + 2:]
             threading.Timer(DMO_KILL_AFTER_S, self.roles.restart, ("dmo",)).start()
         elif f.kind == "restart":
             self.say(f"fault: restarting {f.agent} (SIGKILL, then start again) at {when}")

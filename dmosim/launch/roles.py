@@ -15,7 +15,7 @@ from pathlib import Path
 
 from dmo.market.choice import choose
 from dmo.market.clearing import IsoCurve
-from dmo.operator.config import DayConfig, islanding_by_day
+from dmo.operator.config import LOGICAL, DayConfig, islanding_by_day
 from messages.transport.faults import MessageFault
 from scenarios.case import load_case
 from scenarios.diverse import generate_fleet
@@ -185,7 +185,8 @@ def agent_config(experiment: Experiment, member: FleetMember):
     return AgentConfig(scenarios=s.scenarios, island_hours=experiment.market.island_hours, gap=s.gap,
                        time_limit=s.time_limit, seed=member.seed, method=s.method, workers=s.workers,
                        load_scale=tuple(p.load_scale), renewable_scale=tuple(p.renewable_scale),
-                       bus=bus_of(experiment, member))
+                       bus=bus_of(experiment, member),
+                       **(dict(statement_s=None, receipts_s=None) if experiment.deadlines.clock == LOGICAL else {}))
 
 
 def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConfig:
@@ -203,7 +204,8 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
         penalty=case.grid.penalty if m.penalty is None else m.penalty, credit=m.credit, subperiods=m.subperiods,
         islanded_hours=(), days=e.days, islanding_by_day=islanding_by_day(m.island_hours, e.seed, e.days),
         fixed_awards=tuple(case.grid.p_sch) if m.mode == "fixed" else None,
-        registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, journal=journal,
+        registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, clock=d.clock,
+        journal=journal,
         settlement=rule, network=network, placement=placement_of(e, network),
         voltage_margin=e.network.voltage_margin, iso_curve=m.iso_curve,
         restarting=frozenset(f.agent for f in map(parse_fault, e.faults) if isinstance(f, Fault) and f.kind == "restart"

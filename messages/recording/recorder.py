@@ -93,6 +93,8 @@ class Recorder:
         self._wake = threading.Event()  # a day summary came, or an agent left: check the DMO's history
         self._dmo_gone = threading.Event()  # the DMO left: a check under way waits for an answer that cannot come
         self._closing = False
+        self._closed = threading.Event()  # set as the recorder closes: a check waiting out IN_FLIGHT_S ends its wait
+        self._answered = threading.Event()  # the check under way has the DMO's whole answer: it needs no DMO to end
         self._catching_up: threading.Thread | None = None
         self.first_received_ns = 0   # receipt of the first message, and the end of the last write: the span the
         self.last_written_ns = 0     # recorder kept up with (its sustained rate is messages / span)
@@ -168,6 +170,7 @@ class Recorder:
         on to the last time the DMO's answer holds."""
         since, recent = self.seen.since, time.time_ns() - IN_FLIGHT_S * 1e9
         added, late, latest = 0, [], None
+        self._answered.clear()
         for entry in self.bus.replies(f"{self.bus.keys.everything()}?{HISTORY};{SINCE}={since}", HISTORY_TIMEOUT_S):
             if entry[2] is None:
                 continue
@@ -178,8 +181,9 @@ class Recorder:
                 late.append(entry)
         if latest is None:  # nobody answered (a day summary is in any answer): the window stays where it was
             return 0
-        if late and not self._closing:
-            time.sleep(IN_FLIGHT_S)
+        self._answered.set()
+        if late:
+            self._closed.wait(IN_FLIGHT_S)
         added += self._queue_missing(late)
         self.seen.checked_until(latest + 1)
         if added:
@@ -252,12 +256,14 @@ class Recorder:
 
     def _finish_catching_up(self) -> None:
         """Let a check of the DMO's history under way end (its answer may hold the last registrations the file
-        lacks), for at most ``CLOSING_WAIT_S`` while the DMO is there to answer; then no new one starts."""
+        lacks, or the last statements, which a DMO that has left at once answered just before), for at most
+        ``CLOSING_WAIT_S`` while the DMO is there to answer or its answer is in; then no new one starts."""
         self._closing = True
+        self._closed.set()
         thread = self._catching_up
         if thread is not None and thread is not threading.current_thread():
             self._wake.set()
-            thread.join(0 if self._dmo_gone.is_set() else CLOSING_WAIT_S)
+            thread.join(CLOSING_WAIT_S if self._answered.is_set() or not self._dmo_gone.is_set() else 0)
 
     def _write(self, key: str, payload: bytes, at: int, live: bool, on_write) -> None:
         valid = self.writer.write(key, payload, at)

@@ -65,7 +65,7 @@ class AgentConfig:
     scenarios: int
     island_hours: int
     gap: float
-    time_limit: float
+    time_limit: float | None
     seed: int
     method: str
     workers: int
@@ -73,7 +73,16 @@ class AgentConfig:
     renewable_scale: tuple[float, ...]
     bus: str | None = None  # the bus of the market's feeder it registers at (None: a copper-plate market)
     idle_s: float = 3600.0  # without news from the DMO for this long, the agent gives up
-    statement_s: float = 30.0  # after the day summary, how long to wait for the agent's own statement
+    # After the day summary, how long to wait for the agent's own statement; and for the receipts of what it sent
+    # before its agent_day (which must not overtake the last meter report: the DMO refuses a message older than one
+    # it took). None: as long as idle_s, on the logical clock, where what the agent reports must not depend on how
+    # busy the machine is.
+    statement_s: float | None = 30.0
+    receipts_s: float | None = 5.0
+
+    def waits(self, seconds: float | None) -> float:
+        """How long a wait set to ``seconds`` (statement_s, receipts_s) lasts."""
+        return self.idle_s if seconds is None else seconds
 
 
 class AgentTimeout(RuntimeError):
@@ -156,8 +165,9 @@ class MicrogridAgent:
             if self.day >= self.days:
                 break
             self._next_day()
-        # The DMO lingers after the last summary: what is still unreceipted (the last agent_day) has that long.
-        if not self.delivery.drained(RECEIPTS_WAIT_S):
+        # The DMO lingers after the last summary (on the logical clock, until this agent leaves): what is still
+        # unreceipted (the last agent_day) has that long.
+        if not self.delivery.drained(LEAVING_S):
             log.warning("%s: leaving with %d payload(s) not receipted", self.id, self.delivery.waiting())
         return self.summary
 
@@ -214,7 +224,9 @@ class MicrogridAgent:
             elif self.operator is not None and self.operator.next_hour <= HOURS:
                 keys.append(k.grid())
             if self.statement is None:
-                keys += [k.statement(self.id), k.summary()]
+                keys.append(k.statement(self.id))
+            if self.summary is None:
+                keys.append(k.summary())
         for msg in answers + self._latest(keys):
             if msg.kind == "clock" or (msg.market_day == self.market_day and self._new(msg)):
                 self.asked += 1
@@ -296,8 +308,8 @@ class MicrogridAgent:
     def _await_statement(self) -> None:
         """The summary came before the agent's own statement (messages on different keys may overtake each other,
         or the statement was lost): ask the DMO for it, then wait up to ``statement_s``; say so if it never came."""
-        k = self.bus.keys
-        for key, payload, _ in self.bus.fetch(k.statement(self.id), timeout_s=min(5.0, self.config.statement_s)):
+        k, wait = self.bus.keys, self.config.waits(self.config.statement_s)
+        for key, payload, _ in self.bus.fetch(k.statement(self.id), timeout_s=min(5.0, wait)):
             try:
                 msg = decode(payload, expected_kind="settlement_statement")
                 check_route(key, msg, k.run_id)
@@ -305,7 +317,7 @@ class MicrogridAgent:
                 log.warning("%s: the DMO's answer for my statement is refused: %s", self.id, err)
                 continue
             self.events.put(msg)
-        deadline = time.monotonic() + self.config.statement_s
+        deadline = time.monotonic() + wait
         while self.statement is None and (left := deadline - time.monotonic()) > 0:  # receipts may still come
             try:
                 self._handle(self.events.get(timeout=left))
@@ -313,7 +325,7 @@ class MicrogridAgent:
                 break
         if self.statement is None:
             log.warning("%s: gave up waiting for my settlement statement %g s after the day summary", self.id,
-                        self.config.statement_s)
+                        wait)
 
     def message_counts(self) -> MessageCounts:
         """What the agent's process published, received and refused (transport), handled as no-ops, sent again,
@@ -482,9 +494,9 @@ class MicrogridAgent:
         """The operated day as the agent alone knows it (docs/protocol.md, ``agent_day``): its own cost by term ($),
         the load it curtailed and the import above its award (MWh), its state at midnight, the computation of the
         day's messages handled so far and its message counts. The DMO records it and settles nothing by it."""
-        if not self.delivery.drained(RECEIPTS_WAIT_S):
+        if not self.delivery.drained(wait := self.config.waits(self.config.receipts_s)):
             log.warning("%s: my last meter report has no receipt after %g s; sending my realised day anyway", self.id,
-                        RECEIPTS_WAIT_S)
+                        wait)
         day, midnight = self.operator.day_result(), self.operator.midnight()
         dispatch, k = day.schedule.dispatch, day.schedule.subperiods
         cost = day.cost
@@ -502,9 +514,7 @@ class MicrogridAgent:
 
 
 MAX_AHEAD = 1000  # messages of the next day kept while this one ends (the DMO sends a few dozen a day)
-# How long the agent waits for the receipts of what it sent: before its agent_day (which must not overtake the last
-# meter report: the DMO refuses a message older than one it took), and before it leaves (the DMO lingers as long).
-RECEIPTS_WAIT_S = 5.0
+LEAVING_S = 5.0  # how long a leaving agent waits for the receipts of what it sent last (a DMO that left sends none)
 ASK_AFTER_S = 1.0     # silence after which the agent asks the DMO for what it waits for ...
 ASK_AT_MOST_S = 8.0   # ... then at doubling intervals up to this
 ANSWER_S = 2.0        # how long the DMO's answer is waited for; joining, doubled up to ASK_AT_MOST_S while it is busy

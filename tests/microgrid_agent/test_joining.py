@@ -74,7 +74,7 @@ def test_an_agent_that_hears_nothing_asks_for_the_clock_and_only_after_registrat
 
     events = []
     agent = SimpleNamespace(id="mg1", bus=SimpleNamespace(keys=keys, fetch=fetch, run_token=TOKEN), _bid_sent=False,
-                            award=None, operator=None, statement=None, market_day="2026-07-01", asked=0,
+                            award=None, operator=None, statement=None, summary=None, market_day="2026-07-01", asked=0,
                             events=SimpleNamespace(put=events.append))
     agent._latest = lambda keys, timeout_s=None: MicrogridAgent._latest(agent, keys, timeout_s)
     MicrogridAgent._ask_the_dmo(agent)
