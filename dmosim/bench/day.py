@@ -147,15 +147,15 @@ def add_run_flags(parser: argparse.ArgumentParser, *, agents: int, days: int, sc
     default = Agents()
     parser.add_argument("--hosting", choices=HOSTINGS, default=default.hosting,
                         help=f"how the agents are hosted, as dmosim run --hosting (default: {default.hosting})")
-    parser.add_argument("--per-process", type=positive_int, default=default.per_process, metavar="K",
-                        help=f"agents per forked process, as dmosim run --per-process (default: {default.per_process})")
+    parser.add_argument("--per-process", type=positive_int, metavar="K",
+                        help="agents per forked process, as dmosim run --per-process (default: as dmosim run's)")
 
 
 def run_flags(args) -> list[str]:
     """The ``dmosim run`` flags of ``add_run_flags``."""
     return ["--agents", str(args.agents), "--days", str(args.days), "--scenarios", str(args.scenarios),
             "--subperiods", str(args.subperiods), "--gap", repr(args.gap), "--hosting", args.hosting,
-            "--per-process", str(args.per_process)]
+            *(("--per-process", str(args.per_process)) if args.per_process is not None else ())]
 
 
 def failure_line(err: str, limit: int = 600) -> str:

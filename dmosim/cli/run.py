@@ -247,7 +247,7 @@ def _check_placement(args, experiment: Experiment, fleet) -> None:
     if args.cluster and remote:
         raise UsageError(f"--fault {remote[0]}: with --cluster the agents run on the cluster's workers, where this "
                          "launcher cannot signal them; kill and restart faults may name the dmo or the recorder")
-    if args.cluster and experiment.agents.per_process > 1:
+    if args.cluster and (experiment.agents.per_process or 1) > 1:
         raise UsageError(f"agents.per_process = {experiment.agents.per_process}: with --cluster each worker forks its "
                          "agents one to a process; give 1")
     if args.cluster and experiment.agents.routers:

@@ -22,7 +22,8 @@ from ..console import UsageError
 from ..arguments import gap, hours, integer, market_day, number, scales, seconds, seed
 from ..experiment.spec import (FLAGS, HOSTINGS, MAX_VOLTAGE_MARGIN, MAX_WORKERS, Experiment, ExperimentError,
                                load_experiment, with_settings)
-from ..launch.roles import EXPORT_LIMIT_PER_AGENT, IMPORT_LIMIT_PER_AGENT, fleet_of, resolved
+from ..launch.roles import (EXPORT_LIMIT_PER_AGENT, FORKED_PROCESSES, IMPORT_LIMIT_PER_AGENT, PROCESSES_UP_TO,
+                            fleet_of, resolved)
 from .flags import SETTLEMENT_HELP, STRATEGY_HELP
 
 DEADLINES = (("registration", "registration"), ("bid", "bids"), ("schedule", "schedules"),
@@ -53,12 +54,13 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
             "default: price-response", f"default: {default.agents.strategy}; a fleet entry's own overrides it"))),
         "agents.hosting": ("--hosting", dict(choices=HOSTINGS, help=(
             "how the agents' processes start: process, each a Python of its own; fork, forked from one process that "
-            "has loaded their code, which they share (less memory for large fleets: docs/benchmarks.md, \"Hosting "
-            f"agents\"); the results are the same (default: {default.agents.hosting})"))),
+            "has loaded their code, which they share (less memory and start-up for large fleets: docs/benchmarks.md, "
+            f"\"Hosting agents\"); auto, process up to {PROCESSES_UP_TO} agents, else fork, at most "
+            f"{FORKED_PROCESSES} processes of agents; the results are the same (default: {default.agents.hosting})"))),
         "agents.per_process": ("--per-process", dict(type=integer(1, MAX_AGENTS), metavar="K", help=(
             "with --hosting fork, K agents in each forked process, a thread each: the pages a process copies from "
             "the host are paid once per K agents; an agent a kill or restart fault names runs alone "
-            f"(default: {default.agents.per_process})"))),
+            "(default: 1, or as --hosting auto chooses)"))),
         "agents.routers": ("--routers", dict(type=integer(0, MAX_HOSTS), metavar="N", help=(
             "start N Zenoh routers on this machine, each standing for one host's (docs/hosts.md): the DMO and the "
             "recorder are clients of the first, the agents of all N in blocks; more than one form a mesh over "

@@ -44,7 +44,7 @@ MAX_NAME = 100             # an experiment's name: part of a sweep's directory n
 MAX_VOLTAGE_MARGIN = 0.1   # p.u. kept inside a bus's voltage limits: a tenth of nominal, twice ANSI's whole band
 # How the agents run (dmosim/launch/local.py): each a Python process of its own, or forked from one process that has
 # imported their code, sharing its memory. The market's results are the same either way.
-HOSTINGS = ("process", "fork")
+HOSTINGS = ("auto", "process", "fork")
 
 
 class ExperimentError(ValueError):
@@ -70,16 +70,17 @@ class Agents(_Section):
     """Who takes part: ``count`` agents mg1..mgN drawn around the paper's case, or ``generate`` agents mg1..mgN drawn
     diverse from the experiment's seed (scenarios/diverse.py; a run writes them into its run directory as a fleet
     file), or the members of a fleet file; ``strategy`` how each bids (docs/strategies.md), unless its fleet entry
-    names its own; ``hosting`` how ``dmosim run`` starts their processes (``HOSTINGS``), and with ``fork`` how many
-    agents each runs (``per_process``); ``routers`` the Zenoh routers it starts for them, each standing for one
+    names its own; ``hosting`` how ``dmosim run`` starts their processes (``HOSTINGS``; ``auto`` chooses by the
+    fleet's size, dmosim/launch/roles.py), and with ``fork`` how many agents each runs (``per_process``; None: one,
+    or with ``auto`` as it chooses); ``routers`` the Zenoh routers it starts for them, each standing for one
     host's (launch/mesh.py), or none: the DMO is their router."""
 
     count: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 3
     fleet: PathText | None = None  # a fleet file, relative to the experiment file
     generate: Annotated[int, Field(ge=1, le=MAX_AGENTS)] | None = None
     strategy: Annotated[str, Field(min_length=1, max_length=MAX_STRATEGY)] = DEFAULT_STRATEGY
-    hosting: Literal[HOSTINGS] = "process"  # type: ignore[valid-type]
-    per_process: Annotated[int, Field(ge=1, le=MAX_AGENTS)] = 1  # agents a forked process runs, one thread each
+    hosting: Literal[HOSTINGS] = "auto"  # type: ignore[valid-type]
+    per_process: Annotated[int, Field(ge=1, le=MAX_AGENTS)] | None = None  # agents a forked process runs, a thread each
     routers: Annotated[int, Field(ge=0, le=MAX_HOSTS)] = 0  # dmosim routers started, one per host (0: the DMO is it)
 
     @field_validator("strategy")
@@ -99,7 +100,7 @@ class Agents(_Section):
         if self.generate is not None and (counted or self.fleet is not None):
             other = "count" if counted else "fleet"
             raise ValueError(f"{other} and generate exclude each other: generate draws that many agents of its own")
-        if self.per_process > 1 and self.hosting != "fork":
+        if self.per_process is not None and self.per_process > 1 and self.hosting != "fork":
             raise ValueError(f"per_process = {self.per_process} needs hosting = \"fork\": agents share a process "
                              "forked from their host")
         return self

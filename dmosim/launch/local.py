@@ -45,7 +45,7 @@ from .cluster import Cluster, RemoteAgents, endpoint
 from .faults import Fault, parse_fault
 from .mesh import router_names, spread, start_routers
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
-from .roles import fleet_of, fleet_written, resolved
+from .roles import fleet_of, fleet_written, hosting_of, resolved
 
 OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
@@ -128,6 +128,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     began = time.monotonic()
     starting_s = STARTING_S[e.deadlines.clock]
+    hosting, per_process = hosting_of(e.agents, len(fleet), cluster is not None)  # the run directory's experiment
+    e = e.model_copy(update={"agents": e.agents.model_copy(update={"hosting": hosting, "per_process": per_process})})
     rundir.experiment.write_text(to_toml(e))
     names = router_names(e.agents.routers)  # none: the DMO is the router
     tls = tls or len(names) > 1  # routers of a mesh relay for one another over mutual TLS only
@@ -160,7 +162,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             "dmo", *common, *login, *(("--mode", "client", "--connect", local) if routers else ("--listen", listen)),
             "--result", str(rundir.result), "--journal", str(logs / "dmo.journal"),
             *((AWAIT_RECORDER, repr(starting_s)) if record else ())), log=logs / "dmo.log")
-        fork = e.agents.hosting == "fork"
+        fork = hosting == "fork"
         host = roles.fork_host(AGENT_MODULES, logs / f"{HOST}.log") if fork and remote is None else None
         if not routers:
             wait_listening(port, starting_s, lambda: roles.roles["dmo"].process.poll() is None)
@@ -184,7 +186,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                        (logs / f"{m.id}.log").resolve()) for m in fleet]
             if remote is None:
                 alone = {f.agent for f in faults}  # killed or restarted: the fault must reach that agent only
-                for group in groups(agents, e.agents.per_process if host is not None else 1, alone):
+                for group in groups(agents, per_process if host is not None else 1, alone):
                     commands = [(name, dmosim_command(*args, *login), log) for name, args, log in group]
                     if len(commands) > 1:
                         roles.start_group(host, commands)

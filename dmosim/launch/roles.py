@@ -23,11 +23,16 @@ from scenarios.fleet import CASES_DIR, FleetMember, load_fleet, make_fleet, writ
 from scenarios.names import DMO
 from scenarios.network import NETWORKS, Network, NetworkError, load_network, voltage_band
 
-from ..experiment.spec import Experiment, ExperimentError, with_market_terms
+from ..experiment.spec import Agents, Experiment, ExperimentError, with_market_terms
 from .faults import Fault, parse_fault
 
 IMPORT_LIMIT_PER_AGENT = 8.0  # MW of feeder import per agent, where the experiment sets no import limit
 EXPORT_LIMIT_PER_AGENT = 5.0  # MW of feeder export per agent, where the experiment sets no export limit
+# hosting = "auto" (docs/benchmarks.md, "Hosting agents"): on 2 cores a day of 4 tiny agents took 14.1 s as processes
+# and 13.8 s forked, of 12 agents 46.8 s and 16.5 s (each process importing the solver stack for 23 s of
+# registration), of 60 agents 195 s (82 s of registration) and 72 s forked ten to a process
+PROCESSES_UP_TO = 4
+FORKED_PROCESSES = 8
 
 
 def resolved(experiment: Experiment) -> Experiment:
@@ -51,6 +56,18 @@ def resolved(experiment: Experiment) -> Experiment:
         placement = placement_of(out, network_of(out))
         out = out.model_copy(update={"network": out.network.model_copy(update={"buses": list(placement.values())})})
     return out
+
+
+def hosting_of(agents: Agents, count: int, cluster: bool = False) -> tuple[str, int]:
+    """How ``dmosim run`` hosts ``count`` agents, and how many to a forked process: as ``agents`` says, or with
+    ``hosting = "auto"`` each a process of its own up to ``PROCESSES_UP_TO`` agents, else forked from one host that
+    has imported their code, at most ``FORKED_PROCESSES`` processes of them (on a cluster, one agent to a process:
+    each worker forks its own)."""
+    if agents.hosting != "auto":
+        return agents.hosting, agents.per_process or 1
+    if count <= PROCESSES_UP_TO:
+        return "process", 1
+    return "fork", 1 if cluster else -(-count // FORKED_PROCESSES)
 
 
 def bus_of(experiment: Experiment, member: FleetMember) -> str | None:
