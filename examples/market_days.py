@@ -13,7 +13,7 @@ from dmosim.results.tables import open_recording
 experiment = parse_experiment({
     "name": "two-days", "days": 2, "market_day": "2026-07-06", "seed": 3,
     "agents": {"count": 2}, "market": {"subperiods": 1, "penalty": 150.0},
-    "schedule": {"scenarios": 1, "gap": 0.05, "time_limit": 60.0},
+    "schedule": {"scenarios": 1, "gap": 0.05},
     "profiles": {"load_scale": [1.0, 0.8]},  # the second day lighter
 })
 result = run_experiment(experiment, sys.argv[1] if len(sys.argv) > 1 else None, say=print)

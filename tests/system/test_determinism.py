@@ -6,10 +6,8 @@ instead of one."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import subprocess
-import sys
 
 import pytest
 
@@ -53,19 +51,8 @@ def base(tmp_path_factory):
     return out
 
 
-@contextlib.contextmanager
-def busy_loops(n: int = 2):
-    loops = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(n)]
-    try:
-        yield
-    finally:
-        for p in loops:
-            p.kill()
-            p.wait()
-
-
-def test_both_cores_busy_change_nothing(base, tmp_path):
-    with busy_loops():
+def test_both_cores_busy_change_nothing(base, tmp_path, busy_cores):
+    with busy_cores():
         again = run(tmp_path, "busy", "--hosting", "process", "--routers", "1")
     assert market(again) == base
 

@@ -1,5 +1,5 @@
 """The logical clock at the scale and on the machine a user has (docs/experiments.md, "Logical and wall-clock time"):
-sixty agents with every setting its default end verdict ok, where importing their solver stacks side by side once
+sixty agents with every setting its default, and the feeder example beside two busy loops, end verdict ok, where importing their solver stacks side by side once
 outlasted the registration deadline; and an agent that dies before it registers fails the run at once, naming it,
 instead of leaving the DMO to wait for it."""
 
@@ -27,6 +27,15 @@ def test_sixty_agents_with_the_defaults_end_verdict_ok(tmp_path):
     # auto hosting forked them, and the run directory's experiment says how
     agents = tomllib.loads((tmp_path / "run" / "experiment.toml").read_text())["agents"]
     assert (agents["hosting"], agents["per_process"]) == ("fork", 8)
+
+
+def test_the_feeder_example_ends_verdict_ok_with_both_cores_busy(tmp_path, busy_cores):
+    with busy_cores():
+        out = subprocess.run(dmosim("run", str(ROOT / "examples" / "feeder.toml"), "--days", "1", "--scenarios", "1",
+                                    "--subperiods", "1", "--out", str(tmp_path / "run"), "--json", "--quiet"),
+                             capture_output=True, text=True, timeout=1800, cwd=ROOT, env=ENV)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert json.loads(out.stdout)["verdict"]["ok"]
 
 
 STRATEGY = '''
