@@ -41,6 +41,7 @@ from ..market.distflow import NetworkClearing, clear_network
 from ..market.settlement import DayTotals, Statement, accepted_day
 from . import feeder, intake, outbox, rejoin
 from .config import DayConfig
+from .events import Event, Joined, Left, OverBudget, Received, Unreadable
 from .finished import FinishedDays
 from .history import DayHistory, asks_history
 from .journal import Journal, restore
@@ -189,7 +190,7 @@ class MarketDay:
         self._refused: set[tuple[str, str, int | None]] = set()
         self._over: set[str] = set()
         self.budget = SenderBudget(*config.budget)  # what each agent may send in a phase or hour (messages/budget.py)
-        bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
+        bus.on_reject = lambda key, payload, err: self.events.put(Unreadable(key, payload, err))
         bus.tap = self._traffic
         bus.gate = self._admit
 
@@ -418,10 +419,9 @@ class MarketDay:
     # --- plumbing ---------------------------------------------------------------------------------------------
 
     def _listen(self) -> None:
-        self.bus.subscribe(f"{self.bus.keys.prefix}/agent/**", lambda k, m, t, p: self.events.put(("msg", k, m, p)),
+        self.bus.subscribe(f"{self.bus.keys.prefix}/agent/**", lambda k, m, t, p: self.events.put(Received(k, m, p)),
                            payload=True)
-        self.bus.watch_presence(lambda name: self.events.put(("join", name)),
-                                lambda name: self.events.put(("leave", name)))
+        self.bus.watch_presence(lambda name: self.events.put(Joined(name)), lambda name: self.events.put(Left(name)))
         self.bus.serve(self.bus.keys.everything(), self.history.answer, slow=asks_history)
 
     def _traffic(self, key: str, payload: bytes, at: int) -> None:
@@ -435,7 +435,7 @@ class MarketDay:
         sender = agent_of(key)
         dropped = self.budget.admit(sender, size)
         if dropped == 1:
-            self.events.put(("over_budget", sender))
+            self.events.put(OverBudget(sender))
         return not dropped
 
     def _next_window(self) -> None:
@@ -516,22 +516,20 @@ class MarketDay:
                 continue
             self._handle(event, accept)
 
-    def _handle(self, event, accept) -> None:
-        kind = event[0]
-        if kind == "over_budget":
-            self._over.add(event[1])
-            self._incident(event[1], f"over its budget of {self.budget.messages} messages and {self.budget.size} bytes "
+    def _handle(self, event: Event, accept) -> None:
+        if isinstance(event, OverBudget):
+            self._over.add(event.agent)
+            self._incident(event.agent, f"over its budget of {self.budget.messages} messages and {self.budget.size} bytes "
                                      f"in this {'hour' if self.state.hour else 'phase'}: what it sends more until the "
                                      "next is dropped unread (dropped_messages)")
-        elif kind == "reject":
-            _, key, payload, err = event
-            self._reject(key, payload, err, agent_of(key))
-        elif kind == "join":
-            self._joined(event[1])
-        elif kind == "leave":
-            self._left(event[1])
+        elif isinstance(event, Unreadable):
+            self._reject(event.key, event.payload, event.error, agent_of(event.key))
+        elif isinstance(event, Joined):
+            self._joined(event.name)
+        elif isinstance(event, Left):
+            self._left(event.name)
         else:
-            self._received(event[1], event[2], event[3], accept)
+            self._received(event.key, event.msg, event.payload, accept)
 
     def _received(self, key: str, msg, payload: bytes, accept) -> None:
         """A valid message from an agent, with the bytes it arrived as, decided by ``intake.receive``: what it took
@@ -571,9 +569,9 @@ class MarketDay:
                     break
                 log.warning("settlement: still waiting for %s to leave", ", ".join(sorted(waiting)))
                 continue
-            if event[0] == "leave":
-                waiting.discard(event[1])
-            elif event[0] in ("msg", "reject", "over_budget"):
+            if isinstance(event, Left):
+                waiting.discard(event.name)
+            elif not isinstance(event, Joined):
                 self._handle(event, accept)
         self._next_window()
         recorder = RECORDER in self.bus.present(timeout_s=self._presence_s)

@@ -29,6 +29,7 @@ from ..market import acceptance
 from ..market.acceptance import Refusal
 from ..market.choice import ChosenRule
 from ..market.settlement import accepted_day
+from ..operator.events import Received, Unreadable
 from ..operator.history import DayHistory, asks_history
 from ..operator.outbox import day_summary
 from .resettle import RecordedDay, as_message, recorded_rule
@@ -58,10 +59,10 @@ class AsDmo:
         self.run_token = steps[0][0].run if steps else ""
         bus.run_token = self.run_token
         bus.tap = self.history.record
-        bus.on_reject = lambda key, payload, err: self.events.put(("reject", key, payload, err))
+        bus.on_reject = lambda key, payload, err: self.events.put(Unreadable(key, payload, err))
 
     def run(self, stop: threading.Event) -> dict:
-        self.bus.subscribe(self.bus.keys.agent_all(self.agent), lambda k, m, t, p: self.events.put(("msg", k, m, p)),
+        self.bus.subscribe(self.bus.keys.agent_all(self.agent), lambda k, m, t, p: self.events.put(Received(k, m, p)),
                            payload=True)
         self.bus.serve(self.bus.keys.everything(), self.history.answer, slow=asks_history)
         with self.player:
@@ -114,12 +115,11 @@ class AsDmo:
                 continue
             self._handle(event)
 
-    def _handle(self, event) -> None:
-        if event[0] == "reject":
-            _, key, payload, err = event
-            self._reject(key, payload, err)
+    def _handle(self, event: Received | Unreadable) -> None:
+        if isinstance(event, Unreadable):
+            self._reject(event.key, event.payload, event.error)
             return
-        _, key, msg, payload = event
+        key, msg, payload = event.key, event.msg, event.payload
         if sha256(payload) in self.taken:  # sent again for want of a receipt
             self.bus.publish(make_receipt(self.agent, payload, None, market_day=self.day.market_day))
             return

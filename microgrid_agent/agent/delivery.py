@@ -4,7 +4,7 @@ DMO's receipt for it comes (docs/protocol.md, "Receipts and sending again").
 A lost registration, bid, schedule or meter report is thus recovered within a second or so instead of being
 waited out to its phase's deadline; the DMO takes an exact copy of a payload it accepted as that payload again, so
 sending one twice is harmless. The resends run on a thread of their own, so an agent busy solving its schedule
-still resends what is waiting for a receipt.
+still resends what is waiting for a receipt. When to send again is ``Resends``, a pure policy given the time.
 """
 
 from __future__ import annotations
@@ -25,8 +25,20 @@ MAX_RESEND_S = 4.0    # the wait between resends doubles up to this (a DMO resta
 Put = Callable[[str, bytes], None]  # (key, payload): sends one payload again
 
 
+@dataclass(frozen=True)
+class RefusedPayload:
+    """The DMO's receipt refusing a payload the agent sent: the receipt (its code and reason) and what it was."""
+
+    receipt: Receipt
+    kind: str
+    seq: int
+
+
 @dataclass
-class _Pending:
+class Pending:
+    """A payload awaiting its receipt: where it goes, what it is, and when it is sent again (``due``, after
+    ``wait`` seconds since the last time)."""
+
     key: str
     payload: bytes
     kind: str
@@ -35,12 +47,41 @@ class _Pending:
     wait: float
 
 
+class Resends:
+    """When each payload awaiting its receipt is sent again: ``first_s`` after it was sent, then at doubling
+    intervals up to ``max_s``. Pure: the caller gives the time (``now``), so the policy is the same on any clock."""
+
+    def __init__(self, first_s: float = FIRST_RESEND_S, max_s: float = MAX_RESEND_S):
+        self.first_s, self.max_s = first_s, max_s
+        self.pending: dict[str, Pending] = {}  # payload's sha256 -> it
+
+    def sent(self, key: str, payload: bytes, kind: str, seq: int, now: float) -> None:
+        self.pending[sha256(payload)] = Pending(key, payload, kind, seq, now + self.first_s, self.first_s)
+
+    def receipt(self, payload_sha256: str) -> Pending | None:
+        """Its receipt came: the payload is no longer sent again; the payload, or None if none awaited it."""
+        return self.pending.pop(payload_sha256, None)
+
+    def due(self, now: float) -> list[Pending]:
+        """The payloads to send again now, each next due after twice its last wait (at most ``max_s``)."""
+        due = [p for p in self.pending.values() if p.due <= now]
+        for p in due:
+            p.wait = min(2 * p.wait, self.max_s)
+            p.due = now + p.wait
+        return due
+
+    def next_due(self) -> float | None:
+        """When the next payload is due again (None: nothing awaits a receipt)."""
+        return min((p.due for p in self.pending.values()), default=None)
+
+
 class Delivery:
-    """The payloads awaiting their receipt, sent again by ``put`` until it comes. Thread-safe; ``close`` stops it."""
+    """The payloads awaiting their receipt, sent again by ``put`` on a thread of its own as ``Resends`` says, on the
+    monotonic clock. Thread-safe; ``close`` stops it."""
 
     def __init__(self, put: Put, first_s: float = FIRST_RESEND_S, max_s: float = MAX_RESEND_S):
-        self._put, self._first, self._max = put, first_s, max_s
-        self._pending: dict[str, _Pending] = {}
+        self._put = put
+        self._resends = Resends(first_s, max_s)
         self._lock = threading.Condition()
         self._closed = False
         self.resent = 0
@@ -51,15 +92,14 @@ class Delivery:
         """A payload about to be published (``Bus.publish``'s ``before_put``, so that its receipt cannot come
         first): it is sent again until its receipt comes."""
         with self._lock:
-            self._pending[sha256(payload)] = _Pending(key, payload, stamped.kind, stamped.seq,
-                                                      time.monotonic() + self._first, self._first)
+            self._resends.sent(key, payload, stamped.kind, stamped.seq, time.monotonic())
             self._lock.notify_all()
 
     def receipt(self, receipt: Receipt) -> tuple[str, int] | None:
         """A receipt came: its payload is no longer sent again. Returns the (kind, seq) it was, None if it names no
         payload awaiting one (a receipt of a copy, or of a payload someone else sent in this agent's name)."""
         with self._lock:
-            pending = self._pending.pop(receipt.payload_sha256, None)
+            pending = self._resends.receipt(receipt.payload_sha256)
             self._lock.notify_all()
         return None if pending is None else (pending.kind, pending.seq)
 
@@ -67,13 +107,13 @@ class Delivery:
         """Wait until every payload sent has its receipt (or ``timeout_s`` passes); whether they all have."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
-            while self._pending and (left := deadline - time.monotonic()) > 0:
+            while self._resends.pending and (left := deadline - time.monotonic()) > 0:
                 self._lock.wait(timeout=left)
-            return not self._pending
+            return not self._resends.pending
 
     def waiting(self) -> int:
         with self._lock:
-            return len(self._pending)
+            return len(self._resends.pending)
 
     def close(self) -> None:
         with self._lock:
@@ -87,13 +127,10 @@ class Delivery:
                 if self._closed:
                     return
                 now = time.monotonic()
-                due = [p for p in self._pending.values() if p.due <= now]
-                for p in due:
-                    p.wait = min(2 * p.wait, self._max)
-                    p.due = now + p.wait
+                due = self._resends.due(now)
                 if not due:
-                    nearest = min((p.due for p in self._pending.values()), default=now + 3600)
-                    self._lock.wait(timeout=max(0.0, nearest - now))
+                    nearest = self._resends.next_due()
+                    self._lock.wait(timeout=None if nearest is None else max(0.0, nearest - now))
                     continue
             for p in due:  # outside the lock: a put may block on the network
                 try:

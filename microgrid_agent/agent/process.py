@@ -45,7 +45,7 @@ from scenarios.horizon import HOURS
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
 from ..schedule import FirstStage
-from .delivery import Delivery
+from .delivery import Delivery, RefusedPayload
 from .realtime import Operator
 from .slots import computing
 from .strategies import (DEFAULT_STRATEGY, NO_BID, ChosenStrategy, DayLearned, Microgrid, StrategyError,
@@ -175,7 +175,7 @@ class MicrogridAgent:
         """Handle what comes until the day's summary."""
         while self.summary is None:
             msg = self._next_message()
-            if isinstance(msg, tuple):  # a refusal in a receipt: no computation to account for
+            if isinstance(msg, RefusedPayload):  # no computation to account for
                 self._handle(msg)
                 continue
             started_at, self._answering = time.time_ns(), None
@@ -347,7 +347,7 @@ class MicrogridAgent:
             return
         mine = self.delivery.receipt(receipt)
         if mine is not None and not receipt.accepted:
-            self.events.put((receipt, mine))
+            self.events.put(RefusedPayload(receipt, *mine))
 
     def _answer(self, msg) -> None:
         """Publish the answer to the message being handled. Its computation ends as it goes out: sending it is the
@@ -356,8 +356,8 @@ class MicrogridAgent:
         self._publish(msg)
 
     def _handle(self, msg) -> None:
-        if isinstance(msg, tuple):  # a refusal in a receipt, with what it refused
-            return self._refused(*msg)
+        if isinstance(msg, RefusedPayload):
+            return self._refused(msg)
         if msg.run != self.bus.run_token:
             self.ignored["wrong_run"] += 1
             log.warning("%s: ignoring %s of another run (token %r)", self.id, msg.kind, msg.run)
@@ -441,8 +441,8 @@ class MicrogridAgent:
         had no receipt, so it is still being sent.)"""
         self.days = clock.days
 
-    def _refused(self, receipt: Receipt, mine: tuple[str, int]) -> None:
-        kind, seq = mine
+    def _refused(self, refused: RefusedPayload) -> None:
+        receipt, kind, seq = refused.receipt, refused.kind, refused.seq
         log.warning("%s: the DMO refused my %s #%d (%s): %s", self.id, kind, seq, receipt.code, receipt.reason)
         if kind == "registration" and receipt.code != "duplicate":
             raise AgentRefused(f"{self.id}: the DMO refused the registration ({receipt.code}): {receipt.reason}")
