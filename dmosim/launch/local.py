@@ -98,7 +98,9 @@ class RoleFailed(RuntimeError):
     def __init__(self, names: list[str], roles: Roles, logs: Path):
         self.names = names
         where = {n: roles.roles[n].log if n in roles.roles else logs / f"{n}.log" for n in names}  # remote: its file
-        super().__init__("; ".join(f"{n} failed (its log: {where[n]})" for n in names))
+        ended = {n: roles.roles[n].process.poll() if n in roles.roles else None for n in names}  # None: still running
+        super().__init__("; ".join(f"{n} failed ({'' if ended[n] is None else _exit_status(ended[n], where[n]) + '; '}"
+                                   f"its log: {where[n]})" for n in names))
 
 
 def run_experiment(experiment: Experiment | str | Path, out: str | Path | None = None, *, overwrite: bool = False,

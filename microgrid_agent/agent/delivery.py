@@ -4,7 +4,8 @@ DMO's receipt for it comes (docs/protocol.md, "Receipts and sending again").
 A lost registration, bid, schedule or meter report is thus recovered within a second or so instead of being
 waited out to its phase's deadline; the DMO takes an exact copy of a payload it accepted as that payload again, so
 sending one twice is harmless. The resends run on a thread of their own, so an agent busy solving its schedule
-still resends what is waiting for a receipt. When to send again is ``Resends``, a pure policy given the time.
+still resends what is waiting for a receipt. When to send again is ``Resends``, and when a silent agent asks the DMO
+again ``Silence``: pure policies, given the time.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ log = logging.getLogger("dmosim.agent")
 
 FIRST_RESEND_S = 0.5  # a receipt normally comes within milliseconds on one host, tens of them across hosts
 MAX_RESEND_S = 4.0    # the wait between resends doubles up to this (a DMO restarting takes seconds to listen)
+MIN_WAIT_S = 0.05     # the shortest wait of a silent agent before it looks again whether it has heard anything
 
 Put = Callable[[str, bytes], None]  # (key, payload): sends one payload again
 
@@ -73,6 +75,24 @@ class Resends:
     def next_due(self) -> float | None:
         """When the next payload is due again (None: nothing awaits a receipt)."""
         return min((p.due for p in self.pending.values()), default=None)
+
+
+class Silence:
+    """How long an agent that hears nothing from the DMO waits before it asks the DMO again for what it waits for
+    (a message of it may have been lost): ``first_s``, then twice as long after each time it asks, up to ``max_s``;
+    it gives up once ``idle_s`` have passed since it last heard anything (``since``). Pure: given the time."""
+
+    def __init__(self, idle_s: float, since: float, first_s: float, max_s: float):
+        self.idle_s, self.since, self.wait, self.max_s = idle_s, since, first_s, max_s
+
+    def over(self, now: float) -> bool:
+        """Whether the agent has heard nothing for ``idle_s``: it gives up."""
+        return now - self.since >= self.idle_s
+
+    def asked(self, now: float) -> float:
+        """The agent has asked (at ``now``): how long to wait before it asks again, never past giving up."""
+        self.wait = min(2 * self.wait, self.max_s, max(MIN_WAIT_S, self.since + self.idle_s - now))
+        return self.wait
 
 
 class Delivery:

@@ -45,7 +45,7 @@ from scenarios.horizon import HOURS
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
 from ..schedule import FirstStage
-from .delivery import Delivery, RefusedPayload
+from .delivery import Delivery, RefusedPayload, Silence
 from .realtime import Operator
 from .slots import computing
 from .strategies import (DEFAULT_STRATEGY, NO_BID, ChosenStrategy, DayLearned, Microgrid, StrategyError,
@@ -198,16 +198,17 @@ class MicrogridAgent:
         """The next message from the DMO. When it has been silent for a while, ask it for the latest of what this
         agent waits for (a message of it may have been lost), then again at doubling intervals; give up after
         ``idle_s`` of silence."""
-        silent_since, wait = time.monotonic(), ASK_AFTER_S
+        silence = Silence(self.config.idle_s, time.monotonic(), ASK_AFTER_S, ASK_AT_MOST_S)
+        wait = silence.wait
         while True:
             try:
                 return self.events.get(timeout=wait)
             except queue.Empty:
                 pass
-            if time.monotonic() - silent_since >= self.config.idle_s:
+            if silence.over(time.monotonic()):
                 raise AgentTimeout(f"{self.id}: nothing from the DMO for {self.config.idle_s:g} s")
             self._ask_the_dmo()
-            wait = min(2 * wait, ASK_AT_MOST_S, max(0.05, silent_since + self.config.idle_s - time.monotonic()))
+            wait = silence.asked(time.monotonic())
 
     def _ask_the_dmo(self) -> None:
         """Ask the DMO (docs/protocol.md, "Asking the DMO") for the latest message on each key this agent waits on,

@@ -4,7 +4,7 @@ pure policy given the time, so it is checked here on a clock of the test's own, 
 from __future__ import annotations
 
 from messages import sha256
-from microgrid_agent.agent.delivery import Resends
+from microgrid_agent.agent.delivery import Resends, Silence
 
 
 def test_a_payload_goes_again_at_doubling_intervals_up_to_the_cap_until_its_receipt_comes():
@@ -29,3 +29,13 @@ def test_nothing_is_due_early_and_a_receipt_of_another_payload_changes_nothing()
     assert r.receipt(sha256(b"a copy someone else sent")) is None
     assert [p.seq for p in r.due(1.5)] == [6]
     assert r.receipt(sha256(b"hour 1")).seq == 5 and set(r.pending) == {sha256(b"hour 2")}
+
+
+def test_a_silent_agent_asks_again_at_doubling_intervals_and_gives_up_after_its_idle_time():
+    silence = Silence(idle_s=20.0, since=100.0, first_s=1.0, max_s=8.0)
+    now, asked_at = 100.0 + silence.wait, []
+    while not silence.over(now):
+        asked_at.append(now - 100.0)
+        now += silence.asked(now)
+    assert asked_at == [1.0, 3.0, 7.0, 15.0]  # waits 1, 2, 4, 8 (the cap) ...
+    assert now == 120.0  # ... and then 5: the last wait ends when it gives up, never past it

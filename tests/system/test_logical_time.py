@@ -61,5 +61,6 @@ def test_an_agent_that_dies_before_it_registers_fails_the_run_at_once_naming_it(
     out = subprocess.run(dmosim("run", "--fleet", str(fleet), "--scenarios", "1", "--subperiods", "1", "--out",
                                 str(tmp_path / "run"), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
-    assert out.returncode == 1 and "mg2" in out.stderr and "mg1" not in out.stderr.splitlines()[-1], out.stderr
+    last = out.stderr.splitlines()[-1]
+    assert out.returncode == 1 and "mg2" in last and "exit 3" in last and "mg1" not in last, out.stderr
     assert not (tmp_path / "run" / "result.json").exists()  # no day was settled: the DMO never got past registration
