@@ -476,8 +476,11 @@ class MarketDay:
     def _reject(self, key: str, payload: bytes, err: MessageError, offender: str | None, msg=None) -> None:
         """A payload refused: counted, listed, published as a Rejection, and its sender (the agent the key names)
         gets the refusal as its receipt."""
-        if msg is not None and err.code not in REPLAYS:  # (a payload that could not be read is no answer: its sender
-            # cannot tell that the refusal is of it, and sends it again)
+        if (msg is not None and err.code not in REPLAYS
+                and msg.incarnation == self.state.guard.incarnation.get(msg.sender)):
+            # an answer of the agent's admitted process, refused: it will not send it again (a payload that could not
+            # be read is no answer: its sender cannot tell the refusal is of it, and sends it again; nor is one of
+            # another process in its name)
             self._refused.add((offender, msg.kind, msg.hour if msg.kind == "meter_report" else None))
         listed = self.state.log.count_rejection(err.code)
         if self.journal is not None:

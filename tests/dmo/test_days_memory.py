@@ -15,6 +15,7 @@ import itertools
 from dmo.market.settlement import Statement
 from dmo.operator.config import DayConfig
 from dmo.operator.day import MarketDay
+from dmo.operator.events import Left, Received
 from messages import Bid, MeterReport, Registration, Schedule, decode, encode
 from messages.keys import Keys
 from messages.schemas import AgentDay, Envelope, MessageCounts
@@ -53,7 +54,7 @@ class LoopbackAgents:
         for answer in self._answers(msg):
             stamped = answer.model_copy(update={"run": self.run_token, "incarnation": 1, "seq": next(self.seq)})
             payload = encode(stamped)
-            self.events.put(("msg", self.keys.for_message(stamped), decode(payload), payload))
+            self.events.put(Received(self.keys.for_message(stamped), decode(payload), payload))
         return msg
 
     def _answers(self, msg):
@@ -136,7 +137,7 @@ class LateReporters(LoopbackAgents):
         super().publish(msg)
         if msg.kind == "day_summary" and msg.market_day == LAST_DAY:
             for a in AGENTS:
-                self.events.put(("leave", a))
+                self.events.put(Left(a))
         return msg
 
 
