@@ -39,6 +39,9 @@ def test_every_key_has_a_default_and_the_resolved_file_reads_back_the_same():
     ({"market": {"export_curve": [[4.0]]}}, "market.export_curve.0: List should have at least 2 items"),
     ({"market": {"export_curve": [[0.0, 1.0]]}}, "market: export_curve: every block must have MW > 0"),
     ({"market": {"import_curve": [[1.0, 0.0]], "mode": "fixed"}}, "market: import_curve and"),
+    ({"deadlines": {"clock": "sundial"}}, "deadlines.clock: Input should be 'logical' or 'wall'"),
+    ({"schedule": {"time_limit": 0}}, "schedule.time_limit: Input should be greater than 0"),
+    ({"agents": {"hosting": "cloud"}}, "agents.hosting: Input should be 'auto', 'process' or 'fork'"),
 ])
 def test_a_bad_experiment_is_one_line_naming_the_key(data, message):
     with pytest.raises(ExperimentError) as err:
