@@ -1,7 +1,7 @@
 """The ``dmosim`` command line as a user meets it: JSON output, and one-line errors with exit 2 for bad input.
 
-Each command runs in this process through ``main``, what the executable calls; only what needs a fresh interpreter
-(which package ``python -m dmosim`` imports) starts one, in the slow tier."""
+Each command runs in this process through ``main``, what the executable calls (the ``cli`` fixture); only what needs a
+fresh interpreter (which package ``python -m dmosim`` imports) starts one, in the slow tier."""
 
 from __future__ import annotations
 
@@ -12,7 +12,6 @@ import re
 import subprocess
 import sys
 import tomllib
-from dataclasses import dataclass
 from pathlib import Path
 
 import jsonschema
@@ -27,30 +26,8 @@ from microgrid_agent.solvers.routes import auto_threshold, resolve_method
 from scenarios.case import DATA_DIR
 
 
-@dataclass(frozen=True)
-class Said:
-    """What a command ended with: its exit code, and what it printed on stdout and on stderr."""
-
-    returncode: int
-    stdout: str
-    stderr: str
-
-
-@pytest.fixture
-def dmosim(capsys):
-    """``dmosim(*args)``: ``dmosim ARGS`` run in this process as the executable runs it (``main``), and what it
-    said. Solves that would spread over processes are given ``--workers 1``."""
-    capsys.readouterr()
-
-    def run(*args: str) -> Said:
-        code = main(list(args))
-        said = capsys.readouterr()
-        return Said(code, said.out, said.err)
-    return run
-
-
-def test_solve_json_has_the_spec_keys(dmosim):
-    out = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--json")
+def test_solve_json_has_the_spec_keys(cli):
+    out = cli("solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--json")
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     for key in ("status", "objective", "cost_breakdown", "commitment", "mip_gap", "bound", "scenarios", "timings"):
@@ -65,8 +42,8 @@ def test_solve_json_has_the_spec_keys(dmosim):
     assert breakdown == pytest.approx(result["objective"], rel=1e-9)
 
 
-def test_a_decomposed_solve_reports_each_iteration_on_stderr_ending_at_its_result(dmosim):
-    out = dmosim("solve", "--method", "benders", "--subperiods", "1", "--scenarios", "3", "--gap", "0.01", "--json",
+def test_a_decomposed_solve_reports_each_iteration_on_stderr_ending_at_its_result(cli):
+    out = cli("solve", "--method", "benders", "--subperiods", "1", "--scenarios", "3", "--gap", "0.01", "--json",
                  "--workers", "1")
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
@@ -95,8 +72,8 @@ def test_stdout_carries_only_what_dmosim_prints_native_writes_go_to_stderr(capfd
     assert "native banner" in out.err
 
 
-def test_infinite_penalty_is_written_as_a_string(dmosim):
-    out = dmosim("solve", "--subperiods", "1", "--scenarios", "1", "--penalty", "inf", "--json")
+def test_infinite_penalty_is_written_as_a_string(cli):
+    out = cli("solve", "--subperiods", "1", "--scenarios", "1", "--penalty", "inf", "--json")
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["penalty"] == "inf"
 
@@ -150,26 +127,26 @@ _DELETE = object()
     ("units.0.cost", -1.0, "units[G1].cost"),
     ("fixed_load.forecast", [1.0] * 23, "fixed_load.forecast"),
 ])
-def test_bad_case_file_exits_2_with_one_line_naming_the_field(dmosim, tmp_path, where, new, expected):
+def test_bad_case_file_exits_2_with_one_line_naming_the_field(cli, tmp_path, where, new, expected):
     case = _write_toml(tmp_path / "bad.toml", _mutate(_paper(), where, new))
-    out = dmosim("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1")
+    out = cli("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1")
     assert out.returncode == 2
     assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
     assert expected in out.stderr and "bad.toml" in out.stderr
 
 
-def test_written_case_round_trips(dmosim, tmp_path):
+def test_written_case_round_trips(cli, tmp_path):
     """The TOML writer above is faithful, so the failures above come from the mutation alone."""
     case = _write_toml(tmp_path / "same.toml", _paper())
-    out = dmosim("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1", "--json")
+    out = cli("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1", "--json")
     assert out.returncode == 0, out.stderr
 
 
 @pytest.mark.parametrize("content", ["this is not toml = = =", "\x00\x01binary"])
-def test_unreadable_case_file_exits_2(dmosim, tmp_path, content):
+def test_unreadable_case_file_exits_2(cli, tmp_path, content):
     path = tmp_path / "junk.toml"
     path.write_text(content)
-    out = dmosim("solve", "--case", str(path))
+    out = cli("solve", "--case", str(path))
     assert out.returncode == 2 and out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
 
 
@@ -179,8 +156,8 @@ def test_unreadable_case_file_exits_2(dmosim, tmp_path, content):
     ["--no-such-flag"], ["--cost-convention", "weird"], ["--method", "simplex"], ["--workers", "0"],
     ["--islanding", "even"], ["--replications", "0"], ["--replications", "1"], ["--take-award", "yes"],
 ])
-def test_bad_flags_exit_2_with_one_line(dmosim, flags):
-    out = dmosim("solve", *flags)
+def test_bad_flags_exit_2_with_one_line(cli, flags):
+    out = cli("solve", *flags)
     assert out.returncode == 2, out.stderr
     assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr and out.stdout == ""
 
@@ -196,8 +173,8 @@ def test_auto_decomposes_from_the_documented_scenario_count_at_each_resolution()
         resolve_method("simplex", 10, 6)
 
 
-def test_unknown_command_exits_2(dmosim):
-    out = dmosim("frobnicate")
+def test_unknown_command_exits_2(cli):
+    out = cli("frobnicate")
     assert out.returncode == 2 and out.stderr.count("\n") == 1
 
 
@@ -242,12 +219,12 @@ def test_schemas_writes_one_json_schema_per_kind_and_an_index(tmp_path):
     assert main(["schemas", "--out", str(tmp_path / "file")]) == 2
 
 
-def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios(dmosim):
-    out = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "6", "--json", "--workers", "1")
+def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios(cli):
+    out = cli("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "6", "--json", "--workers", "1")
     assert out.returncode == 0, out.stderr
     evaluation = json.loads(out.stdout)["evaluation"]
     assert evaluation["scenarios"] == 6 and evaluation["low"] <= evaluation["expected_cost"] <= evaluation["high"]
-    bad = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
+    bad = cli("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1
     assert "--evaluate: expected an integer in 2.." in bad.stderr
 
