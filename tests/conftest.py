@@ -15,7 +15,6 @@ import pytest
 
 from dmosim.cli import main
 
-
 @dataclass(frozen=True)
 class Said:
     """What a command ended with: its exit code, and what it printed on stdout and on stderr."""
