@@ -294,6 +294,7 @@ time.sleep(600)
 """
 
 
+@pytest.mark.slow
 def test_the_workers_of_a_decomposed_solve_die_with_the_process_that_solves(gone):
     """SIGTERM ends ``dmosim solve`` (or a benchmark) at once; its workers, waiting on their pipes, must not stay."""
     solver = subprocess.Popen([sys.executable, "-c", POOL], stdout=subprocess.PIPE, text=True,

@@ -32,10 +32,17 @@ def test_the_estimate_is_the_first_stage_s_value_on_the_fresh_scenarios(solved):
     assert one.expected_cost == pytest.approx(fixed.objective, rel=1e-7)
     assert one.scenarios == 12 and one.std_error > 0 and one.low < one.expected_cost < one.high
     assert one.high - one.expected_cost == pytest.approx(1.959964 * one.std_error, rel=1e-6)
-    two = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=2)
-    assert two.expected_cost == pytest.approx(one.expected_cost, rel=1e-9)
     with pytest.raises(ValueError, match="at least 2 scenarios"):
         evaluate_schedule(inst.case, schedule, inst.params, fresh.single(0))
+
+
+@pytest.mark.slow  # the subproblems go to two worker processes
+def test_the_estimate_is_the_same_on_worker_processes(solved):
+    inst, schedule = solved
+    fresh = sample(inst.case, 12, 1, island_hours=1, seed=fresh_seed(5))
+    one = evaluate_schedule(inst.case, schedule, inst.params, fresh)
+    two = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=2)
+    assert two.expected_cost == pytest.approx(one.expected_cost, rel=1e-9)
 
 
 def test_fresh_scenarios_are_not_the_schedule_s_own():
