@@ -1,5 +1,7 @@
 """Smoke tests of the benchmarks (messaging, day, recovery): each runs end to end on tiny parameters and returns
-the expected figures. No timing assertions: the figures themselves belong to the benchmark's output."""
+the expected figures. No timing assertions: the figures themselves belong to the benchmark's output. Those that start
+a run's processes or open Zenoh sessions are slow; the arithmetic of the figures and the solver's and clearing's
+benchmarks run in this process."""
 
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ def test_every_benchmark_module_is_a_bench_command(capsys):
     assert commands == {m.name for m in pkgutil.iter_modules(dmosim.bench.__path__)}
 
 
+@pytest.mark.slow  # Zenoh sessions
 def test_messaging_runs_end_to_end(capsys):
     out = bench_json(capsys, "messaging", "--messages", "20", "--burst", "200", "--warmup", "5",
                      "--codec-iterations", "20")
@@ -49,6 +52,7 @@ def test_messaging_runs_end_to_end(capsys):
     assert out["goal"]["p50_round_trip_ms"] == out["round_trip_ms"][0]["p50"]
 
 
+@pytest.mark.slow  # a market day's processes
 def test_day_runs_end_to_end(capsys):
     out = bench_json(capsys, "day", "--agents", "1", "--scenarios", "1", "--gap", "0.05", "--timeout", "600")
     (row,) = out["days"]
@@ -61,6 +65,7 @@ def test_day_runs_end_to_end(capsys):
     assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0
 
 
+@pytest.mark.slow  # a market day's processes
 def test_fleet_sums_every_process_of_the_run_and_resettles_its_recording(capsys):
     out = bench_json(capsys, "fleet", "--agents", "2", "--per-process", "2", "--timeout", "600")
     (row,) = out["fleets"]
@@ -252,11 +257,13 @@ def test_clearing_runs_end_to_end(capsys):
     assert out["goal"] == {}  # the goals are for 100 agents
 
 
+@pytest.mark.slow  # a real dmosim run, stopped
 def test_a_run_that_outlasts_its_timeout_is_stopped_and_its_directory_named(tmp_path):
     with pytest.raises(RuntimeError, match=r"took over 0\.5 s and was stopped \(run directory: .*/run\)$"):
         run_and_read(["--agents", "1"], timeout_s=0.5, keep=tmp_path / "run")
 
 
+@pytest.mark.slow  # a real dmosim run, refused
 def test_recovery_keeps_the_scratch_directory_of_a_run_that_failed_and_names_it(tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where the scratch directory goes
     parser = argparse.ArgumentParser()
@@ -269,6 +276,7 @@ def test_recovery_keeps_the_scratch_directory_of_a_run_that_failed_and_names_it(
     assert root.parent == tmp_path and root.is_dir()  # kept: the runs the error names are in it
 
 
+@pytest.mark.slow  # a real dmosim run, refused
 def test_a_run_that_fails_is_named_by_its_one_line_failure_from_its_start_to_its_end(tmp_path):
     far = tmp_path.joinpath(*["d" * 150] * 4) / "none.toml"  # a fleet file whose name makes that line long
     with pytest.raises(RuntimeError) as failed:
