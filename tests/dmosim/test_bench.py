@@ -185,7 +185,7 @@ def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
 def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_the_median(capsys):
     from dmosim.bench import solver
 
-    args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=4, seeds=2, routes=None)
+    args = argparse.Namespace(scenarios=[1], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=4, seeds=2, routes=None)
     result = solver.run(args)
     assert [(r["seed"], r["route"]) for r in result["rows"]] == [(s, r) for s in (4, 5) for r in solver.TIMED_ROUTES]
     assert all(r["verified"] for r in result["rows"]) and result["seeds"] == [4, 5]
@@ -203,7 +203,7 @@ def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_
         assert (line["min_wall_s"], line["max_wall_s"]) == (walls[0], walls[1])
     # A paper-size run takes hours: each solve announces itself and the decompositions report every iteration.
     lines = capsys.readouterr().err.splitlines()
-    label = "dmosim: bench solver, 2 scenarios, seed 5: "
+    label = "dmosim: bench solver, 1 scenarios, seed 5: "
     benders, tree = lines.index(label + "benders"), lines.index(label + "tree")
     iterations = [ln for ln in lines[benders:tree] if ln.startswith(label + "benders ") and "iteration" in ln]
     benders_row = next(r for r in result["rows"] if r["seed"] == 5 and r["route"] == "benders")
