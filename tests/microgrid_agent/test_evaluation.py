@@ -20,8 +20,9 @@ from scenarios.generation import sample
 
 @pytest.fixture(scope="module")
 def solved():
+    """A schedule whose first stage is evaluated: any will do, so it is solved to 1%, not to optimality (3x faster)."""
     inst = make_instance(load_case("paper"), scenarios=3, subperiods=1, island_hours=1, seed=5)
-    return inst, inst.solve(method="extensive", gap=1e-6)
+    return inst, inst.solve(method="extensive", gap=0.01)
 
 
 def test_the_estimate_is_the_first_stage_s_value_on_the_fresh_scenarios(solved):
@@ -79,7 +80,7 @@ def test_the_lower_bound_and_the_gap_follow_mak_morton_and_wood():
 
 
 def test_solve_reports_a_statistical_bound_and_the_schedule_s_gap(capsys):
-    flags = ["solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--workers", "1"]
+    flags = ["solve", "--subperiods", "1", "--scenarios", "1", "--gap", "0.01", "--workers", "1"]
     assert main([*flags, "--evaluate", "20", "--replications", "3", "--islanding", "stratified", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     bound, gap = out["replications"], out["optimality_gap"]
