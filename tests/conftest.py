@@ -1,6 +1,7 @@
 """What tests of several packages share: a ``dmosim`` command run in this process; and, for the slow tests that start
 processes, knowing where a process has got without reading its log: a line it writes to a FIFO, a connection it
-makes, its end."""
+makes, its end. The fast tier's rule, that a test not marked ``slow`` starts no process and opens no Zenoh session,
+is fast_tier.py's."""
 
 from __future__ import annotations
 
@@ -14,6 +15,10 @@ from pathlib import Path
 import pytest
 
 from dmosim.cli import main
+
+# fast_tier.py (beside this file) holds the fast tier's rule; tests/project/test_tiers.py runs it on tests of its own
+pytest_plugins = ("fast_tier", "pytester")
+
 
 @dataclass(frozen=True)
 class Said:
