@@ -1,7 +1,7 @@
 """Smoke tests of the benchmarks (messaging, day, recovery): each runs end to end on tiny parameters and returns
-the expected figures. No timing assertions: the figures themselves belong to the benchmark's output. Those that start
-a run's processes or open Zenoh sessions are slow; the arithmetic of the figures and the solver's and clearing's
-benchmarks run in this process."""
+the expected figures. No timing assertions: the figures themselves belong to the benchmark's output. The runs are
+slow (those that start a run's processes or open Zenoh sessions, and the solver's and the clearing's, seconds of
+solving); the arithmetic of the figures and the checks of the flags are the fast tier's."""
 
 from __future__ import annotations
 
@@ -182,6 +182,7 @@ def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
         agents_reported(result)
 
 
+@pytest.mark.slow  # a benchmark's run: every route, SCIP's included, on two seeds
 def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_the_median(capsys):
     from dmosim.bench import solver
 
@@ -246,6 +247,7 @@ def test_solver_bench_refuses_a_route_this_installation_lacks(monkeypatch):
         solver.routes_of(["benders", "tree"])
 
 
+@pytest.mark.slow  # a benchmark's run: the copper plate and two feeders, each cleared twice
 def test_clearing_runs_end_to_end(capsys):
     out = bench_json(capsys, "clearing", "--agents", "4", "--repeats", "2", "--buses", "60")
     assert out["agents"] == 4 and out["steps"] == 4 * 24 * 3 and out["repeats"] == 2
