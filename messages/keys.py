@@ -6,6 +6,7 @@ Layout (``<run>`` is the run id, ``<agent>`` an agent id)::
     dmosim/<run>/dmo/award/<agent> | statement/<agent> | receipt/<agent>
     dmosim/<run>/agent/<agent>/register | bid | schedule | meter | day
     dmosim/<run>/alive/<name>            liveliness tokens: "dmo", "recorder" or an agent id
+    dmosim/<run>/link/<router>/<peer>    liveliness tokens: a router's link to another router (Zenoh ids)
 
 The DMO publishes only under ``dmo/``, an agent only under its own ``agent/<agent>/``, so access control can be
 a per-process key prefix. Everything sits under one run prefix, so concurrent runs never see each other.
@@ -33,6 +34,7 @@ HISTORY = "history"  # the query parameter that asks the DMO for the whole traff
 SINCE = "since"  # with ``history``: only what the DMO saw at or after this time (ns since the Unix epoch)
 RUN_ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"
 _RUN_ID = re.compile(RUN_ID_PATTERN)
+_ZID = re.compile(r"[0-9a-f]{1,32}")  # a Zenoh id as Zenoh writes it: up to 16 bytes, in lower-case hexadecimal
 
 # kind -> (role, topic, whether the key names an agent)
 ROUTES: dict[str, tuple[str, str, bool]] = {
@@ -136,6 +138,14 @@ class Keys:
         if name != "*" and not is_name(name):
             raise ValueError(f"process name {name!r} must match {NAME_PATTERN}")
         return f"{self.prefix}/alive/{name}"
+
+    def link(self, router: str, peer: str) -> str:
+        """The liveliness token a router of a mesh holds while it has a link to the router ``peer`` (both by Zenoh
+        id, hexadecimal; ``*`` for any), docs/hosts.md."""
+        for zid in (router, peer):
+            if zid != "*" and not _ZID.fullmatch(zid):
+                raise ValueError(f"Zenoh id {zid!r} must be hexadecimal")
+        return f"{self.prefix}/link/{router}/{peer}"
 
     def for_message(self, msg: Envelope) -> str:
         """The one key this message travels on."""

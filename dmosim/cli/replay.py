@@ -96,14 +96,15 @@ def run(args) -> int:
         rate = "as fast as possible" if not args.rate else f"{args.rate:g}x"
         _say(args, f"replaying {len(messages)} messages of {args.path} under {bus.keys.prefix}/ at {rate}"
                    + (", looping (Ctrl-C stops)" if args.loop else ""))
-        if args.wait_for_subscriber and not player.wait_for_subscriber(args.wait_for_subscriber):
+        subscribed = player.wait_for_subscriber(args.wait_for_subscriber) if args.wait_for_subscriber else None
+        if subscribed is False:
             _say(args, f"nobody listens after {args.wait_for_subscriber:g} s; replaying anyway")
         stats = player.play(args.rate, stop, loop=args.loop)
         player.drain()
     result = {"run_id": run_id, "key_prefix": f"dmosim/{run_id}", "selected": len(messages),
               "published": stats.published, "loops": stats.loops, "seconds": round(stats.seconds, 3),
               "msgs_per_s": round(stats.published / stats.seconds) if stats.seconds > 0 else None,
-              "interrupted": stop.is_set()}
+              "interrupted": stop.is_set(), "subscribed": subscribed}
     if args.json:
         print_json(result)
     else:

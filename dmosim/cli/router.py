@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import threading
+import queue
 
 import zenoh
+
+from messages.keys import Keys
 
 from ..arguments import agents
 from ..console import UsageError
@@ -51,20 +53,31 @@ def run(args) -> int:
     credentials_for(args, run_id, names, dmo_client=True)  # a router that connects makes none: it checks its flags
     config = bus_config(args, "router", run_id=run_id)
     announce_run_id(args)
-    stop = threading.Event()
+    events: queue.Queue = queue.Queue()
     with zenoh.open(config.to_zenoh()) as session:
         log.info("router %s listening on %s%s", session.info.zid(), ", ".join(config.listen) or "zenoh's default "
                  "endpoints", f"; connecting to {', '.join(config.connect)}" if config.connect else "")
-        with session.info.declare_transport_events_listener(log_router_link, history=True):
+        with session.info.declare_transport_events_listener(events.put, history=True):
             try:
-                stop.wait()
+                hold_links(session, Keys(run_id), events)
             except KeyboardInterrupt:
                 pass
     return 0
 
 
-def log_router_link(event) -> None:
-    """Say when a link to another router of the mesh comes up or goes down (clients come and go unsaid)."""
-    if event.transport.whatami == zenoh.WhatAmI.ROUTER:
-        up = event.kind == zenoh.SampleKind.PUT
-        log.info("router link %s: router %s", "up" if up else "down", event.transport.zid)
+def hold_links(session: zenoh.Session, keys: Keys, events: queue.Queue) -> None:
+    """For as long as the router runs, hold a liveliness token for each link it has to another router of the mesh
+    (``Keys.link``; clients come and go unsaid), and log each as it comes up and goes down. Whoever may see the
+    run's keys sees the mesh's links by them: ``dmosim run --routers N`` waits for them before it starts the DMO
+    (dmosim/launch/mesh.py). The tokens are declared here, not in Zenoh's callback, which must not block."""
+    zid, tokens = str(session.info.zid()), {}
+    while True:
+        event = events.get()
+        if event.transport.whatami != zenoh.WhatAmI.ROUTER:
+            continue
+        peer, up = str(event.transport.zid), event.kind == zenoh.SampleKind.PUT
+        log.info("router link %s: router %s", "up" if up else "down", peer)
+        if up and peer not in tokens:
+            tokens[peer] = session.liveliness().declare_token(keys.link(zid, peer))
+        elif not up and peer in tokens:
+            tokens.pop(peer).undeclare()

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import os
 import queue
-import re
 import signal
 import socket
 import subprocess
@@ -92,21 +91,6 @@ def wait_listening(port: int, timeout_s: float, alive) -> None:
         except OSError:
             time.sleep(0.05)  # a connect refused returns at once; this only paces the retries
     raise RuntimeError(f"nothing listened on port {port} within {timeout_s:g} s")
-
-
-def wait_for_line(path: Path, pattern: str, timeout_s: float, alive) -> re.Match:
-    """Return the first match of ``pattern`` in the log file at ``path`` once it appears; fail if ``alive()`` turns
-    false first or time runs out."""
-    deadline, text = time.monotonic() + timeout_s, ""
-    while time.monotonic() < deadline:
-        text = path.read_text() if path.exists() else ""
-        found = re.search(pattern, text)
-        if found:
-            return found
-        if not alive():
-            raise RuntimeError(f"the process logging to {path.name} exited:\n{text[-3000:]}")
-        time.sleep(0.05)  # paces the reads of a file another process appends to
-    raise RuntimeError(f"no {pattern!r} in {path} within {timeout_s:g} s:\n{text[-3000:]}")
 
 
 def memory_mib(pid: int) -> dict[str, float] | None:

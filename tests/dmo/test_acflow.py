@@ -160,8 +160,9 @@ def test_bad_input_is_refused_in_one_line(call, message):
     assert "\n" not in str(err.value)
 
 
+@pytest.mark.slow  # what importing pandapower says shows only in a fresh interpreter
 @pytest.mark.parametrize("first", ["feeder5", "ieee33"])
-def test_nothing_reaches_stdout_or_stderr(first, capfd):
+def test_nothing_reaches_stdout_or_stderr_from_the_first_check(first):
     # A fresh interpreter logging at INFO like a dmosim role, every warning shown. pandapower is imported first by
     # the check (feeder5 is plain TOML) or by the feeder (ieee33 is pandapower's case33bw): quiet either way.
     code = ("import logging, numpy as np; logging.basicConfig(level=logging.INFO)\n"
@@ -172,5 +173,8 @@ def test_nothing_reaches_stdout_or_stderr(first, capfd):
             "assert [c.converged for c in check_hours(net, p)] == [True, False]\n")
     out = subprocess.run([sys.executable, "-W", "always", "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert (out.returncode, out.stdout, out.stderr) == (0, "", "")
+
+
+def test_nothing_reaches_stdout_or_stderr_from_a_check(capfd):
     check_hours(load_network("ieee33"), np.zeros((2, 33)))
     assert capfd.readouterr() == ("", "")

@@ -135,6 +135,7 @@ def test_the_flat_curve_is_todays_clearing_bit_for_bit(market):
         assert repr((r.price, r.awards, r.congested)) == repr((plain.price, plain.awards, plain.congested))
 
 
+@pytest.mark.slow  # a search solving 24 LPs an example, seconds long; the binding feeder below checks the same
 @settings(max_examples=30, deadline=None)
 @given(feeder_markets(), curves)
 def test_on_a_curve_the_copper_plate_is_the_lps_optimum(market, curve):

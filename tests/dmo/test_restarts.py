@@ -16,6 +16,7 @@ import itertools
 import tempfile
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -231,6 +232,7 @@ outage_sets = st.frozensets(st.tuples(st.integers(0, len(STEPS) - 1), st.integer
                             max_size=6)
 
 
+@pytest.mark.slow  # a search of 300 schedules, seconds long: the cases below are the fast tier's
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(schedule=restart_schedules, drops=st.lists(st.booleans(), max_size=80), stragglers=st.booleans(),
        outages=outage_sets)

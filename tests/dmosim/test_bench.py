@@ -1,5 +1,7 @@
 """Smoke tests of the benchmarks (messaging, day, recovery): each runs end to end on tiny parameters and returns
-the expected figures. No timing assertions: the figures themselves belong to the benchmark's output."""
+the expected figures. No timing assertions: the figures themselves belong to the benchmark's output. The runs are
+slow (those that start a run's processes or open Zenoh sessions, and the solver's and the clearing's, seconds of
+solving); the arithmetic of the figures and the checks of the flags are the fast tier's."""
 
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ def test_every_benchmark_module_is_a_bench_command(capsys):
     assert commands == {m.name for m in pkgutil.iter_modules(dmosim.bench.__path__)}
 
 
+@pytest.mark.slow  # Zenoh sessions
 def test_messaging_runs_end_to_end(capsys):
     out = bench_json(capsys, "messaging", "--messages", "20", "--burst", "200", "--warmup", "5",
                      "--codec-iterations", "20")
@@ -49,6 +52,7 @@ def test_messaging_runs_end_to_end(capsys):
     assert out["goal"]["p50_round_trip_ms"] == out["round_trip_ms"][0]["p50"]
 
 
+@pytest.mark.slow  # a market day's processes
 def test_day_runs_end_to_end(capsys):
     out = bench_json(capsys, "day", "--agents", "1", "--scenarios", "1", "--gap", "0.05", "--timeout", "600")
     (row,) = out["days"]
@@ -61,6 +65,7 @@ def test_day_runs_end_to_end(capsys):
     assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0
 
 
+@pytest.mark.slow  # a market day's processes
 def test_fleet_sums_every_process_of_the_run_and_resettles_its_recording(capsys):
     out = bench_json(capsys, "fleet", "--agents", "2", "--per-process", "2", "--timeout", "600")
     (row,) = out["fleets"]
@@ -177,10 +182,11 @@ def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
         agents_reported(result)
 
 
+@pytest.mark.slow  # a benchmark's run: every route, SCIP's included, on two seeds
 def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_the_median(capsys):
     from dmosim.bench import solver
 
-    args = argparse.Namespace(scenarios=[2], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=4, seeds=2, routes=None)
+    args = argparse.Namespace(scenarios=[1], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=4, seeds=2, routes=None)
     result = solver.run(args)
     assert [(r["seed"], r["route"]) for r in result["rows"]] == [(s, r) for s in (4, 5) for r in solver.TIMED_ROUTES]
     assert all(r["verified"] for r in result["rows"]) and result["seeds"] == [4, 5]
@@ -198,7 +204,7 @@ def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_
         assert (line["min_wall_s"], line["max_wall_s"]) == (walls[0], walls[1])
     # A paper-size run takes hours: each solve announces itself and the decompositions report every iteration.
     lines = capsys.readouterr().err.splitlines()
-    label = "dmosim: bench solver, 2 scenarios, seed 5: "
+    label = "dmosim: bench solver, 1 scenarios, seed 5: "
     benders, tree = lines.index(label + "benders"), lines.index(label + "tree")
     iterations = [ln for ln in lines[benders:tree] if ln.startswith(label + "benders ") and "iteration" in ln]
     benders_row = next(r for r in result["rows"] if r["seed"] == 5 and r["route"] == "benders")
@@ -241,6 +247,7 @@ def test_solver_bench_refuses_a_route_this_installation_lacks(monkeypatch):
         solver.routes_of(["benders", "tree"])
 
 
+@pytest.mark.slow  # a benchmark's run: the copper plate and two feeders, each cleared twice
 def test_clearing_runs_end_to_end(capsys):
     out = bench_json(capsys, "clearing", "--agents", "4", "--repeats", "2", "--buses", "60")
     assert out["agents"] == 4 and out["steps"] == 4 * 24 * 3 and out["repeats"] == 2
@@ -252,11 +259,13 @@ def test_clearing_runs_end_to_end(capsys):
     assert out["goal"] == {}  # the goals are for 100 agents
 
 
+@pytest.mark.slow  # a real dmosim run, stopped
 def test_a_run_that_outlasts_its_timeout_is_stopped_and_its_directory_named(tmp_path):
     with pytest.raises(RuntimeError, match=r"took over 0\.5 s and was stopped \(run directory: .*/run\)$"):
         run_and_read(["--agents", "1"], timeout_s=0.5, keep=tmp_path / "run")
 
 
+@pytest.mark.slow  # a real dmosim run, refused
 def test_recovery_keeps_the_scratch_directory_of_a_run_that_failed_and_names_it(tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where the scratch directory goes
     parser = argparse.ArgumentParser()
@@ -269,6 +278,7 @@ def test_recovery_keeps_the_scratch_directory_of_a_run_that_failed_and_names_it(
     assert root.parent == tmp_path and root.is_dir()  # kept: the runs the error names are in it
 
 
+@pytest.mark.slow  # a real dmosim run, refused
 def test_a_run_that_fails_is_named_by_its_one_line_failure_from_its_start_to_its_end(tmp_path):
     far = tmp_path.joinpath(*["d" * 150] * 4) / "none.toml"  # a fleet file whose name makes that line long
     with pytest.raises(RuntimeError) as failed:

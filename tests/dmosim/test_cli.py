@@ -1,4 +1,7 @@
-"""The ``dmosim`` command line as a user meets it: JSON output, and one-line errors with exit 2 for bad input."""
+"""The ``dmosim`` command line as a user meets it: JSON output, and one-line errors with exit 2 for bad input.
+
+Each command runs in this process through ``main``, what the executable calls (the ``cli`` fixture); only what needs a
+fresh interpreter (which package ``python -m dmosim`` imports) starts one, in the slow tier."""
 
 from __future__ import annotations
 
@@ -14,25 +17,17 @@ from pathlib import Path
 import jsonschema
 import pytest
 
-from dmosim.cli import main
-from dmosim.console import UsageError
+from dmosim.cli import main, native_stdout_to_stderr
+from dmosim.console import UsageError, shadowing
 from dmosim.cli.flags import add_bus_flags, bus_config
 from messages import KINDS, PHASES, SCHEMA_VERSION, MeterReport, encode
 from messages.transport import BusConfig
 from microgrid_agent.solvers.routes import auto_threshold, resolve_method
 from scenarios.case import DATA_DIR
 
-ROOT = Path(__file__).resolve().parents[2]
 
-
-def dmosim(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    return subprocess.run([sys.executable, "-m", "dmosim", *args], capture_output=True, text=True, timeout=timeout,
-                          cwd=ROOT, env=env)
-
-
-def test_solve_json_has_the_spec_keys():
-    out = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--json")
+def test_solve_json_has_the_spec_keys(cli):
+    out = cli("solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--json")
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     for key in ("status", "objective", "cost_breakdown", "commitment", "mip_gap", "bound", "scenarios", "timings"):
@@ -47,8 +42,9 @@ def test_solve_json_has_the_spec_keys():
     assert breakdown == pytest.approx(result["objective"], rel=1e-9)
 
 
-def test_a_decomposed_solve_reports_each_iteration_on_stderr_ending_at_its_result():
-    out = dmosim("solve", "--method", "benders", "--subperiods", "1", "--scenarios", "3", "--gap", "0.01", "--json")
+def test_a_decomposed_solve_reports_each_iteration_on_stderr_ending_at_its_result(cli):
+    out = cli("solve", "--method", "benders", "--subperiods", "1", "--scenarios", "3", "--gap", "0.01", "--json",
+                 "--workers", "1")
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     lines = [ln for ln in out.stderr.splitlines() if ln.startswith("dmosim: benders ")]
@@ -61,19 +57,23 @@ def test_a_decomposed_solve_reports_each_iteration_on_stderr_ending_at_its_resul
     assert (best - bound) / best <= 0.01 + 1e-9
 
 
-def test_stdout_carries_only_what_dmosim_prints_native_writes_go_to_stderr():
-    # HiGHS 1.16 prints a banner on file descriptor 1 whenever a solver is created; --json output must survive it
-    code = ("import os; from dmosim.cli import native_stdout_to_stderr; native_stdout_to_stderr(); "
-            "os.write(1, b'native banner\\n'); print('{\"ours\": 1}')")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT,
-                         env={**os.environ, "PYTHONPATH": str(ROOT)})
-    assert out.returncode == 0, out.stderr
-    assert json.loads(out.stdout) == {"ours": 1}
-    assert "native banner" in out.stderr
+def test_stdout_carries_only_what_dmosim_prints_native_writes_go_to_stderr(capfd):
+    # HiGHS 1.16 prints a banner on file descriptor 1 whenever a solver is created; --json output must survive it.
+    # capfd holds file descriptors 1 and 2 and sys.stdout for the test, and gives all three back after it.
+    native_stdout_to_stderr()
+    ours = sys.stdout
+    try:
+        os.write(1, b"native banner\n")
+        print('{"ours": 1}')
+    finally:
+        ours.close()
+    out = capfd.readouterr()
+    assert json.loads(out.out) == {"ours": 1}
+    assert "native banner" in out.err
 
 
-def test_infinite_penalty_is_written_as_a_string():
-    out = dmosim("solve", "--subperiods", "1", "--scenarios", "1", "--penalty", "inf", "--json")
+def test_infinite_penalty_is_written_as_a_string(cli):
+    out = cli("solve", "--subperiods", "1", "--scenarios", "1", "--penalty", "inf", "--json")
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["penalty"] == "inf"
 
@@ -127,26 +127,26 @@ _DELETE = object()
     ("units.0.cost", -1.0, "units[G1].cost"),
     ("fixed_load.forecast", [1.0] * 23, "fixed_load.forecast"),
 ])
-def test_bad_case_file_exits_2_with_one_line_naming_the_field(tmp_path, where, new, expected):
+def test_bad_case_file_exits_2_with_one_line_naming_the_field(cli, tmp_path, where, new, expected):
     case = _write_toml(tmp_path / "bad.toml", _mutate(_paper(), where, new))
-    out = dmosim("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1")
+    out = cli("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1")
     assert out.returncode == 2
     assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
     assert expected in out.stderr and "bad.toml" in out.stderr
 
 
-def test_written_case_round_trips(tmp_path):
+def test_written_case_round_trips(cli, tmp_path):
     """The TOML writer above is faithful, so the failures above come from the mutation alone."""
     case = _write_toml(tmp_path / "same.toml", _paper())
-    out = dmosim("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1", "--json")
+    out = cli("solve", "--case", str(case), "--subperiods", "1", "--scenarios", "1", "--json")
     assert out.returncode == 0, out.stderr
 
 
 @pytest.mark.parametrize("content", ["this is not toml = = =", "\x00\x01binary"])
-def test_unreadable_case_file_exits_2(tmp_path, content):
+def test_unreadable_case_file_exits_2(cli, tmp_path, content):
     path = tmp_path / "junk.toml"
     path.write_text(content)
-    out = dmosim("solve", "--case", str(path))
+    out = cli("solve", "--case", str(path))
     assert out.returncode == 2 and out.stderr.count("\n") == 1 and "Traceback" not in out.stderr
 
 
@@ -156,8 +156,8 @@ def test_unreadable_case_file_exits_2(tmp_path, content):
     ["--no-such-flag"], ["--cost-convention", "weird"], ["--method", "simplex"], ["--workers", "0"],
     ["--islanding", "even"], ["--replications", "0"], ["--replications", "1"], ["--take-award", "yes"],
 ])
-def test_bad_flags_exit_2_with_one_line(flags):
-    out = dmosim("solve", *flags)
+def test_bad_flags_exit_2_with_one_line(cli, flags):
+    out = cli("solve", *flags)
     assert out.returncode == 2, out.stderr
     assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr and out.stdout == ""
 
@@ -173,8 +173,8 @@ def test_auto_decomposes_from_the_documented_scenario_count_at_each_resolution()
         resolve_method("simplex", 10, 6)
 
 
-def test_unknown_command_exits_2():
-    out = dmosim("frobnicate")
+def test_unknown_command_exits_2(cli):
+    out = cli("frobnicate")
     assert out.returncode == 2 and out.stderr.count("\n") == 1
 
 
@@ -219,12 +219,12 @@ def test_schemas_writes_one_json_schema_per_kind_and_an_index(tmp_path):
     assert main(["schemas", "--out", str(tmp_path / "file")]) == 2
 
 
-def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios():
-    out = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "6", "--json")
+def test_solve_evaluate_reports_the_estimate_and_refuses_too_few_scenarios(cli):
+    out = cli("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "6", "--json", "--workers", "1")
     assert out.returncode == 0, out.stderr
     evaluation = json.loads(out.stdout)["evaluation"]
     assert evaluation["scenarios"] == 6 and evaluation["low"] <= evaluation["expected_cost"] <= evaluation["high"]
-    bad = dmosim("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
+    bad = cli("solve", "--subperiods", "1", "--scenarios", "2", "--evaluate", "1")
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1
     assert "--evaluate: expected an integer in 2.." in bad.stderr
 
@@ -280,14 +280,28 @@ def test_the_verbs_that_read_run_directories_say_so(verb):
     assert said in path.help
 
 
+SHADOWED = ("{} shadows dmosim's package 'scenarios' (Python finds it first on sys.path: the current directory, "
+            "with python -m, or PYTHONPATH); rename it, or run the installed dmosim command from another directory "
+            "(README.md)")
+
+
+def test_a_package_of_ours_found_elsewhere_first_on_the_path_is_named(tmp_path, monkeypatch):
+    """Where Python would find a user's scenarios.py first, ``shadowing`` names it without importing it."""
+    (tmp_path / "scenarios.py").write_text("raise SystemExit('the user file ran')\n")
+    assert shadowing() is None
+    monkeypatch.delitem(sys.modules, "scenarios")  # as in a fresh interpreter, which has not imported ours yet
+    monkeypatch.syspath_prepend(tmp_path)
+    assert shadowing() == SHADOWED.format(tmp_path / "scenarios.py")
+
+
+@pytest.mark.slow
 def test_a_scenarios_py_in_the_current_directory_is_named_not_imported(tmp_path):
-    """python -m puts the current directory first on sys.path, where a user's scenarios.py would pass for ours."""
+    """python -m puts the current directory first on sys.path, where a user's scenarios.py would pass for ours: the
+    executable refuses it before importing anything of its own (a fresh interpreter, so a process)."""
     (tmp_path / "scenarios.py").write_text("raise SystemExit('the user file ran')\n")
     env = {**os.environ, "PYTHONPATH": ""}
     done = subprocess.run([sys.executable, "-m", "dmosim", "--version"], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and done.stdout == ""
-    assert done.stderr == (f"error: {tmp_path / 'scenarios.py'} shadows dmosim's package 'scenarios' (Python finds "
-                           "it first on sys.path: the current directory, with python -m, or PYTHONPATH); rename it, "
-                           "or run the installed dmosim command from another directory (README.md)\n")
+    assert done.stderr == f"error: {SHADOWED.format(tmp_path / 'scenarios.py')}\n"
 

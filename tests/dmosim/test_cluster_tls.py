@@ -1,9 +1,12 @@
-"""``--cluster`` over TLS (docs/cluster.md) on a ``distributed.LocalCluster`` of one worker process, started with the
+"""``--cluster`` over TLS (docs/cluster.md) on a ``distributed.LocalCluster`` of one worker, started with the
 certificates ``dmosim credentials --cluster`` makes and always closed: dmosim's launcher connects with its bundle and
 runs a command on the worker as ``sweep --cluster`` does; a client without the cluster's certificates reaches neither
 the scheduler nor the worker; and an agent placed on the worker as ``run --cluster`` places it gets its own bundle
 of the run's credentials, in a private directory there, and nothing else. An open scheduler (tcp://) is used only
-with --insecure-cluster. Whole runs on a cluster are in tests/system/test_on_a_cluster.py."""
+with --insecure-cluster. Whole runs on a cluster are in tests/system/test_on_a_cluster.py.
+
+What runs commands on the worker needs its worker to be a process, and is slow; who may connect is checked on a
+cluster whose scheduler and worker are threads of this process."""
 
 from __future__ import annotations
 
@@ -30,23 +33,35 @@ from messages.transport.credentials import create_auth_dir, read_bundle
 distributed = pytest.importorskip("distributed")  # the test extra installs it; the cluster extra for users
 
 
-@pytest.fixture(scope="module")
-def tls_cluster(tmp_path_factory):
-    """A LocalCluster on loopback over TLS with dmosim's certificates (ports the OS picks); its credentials
-    directory and its client."""
+def tls_cluster_of(tmp_path_factory, processes: bool):
+    """A LocalCluster of one worker (a process, or a thread of this one) on loopback over TLS with dmosim's
+    certificates (ports the OS picks); its credentials directory and its client."""
     auth = tmp_path_factory.mktemp("cluster") / "auth"
     assert main(["credentials", "--cluster", "--out", str(auth)]) == 0
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=True, protocol="tls://",
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=processes, protocol="tls://",
                                   host="127.0.0.1", scheduler_port=0, dashboard_address="127.0.0.1:0",
                                   worker_dashboard_address="127.0.0.1:0", security=cluster_security(auth)) as local, \
             distributed.Client(local, set_as_default=False) as client:
         yield auth, client
 
 
+@pytest.fixture(scope="module")
+def tls_cluster(tmp_path_factory):
+    """``tls_cluster_of`` a worker process."""
+    yield from tls_cluster_of(tmp_path_factory, processes=True)
+
+
+@pytest.fixture(scope="module")
+def tls_cluster_here(tmp_path_factory):
+    """``tls_cluster_of`` a worker thread of this process."""
+    yield from tls_cluster_of(tmp_path_factory, processes=False)
+
+
 def args_of(verb: list[str], *flags: str):
     return build_parser(verb[0]).parse_args([*verb, *flags])
 
 
+@pytest.mark.slow
 def test_the_launcher_connects_with_its_bundle_and_runs_a_command_on_a_worker(tls_cluster, tmp_path):
     auth, client = tls_cluster
     address = client.scheduler.address
@@ -92,8 +107,9 @@ def stranger(certificates: Path | None) -> ssl.SSLContext:
     return context
 
 
-def test_a_client_without_the_cluster_certificates_reaches_neither_scheduler_nor_worker(tls_cluster, tmp_path, capsys):
-    auth, client = tls_cluster
+def test_a_client_without_the_cluster_certificates_reaches_neither_scheduler_nor_worker(tls_cluster_here, tmp_path,
+                                                                                       capsys):
+    auth, client = tls_cluster_here
     assert main(["credentials", "--cluster", "--out", str(tmp_path / "other")]) == 0  # another cluster's
     capsys.readouterr()
     for address in [client.scheduler.address, *client.scheduler_info()["workers"]]:
@@ -112,6 +128,7 @@ def test_a_client_without_the_cluster_certificates_reaches_neither_scheduler_nor
         assert cluster.threads() == 2
 
 
+@pytest.mark.slow
 def test_an_agent_on_a_worker_gets_its_own_bundle_only_and_only_while_it_runs(tls_cluster, tmp_path):
     auth, client = tls_cluster
     run_id = new_run_id()

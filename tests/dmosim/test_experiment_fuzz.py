@@ -2,7 +2,9 @@
 numbers, wrong types and unicode. ``parse_experiment``, ``load_experiment`` and ``dmosim run --check`` in-process
 either accept the input or refuse it with one ``ExperimentError`` line (exit 2): never a traceback, never an
 exception of another kind, and never stuck on an example (hypothesis' deadline: 30 s, a guard against a hang, not a
-timing; an example takes milliseconds, seconds on a loaded machine)."""
+timing; an example takes milliseconds, seconds on a loaded machine). A search of 750 documents takes several seconds:
+the slow tier, beside the processes' fuzzing (tests/system/test_fuzz.py); tests/dmosim/test_experiment.py checks
+the loader's refusals one by one in the fast tier."""
 
 from __future__ import annotations
 
@@ -14,12 +16,15 @@ import tempfile
 import tomllib
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dmosim.cli import main
 from dmosim.experiment.spec import Experiment, ExperimentError, load_experiment, parse_experiment, to_toml
 from dmo.market.rules import BUILT_IN
+
+pytestmark = pytest.mark.slow
 
 FUZZ = settings(deadline=dt.timedelta(seconds=30), max_examples=150,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])

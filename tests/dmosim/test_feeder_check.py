@@ -150,6 +150,7 @@ def the_dmos_day(experiment, seed: int) -> list:
     return sent
 
 
+@pytest.mark.slow  # a search over feeder files through a whole day of the DMO, seconds long; the cases below are fast
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.one_of(toml_feeder(), pandapower_feeder()), st.sampled_from([0.0, 0.0, 0.01, 0.05]),
        st.sampled_from([1.0, 1.0, 0.5, 10.0]), st.integers(0, 8))

@@ -1,5 +1,9 @@
 """What the launcher makes of its roles' exits (dmosim/launch/local.py): a role still there once the DMO is done; and
-roles forked from a pre-loaded host (dmosim/launch/host.py), started, restarted, killed and stopped as processes are."""
+roles forked from a pre-loaded host (dmosim/launch/host.py), started, restarted, killed and stopped as processes are.
+
+The launcher's decisions are checked on exits it is told of, in this process; whatever needs real processes (signals,
+process groups, forks) is in the slow tier, and learns where a process has got from what it writes to a FIFO or from
+its connections, never from its log."""
 
 from __future__ import annotations
 
@@ -20,34 +24,41 @@ from dmosim.launch import local
 from dmosim.launch.host import AgentStreams
 from dmosim.launch.local import groups, wait_for_run
 from dmosim.launch.mesh import router_names, spread
-from dmosim.launch.processes import Roles, dmosim_command, free_port, interrupts_held, memory_mib, wait_for_line
+from dmosim.cli import main
+from dmosim.launch.processes import Role, Roles, dmosim_command, interrupts_held, memory_mib
 
 DONE = [sys.executable, "-c", "pass"]
 STAYS = [sys.executable, "-c", "import time; time.sleep(120)"]
 
 
-def wait(roles: Roles) -> tuple[list[str], list[str]]:
+def told(*exits: tuple[str, int], restarted: tuple[str, ...] = (), staying: tuple[str, ...] = ()) -> Roles:
+    """The roles of a run as the launcher knows them, no process started: each of ``exits`` (name, code) has ended
+    in that order, and each of ``staying`` (``restarted``: restarted on purpose, as a restart fault does) has not."""
+    roles = Roles()
+    for name, code in exits:
+        roles.roles[name] = Role(name, None, None)
+        roles.exits.put((name, code))
+    for name in staying:
+        roles.roles[name] = Role(name, None, None, restarts=int(name in restarted))
+    return roles
+
+
+def wait(roles: Roles, routers: tuple[str, ...] = ()) -> tuple[list[str], list[str]]:
     said: list[str] = []
-    return wait_for_run(roles, SimpleNamespace(say=said.append), leave_s=0.5), said
+    return wait_for_run(roles, SimpleNamespace(say=said.append), leave_s=0.5, routers=routers), said
 
 
 def test_an_agent_restarted_after_the_run_ended_is_stopped_not_failed():
-    with Roles() as roles:
-        roles.start("mg1", STAYS)
-        roles.restart("mg1")  # as a restart fault does: the new process waits for a DMO that has finished
-        roles.start("mg2", DONE)
-        roles.start("dmo", DONE)
-        assert wait(roles) == ([], ["mg1 restarted after the run had ended: stopped"])
+    # the restarted agent waits for a DMO that has finished
+    assert wait(told(("mg2", 0), ("dmo", 0), staying=("mg1",), restarted=("mg1",))) == (
+        [], ["mg1 restarted after the run had ended: stopped"])
 
 
 def test_an_agent_that_does_not_leave_after_the_run_has_failed():
-    with Roles() as roles:
-        roles.start("mg1", STAYS)
-        roles.start("dmo", DONE)
-        assert wait(roles) == (["mg1"], [])
+    assert wait(told(("dmo", 0), staying=("mg1",))) == (["mg1"], [])
 
 
-
+@pytest.mark.slow
 def test_ctrl_c_while_a_role_starts_comes_once_it_is_recorded_and_stop_all_stops_it(monkeypatch):
     """A Ctrl-C between the fork and the bookkeeping (here: as its watcher thread starts) would leave the role
     running in a process group of its own, unknown to ``stop_all``."""
@@ -84,13 +95,15 @@ def test_signals_held_in_a_block_arrive_once_at_its_end_and_the_handlers_are_res
 
 
 # A recorder that ignores SIGTERM: it has written what it will write and stays (as one stuck in Zenoh's teardown).
-STUCK = [sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('ready', "
-                               "flush=True); time.sleep(120)"]
+# It says so on the FIFO its argument names.
+STUCK = [sys.executable, "-c", "import signal, sys, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+                               "open(sys.argv[1], 'w').write('ready\\n'); time.sleep(120)"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("finished", [True, False])
 def test_a_recorder_that_does_not_leave_is_killed_and_its_file_decides_whether_the_recording_is_whole(
-        tmp_path, monkeypatch, finished):
+        tmp_path, monkeypatch, finished, fifo):
     monkeypatch.setattr(local, "RECORDER_STOP_S", 0.5)
     path = tmp_path / "day.mcap"
     writer = RecordingWriter(path, "stuck")
@@ -99,8 +112,8 @@ def test_a_recorder_that_does_not_leave_is_killed_and_its_file_decides_whether_t
     writer.close() if finished else writer.flush()
     said: list[str] = []
     with Roles() as roles:
-        role = roles.start("recorder", STUCK, log=tmp_path / "recorder.log")
-        wait_for_line(role.log, "ready", 30, lambda: role.process.poll() is None)  # SIGTERM ignored from now on
+        role = roles.start("recorder", [*STUCK, str(fifo.path)], log=tmp_path / "recorder.log")
+        assert fifo.line(role.process.pid) == "ready"  # SIGTERM ignored from now on
         failure = local._stop_recorder(roles, SimpleNamespace(say=said.append), [], path)
         assert role.process.poll() is not None  # killed, not left behind
     if finished:
@@ -112,18 +125,20 @@ def test_a_recorder_that_does_not_leave_is_killed_and_its_file_decides_whether_t
 
 # A role that ignores SIGTERM and has started a process in a group of its own that ignores it too, as a `dmosim run`
 # stuck on its way out has its roles: SIGKILL to the role's group alone would leave that one running.
+# It names that process on the FIFO its argument names.
 DEAF = [sys.executable, "-c", "import signal, subprocess, sys, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
                               "below = subprocess.Popen([sys.executable, '-c', 'import signal, time; "
                               "signal.signal(signal.SIGTERM, signal.SIG_IGN); time.sleep(120)'], process_group=0); "
-                              "print('below', below.pid, flush=True); time.sleep(120)"]
+                              "open(sys.argv[1], 'w').write(f'{below.pid}\\n'); time.sleep(120)"]
 
 
-def test_a_role_that_ignores_sigterm_is_killed_with_what_it_started_in_a_group_of_its_own(tmp_path, gone):
+@pytest.mark.slow
+def test_a_role_that_ignores_sigterm_is_killed_with_what_it_started_in_a_group_of_its_own(tmp_path, gone, fifo):
     below = None
     try:
         with Roles() as roles:
-            role = roles.start("run", DEAF, log=tmp_path / "run.log")
-            below = int(wait_for_line(role.log, r"below (\d+)", 30, lambda: role.process.poll() is None).group(1))
+            role = roles.start("run", [*DEAF, str(fifo.path)], log=tmp_path / "run.log")
+            below = int(fifo.line(role.process.pid))
             roles.stop_all(grace_s=0.5)
             assert role.process.poll() == -signal.SIGKILL and gone(below)
     finally:  # on a failure, nothing is left behind
@@ -139,6 +154,8 @@ import atexit, os, sys, time
 print("argv", sys.argv[1:], "cwd", os.getcwd(), "env", os.environ.get("PROBE"), "ppid", os.getppid(),
       "pgid", os.getpgid(0), flush=True)
 print("on stderr", file=sys.stderr, flush=True)
+if os.environ.get("PROBE_SAYS"):  # a FIFO: where the test waits for it to be running
+    open(os.environ["PROBE_SAYS"], "w").write(f"running {sys.argv[1:]}\\n")
 atexit.register(print, "exit handlers ran")
 if sys.argv[1] == "stay":
     time.sleep(120)
@@ -148,6 +165,11 @@ sys.exit(int(sys.argv[1]) if sys.argv[1].isdigit() else sys.argv[1])
 """
 
 
+def says(fifo) -> dict:
+    """The environment of a probe that says on ``fifo`` that it runs."""
+    return {**os.environ, "PROBE_SAYS": str(fifo.path)}
+
+
 def probe(tmp_path: Path, *args: str) -> list[str]:
     """``python -m probe ARGS`` in ``tmp_path``: found there only if the child runs in that directory, as python -m
     puts it first on sys.path."""
@@ -155,19 +177,22 @@ def probe(tmp_path: Path, *args: str) -> list[str]:
     return [sys.executable, "-m", "probe", *args]
 
 
-def test_every_process_of_a_run_leads_a_group_of_its_own_in_the_launcher_s_session(tmp_path):
+@pytest.mark.slow
+def test_every_process_of_a_run_leads_a_group_of_its_own_in_the_launcher_s_session(tmp_path, fifo):
     """Not a session of its own: Linux shares the cores among sessions first (autogroup), which starved a host's
     hundreds of agents against the DMO and the routers (dmosim/launch/processes.py)."""
     with Roles() as roles:
         host = roles.fork_host(("json",), tmp_path / "host.log")
         started = [roles.start("alone", STAYS).process, host.process,
-                   roles.start("forked", probe(tmp_path, "stay"), log=tmp_path / "forked.log", cwd=tmp_path,
-                               host=host).process]
-        wait_for_line(tmp_path / "forked.log", "argv", 30, lambda: started[2].poll() is None)  # it runs the probe
+                   roles.start("forked", probe(tmp_path, "stay"), log=tmp_path / "forked.log", env=says(fifo),
+                               cwd=tmp_path, host=host).process]
+        assert fifo.line(started[2].pid) == "running ['stay']"
         for process in started:
             assert (os.getsid(process.pid), os.getpgid(process.pid)) == (os.getsid(0), process.pid)
             assert process.poll() is None
 
+
+@pytest.mark.slow
 def test_a_forked_role_runs_its_command_in_its_directory_environment_and_log_as_a_process_would(tmp_path):
     with Roles() as roles:
         host = roles.fork_host(("json",), tmp_path / "host.log")
@@ -186,16 +211,18 @@ def test_a_forked_role_runs_its_command_in_its_directory_environment_and_log_as_
     assert host.process.returncode == 0  # stopped with the roles
 
 
-def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path, gone):
+@pytest.mark.slow
+def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path, gone, fifo):
     with Roles() as roles:
         host = roles.fork_host(("json",), tmp_path / "host.log")
         log = tmp_path / "mg1.log"
-        first = roles.start("mg1", probe(tmp_path, "stay"), log=log, cwd=tmp_path, host=host).process
-        wait_for_line(log, "argv", 60, lambda: first.poll() is None)
+        first = roles.start("mg1", probe(tmp_path, "stay"), log=log, env=says(fifo), cwd=tmp_path, host=host).process
+        assert fifo.line(first.pid) == "running ['stay']"
         roles.restart("mg1")  # SIGKILL, then forked again with the same command, its log continued
         second = roles.roles["mg1"].process
         assert second.pid != first.pid and first.returncode == -signal.SIGKILL
-        wait_for_line(log, "(?s)argv.*argv", 60, lambda: second.poll() is None)
+        assert fifo.line(second.pid) == "running ['stay']"
+        assert log.read_text().count("argv ['stay']") == 2  # its log continued
         roles.kill("mg1")
         assert roles.exits.get(timeout=60) == ("mg1", -signal.SIGKILL)  # the restart's exit was not reported
         stays = roles.start("mg2", probe(tmp_path, "stay"), log=tmp_path / "mg2.log", cwd=tmp_path, host=host).process
@@ -203,6 +230,7 @@ def test_a_forked_role_is_restarted_killed_and_stopped_as_a_process_is(tmp_path,
     assert host.process.returncode == 0
 
 
+@pytest.mark.slow
 def test_a_host_that_dies_takes_its_roles_with_it_and_they_fail(tmp_path, gone):
     with Roles() as roles:
         host = roles.fork_host(("json",), tmp_path / "host.log")
@@ -214,6 +242,7 @@ def test_a_host_that_dies_takes_its_roles_with_it_and_they_fail(tmp_path, gone):
             roles.start("mg2", probe(tmp_path, "0"), log=tmp_path / "mg2.log", cwd=tmp_path, host=host)
 
 
+@pytest.mark.slow
 def test_a_host_that_cannot_start_or_a_log_that_cannot_be_opened_is_an_error_at_start(tmp_path):
     with Roles() as roles:
         host = roles.fork_host(("no_such_module_here",), tmp_path / "host.log")
@@ -228,11 +257,12 @@ def test_a_host_that_cannot_start_or_a_log_that_cannot_be_opened_is_an_error_at_
         assert roles.exits.get(timeout=60) == ("mg1", 0)
 
 
+@pytest.mark.slow
 def test_agents_sharing_a_forked_process_each_write_their_own_log_end_with_their_own_code_and_stop_together(
-        tmp_path, gone):
+        tmp_path, gone, listener, capsys):
     run_id = "20260101T000000-abcdef"
-    stay = ["agent", "--run-id", run_id, "--agents", "4", "--connect", f"tcp/127.0.0.1:{free_port()}",
-            "--connect-timeout", "120"]  # nothing listens there: it keeps trying, and logs that it does
+    stay = ["agent", "--run-id", run_id, "--agents", "4", "--connect", f"tcp/127.0.0.1:{listener.port}",
+            "--connect-timeout", "120"]  # the listener answers nothing: each keeps its connection, trying
     with Roles() as roles:
         host = roles.fork_host(("dmosim.cli.main",), tmp_path / "host.log")
         ended = roles.start_group(host, [("mg1", dmosim_command("--version"), tmp_path / "mg1.log"),
@@ -241,16 +271,18 @@ def test_agents_sharing_a_forked_process_each_write_their_own_log_end_with_their
         assert ended[0].process.pid == ended[1].process.pid
         staying = roles.start_group(host, [(name, dmosim_command(*stay, "--id", name), tmp_path / f"{name}.log")
                                            for name in ("mg3", "mg4")])
-        for role in staying:
-            wait_for_line(role.log, f" {role.name} INFO connecting to", 60, lambda: role.process.poll() is None)
+        listener.accept()  # their process runs them: one is trying to reach its router (they open one at a time)
         with pytest.raises(ValueError, match="mg3 shares its process with 1 other"):
             roles.kill("mg3")
         with pytest.raises(ValueError, match="shares its process"):
             roles.restart("mg4")
     assert [r.process.returncode for r in staying] == [-signal.SIGTERM] * 2 and gone(staying[0].process.pid)
-    assert (tmp_path / "mg1.log").read_text().startswith("dmosim ")  # its stdout, and nothing of mg2's
-    assert (tmp_path / "mg2.log").read_text() == "error: --run-id is required: the id of the run to join, as its DMO " \
-                                                 "(or router) printed it\n"
+    # each log holds what its command said, as it says it when run here, and nothing of the other's
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert (tmp_path / "mg1.log").read_text() == capsys.readouterr().out
+    assert main(["agent", "--id", "mg2"]) == 2
+    assert (tmp_path / "mg2.log").read_text() == capsys.readouterr().err
     assert "mg4" not in (tmp_path / "mg3.log").read_text() and "mg3" not in (tmp_path / "mg4.log").read_text()
 
 
@@ -287,16 +319,8 @@ def test_what_an_agent_s_threads_print_and_log_goes_to_its_own_stream_named_afte
 
 
 def test_the_run_s_routers_stay_up_to_the_end_and_one_that_exits_fails_the_run():
-    with Roles() as roles:
-        roles.start("host1", STAYS)
-        roles.start("dmo", DONE)
-        roles.start("mg1", DONE)
-        assert wait_for_run(roles, SimpleNamespace(say=print), leave_s=0.5, routers=["host1"]) == []
-    with Roles() as roles:
-        roles.start("host1", STAYS)
-        roles.start("host2", DONE)
-        roles.start("dmo", STAYS)
-        assert wait_for_run(roles, SimpleNamespace(say=print), leave_s=0.5, routers=["host1", "host2"]) == ["host2"]
+    assert wait(told(("dmo", 0), ("mg1", 0), staying=("host1",)), routers=("host1",)) == ([], [])
+    assert wait(told(("host2", 0), staying=("host1", "dmo")), routers=("host1", "host2")) == (["host2"], [])
 
 
 def test_agents_are_spread_over_the_routers_in_blocks_of_consecutive_agents():

@@ -296,6 +296,7 @@ def test_cat_into_a_closed_pipe_stops_quietly(recording, tmp_path, monkeypatch, 
     sink.close()
 
 
+@pytest.mark.slow  # what a real pipe does to a real process, to its very exit (the one above is in-process)
 def test_cat_piped_to_head_prints_no_traceback(tmp_path):
     run_id = new_run_id()
     path = write(tmp_path / "big.mcap", run_id, synthetic_day(run_id, 6, K))  # far more than a pipe's buffer

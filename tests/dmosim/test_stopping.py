@@ -3,9 +3,10 @@ wait for ever on them: a run's output, however large, is read once it has ended,
 10 s and exits 130 whatever its processes are doing (blocked writing, ignoring SIGTERM, with processes of their own
 below them), leaving none behind; nor does a reader that stops reading the command's own output hold it.
 
-The fast tests run the real command in a process of its own with a stand-in for each ``dmosim run`` it starts
-(``BIG_RUN``, ``STUCK_RUN``: real processes, put in through the command line its module builds, ``dmosim_command``),
-so that no market day is needed; the slow ones run real market days and stop them once their DMO runs."""
+Every test runs the real command in a process of its own, so all are in the slow tier. Most put a stand-in in place
+of each ``dmosim run`` it starts (``BIG_RUN``, ``STUCK_RUN``: real processes, put in through the command line its
+module builds, ``dmosim_command``), so that no market day is needed; the others run real market days and stop them
+once their DMO runs."""
 
 from __future__ import annotations
 
@@ -28,6 +29,8 @@ ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 STOPPED_WITHIN_S = 10.0  # README: Ctrl-C or SIGTERM stops a run, sweep or bench with everything it started
 TINY = 'name = "tiny"\nmarket_day = "2026-07-01"\n[agents]\ncount = 1\n'
+
+pytestmark = pytest.mark.slow
 # A real day of one agent whose hours each wait 5 s for its meter report: two minutes, stopped in its first.
 SLOW = ('faults = ["delay:agent/mg1/meter:5"]\n' + TINY + "[market]\nsubperiods = 1\n[schedule]\nscenarios = 1\n"
         "gap = 0.05\ntime_limit = 60.0\n[deadlines]\nbid = 120.0\nschedule = 120.0\nhour = 60.0\n")
@@ -124,21 +127,18 @@ def test_a_terminated_sweep_whose_reader_has_stopped_reading_exits(tmp_path):
         os.close(read)
 
 
-@pytest.mark.slow
 def test_a_terminated_run_stops_its_roles(tmp_path):
     (tmp_path / "slow.toml").write_text(SLOW)
     _terminated([sys.executable, "-m", "dmosim", "run", str(tmp_path / "slow.toml"), "--out", str(tmp_path / "run")],
                 ENV, ROOT, _once_a_dmo_runs)
 
 
-@pytest.mark.slow
 def test_a_terminated_sweep_stops_its_runs_and_their_roles(tmp_path):
     (tmp_path / "slow.toml").write_text(SLOW)
     _terminated([sys.executable, "-m", "dmosim", "sweep", str(tmp_path / "slow.toml"), "--set", "market.penalty=400",
                  "--out", str(tmp_path / "sweep"), "--quiet"], ENV, ROOT, _once_a_dmo_runs)
 
 
-@pytest.mark.slow
 def test_a_terminated_bench_stops_its_run_and_its_roles_and_leaves_no_scratch_directory(tmp_path):
     scratch = tmp_path / "tmp"  # where the bench's run directory goes (TMPDIR)
     scratch.mkdir()

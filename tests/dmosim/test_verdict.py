@@ -195,9 +195,10 @@ def test_the_journal_read_as_a_recording_gives_the_tables_the_recording_gives(tm
     assert [(m.key, m.payload, m.log_time, m.invalid is None) for m in journaled.messages] == [
         (m.key, m.payload, m.log_time, m.invalid is None) for m in recorded.messages]
     assert sum(m.invalid is not None for m in journaled.messages) == 1
-    for name, frame in tables(journaled).items():
-        assert frame.equals(tables(recorded)[name]), name
-    assert len(tables(journaled)["hours"]) == 48
+    ours, theirs = tables(journaled), tables(recorded)
+    for name, frame in ours.items():
+        assert frame.equals(theirs[name]), name
+    assert len(ours["hours"]) == 48
 
 
 # --- dmosim info: the meter data the DMO did not have ------------------------------------------------------------

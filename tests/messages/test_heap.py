@@ -14,6 +14,8 @@ import pytest
 from dmosim.launch.processes import role_env
 from messages.transport.heap import ARENAS
 
+pytestmark = pytest.mark.slow  # each measure is of a fresh process: its arenas and its heap from the start
+
 HOLES = r'''
 import json
 from messages.transport.heap import return_free_memory

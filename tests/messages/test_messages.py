@@ -338,6 +338,15 @@ def test_every_message_has_one_key_that_parses_back():
     assert parse_key(keys.alive("mg3")).topic == "mg3"
 
 
+def test_a_link_token_names_two_routers_by_their_zenoh_ids():
+    keys = Keys("run1")
+    assert keys.link("92c914a44fe0da50611f4659bf58f0f9", "ab") == "dmosim/run1/link/92c914a44fe0da50611f4659bf58f0f9/ab"
+    assert keys.link("*", "*") == "dmosim/run1/link/*/*"
+    for wrong in ("", "host1", "AB12", "a/b", "**", "0" * 33):
+        with pytest.raises(ValueError, match="must be hexadecimal"):
+            keys.link(wrong, "ab")
+
+
 def test_route_checks():
     keys, other = Keys("run1"), Keys("run2")
     bid, award = SAMPLES["bid"], SAMPLES["award"]

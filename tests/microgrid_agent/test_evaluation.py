@@ -20,8 +20,9 @@ from scenarios.generation import sample
 
 @pytest.fixture(scope="module")
 def solved():
+    """A schedule whose first stage is evaluated: any will do, so it is solved to 1%, not to optimality (3x faster)."""
     inst = make_instance(load_case("paper"), scenarios=3, subperiods=1, island_hours=1, seed=5)
-    return inst, inst.solve(method="extensive", gap=1e-6)
+    return inst, inst.solve(method="extensive", gap=0.01)
 
 
 def test_the_estimate_is_the_first_stage_s_value_on_the_fresh_scenarios(solved):
@@ -32,10 +33,17 @@ def test_the_estimate_is_the_first_stage_s_value_on_the_fresh_scenarios(solved):
     assert one.expected_cost == pytest.approx(fixed.objective, rel=1e-7)
     assert one.scenarios == 12 and one.std_error > 0 and one.low < one.expected_cost < one.high
     assert one.high - one.expected_cost == pytest.approx(1.959964 * one.std_error, rel=1e-6)
-    two = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=2)
-    assert two.expected_cost == pytest.approx(one.expected_cost, rel=1e-9)
     with pytest.raises(ValueError, match="at least 2 scenarios"):
         evaluate_schedule(inst.case, schedule, inst.params, fresh.single(0))
+
+
+@pytest.mark.slow  # the subproblems go to two worker processes
+def test_the_estimate_is_the_same_on_worker_processes(solved):
+    inst, schedule = solved
+    fresh = sample(inst.case, 12, 1, island_hours=1, seed=fresh_seed(5))
+    one = evaluate_schedule(inst.case, schedule, inst.params, fresh)
+    two = evaluate_schedule(inst.case, schedule, inst.params, fresh, workers=2)
+    assert two.expected_cost == pytest.approx(one.expected_cost, rel=1e-9)
 
 
 def test_fresh_scenarios_are_not_the_schedule_s_own():
@@ -72,11 +80,11 @@ def test_the_lower_bound_and_the_gap_follow_mak_morton_and_wood():
 
 
 def test_solve_reports_a_statistical_bound_and_the_schedule_s_gap(capsys):
-    flags = ["solve", "--subperiods", "1", "--scenarios", "2", "--gap", "0.01", "--workers", "1"]
-    assert main([*flags, "--evaluate", "20", "--replications", "3", "--islanding", "stratified", "--json"]) == 0
+    flags = ["solve", "--subperiods", "1", "--scenarios", "1", "--gap", "0.01", "--workers", "1"]
+    assert main([*flags, "--evaluate", "20", "--replications", "2", "--islanding", "stratified", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     bound, gap = out["replications"], out["optimality_gap"]
-    assert bound["replications"] == 3 and len(bound["bounds"]) == 3 and bound["low"] < bound["estimate"]
+    assert bound["replications"] == 2 and len(bound["bounds"]) == 2 and bound["low"] < bound["estimate"]
     assert gap["estimate"] == pytest.approx(out["evaluation"]["expected_cost"] - bound["estimate"])
     assert gap["high"] > max(gap["estimate"], 0)
     assert main([*flags, "--replications", "1"]) == 2

@@ -21,9 +21,9 @@ EXACT = 1e-7  # relative MIP gap for tests that compare optima
 ACTIVE = 3  # hours with demand in the brute-force case
 
 
-def verified(case, scen, params, **options):
+def verified(case, scen, params, gap=EXACT, **options):
     """Every solve a test makes is re-verified by the independent checker."""
-    schedule = solve(case, scen, params, gap=EXACT, **options)
+    schedule = solve(case, scen, params, gap=gap, **options)
     check_schedule(case, scen, schedule, p_sch=params.p_sch, penalty=params.penalty).raise_if_failed()
     return schedule
 
@@ -248,7 +248,7 @@ def test_positive_part_matches_papers_big_m(paper_small):
 
 def test_islanding_forces_zero_transfer_and_infinite_penalty_caps_import(paper_small):
     inst = paper_small(island_hours=2, penalty=float("inf"))
-    schedule = verified(inst.case, inst.scen, inst.params)
+    schedule = verified(inst.case, inst.scen, inst.params, gap=0.01)  # any feasible schedule must (3x faster)
     islanded = inst.scen.connected == 0
     assert islanded.any()
     assert np.abs(schedule.dispatch.p_m[islanded]).max() <= 1e-7

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 import collections
+import functools
 from pathlib import Path
 
 import pytest
@@ -22,10 +23,11 @@ MAY_IMPORT = {
 SHARED_NAMES = {"HELP"}  # every verb module has its own one-line help
 
 
-def modules():
-    for package in PACKAGES:
-        for path in sorted((ROOT / package).rglob("*.py")):
-            yield package, path, ast.parse(path.read_text(), str(path))
+@functools.cache
+def modules() -> tuple[tuple[str, Path, ast.Module], ...]:
+    """(package, path, syntax tree) of every module, parsed once for all the checks (each only reads the trees)."""
+    return tuple((package, path, ast.parse(path.read_text(), str(path)))
+                 for package in PACKAGES for path in sorted((ROOT / package).rglob("*.py")))
 
 
 def dotted(path: Path) -> str:

@@ -14,6 +14,8 @@ PURE = ("dmo.market", "dmo.market.acflow", "dmo.market.acceptance", "dmo.market.
         "microgrid_agent.model", "microgrid_agent.agent.bidding", "messages", "messages.schemas")
 HEAVY = ("zenoh", "matplotlib")
 
+pytestmark = pytest.mark.slow  # only a fresh interpreter can say what an import loads
+
 
 @pytest.mark.parametrize("module", PURE)
 def test_a_pure_module_loads_neither_zenoh_nor_matplotlib(module):

@@ -89,6 +89,7 @@ def under_two_kernels(code: str) -> list:
     return [run["result"] for run in runs]
 
 
+@pytest.mark.slow  # each kernel is chosen as numpy loads: a process apiece
 def test_the_search_takes_the_same_path_whichever_blas_kernels_the_cpu_gets():
     """Cut right-hand sides and upper bounds summed by BLAS moved a decomposition's path from one CPU to another
     (docs/solver.md): every bound, bit for bit, and the schedule's cost must be the same."""
@@ -96,6 +97,7 @@ def test_the_search_takes_the_same_path_whichever_blas_kernels_the_cpu_gets():
     assert avx2 == sse3
 
 
+@pytest.mark.slow  # each kernel is chosen as numpy loads: a process apiece
 def test_a_feeder_clears_to_the_same_bits_whichever_blas_kernels_the_cpu_gets():
     """Awards, prices, flows and voltages of a day on the IEEE 33-bus feeder: an award's last bit is an agent's
     schedule's data, so it must not depend on the CPU."""

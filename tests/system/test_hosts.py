@@ -8,16 +8,19 @@ Every process is stopped by ``Roles`` whatever happens, on free ports and under 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
 import signal
 import subprocess
+import threading
 import time
 
 import zenoh
 
-from dmosim.launch.processes import Roles, free_port, wait_for_line, wait_listening
-from messages import new_run_id
+from dmosim.launch.mesh import MeshLinks
+from dmosim.launch.processes import Roles, free_port, wait_listening
+from messages import decode, new_run_id
 from messages.keys import Keys
 from messages.recording import read_recording
 from messages.transport import BusConfig
@@ -37,7 +40,7 @@ def test_a_day_across_three_hosts_routers_settles_and_outlives_one_of_them(tmp_p
     common = ["--run-id", run_id, "--market-day", DAY]
     result_path, recording = tmp_path / "result.json", tmp_path / "day.mcap"
     log = {name: tmp_path / f"{name}.log" for name in (*HOSTS, "dmo", "recorder", *AGENTS)}
-    with Roles() as roles:
+    with Roles() as roles, contextlib.ExitStack() as stack:
         alive = lambda name: (lambda: roles.roles[name].process.poll() is None)  # noqa: E731
         for host in HOSTS:
             relay = ["--user", host, "--connect", at[UPSTREAM[host]]] if host in UPSTREAM else []
@@ -45,8 +48,10 @@ def test_a_day_across_three_hosts_routers_settles_and_outlives_one_of_them(tmp_p
                                      *relay), log=log[host], env=ENV)  # all at once: a router retries its --connect
         for host in HOSTS:
             wait_listening(int(at[host].rsplit(":", 1)[1]), 60, alive(host))
-        for host in UPSTREAM:
-            wait_for_line(log[host], r"router link up", 60, alive(host))
+        mesh = MeshLinks(at["r1"], run_id, auth)  # the links as host 1's router sees them, all day
+        stack.enter_context(mesh)
+        # each end of both links holds a token for it, and host 3's reach host 1 only through host 2's
+        mesh.wait(lambda up: len(up) == 2 * len(UPSTREAM), 60, lambda: all(alive(host)() for host in HOSTS))
         roles.start("dmo", dmosim("dmo", *common, "--mode", "client", "--connect", at["r1"], "--auth-dir", str(auth),
                                   "--agents", str(len(AGENTS)), "--subperiods", "1", "--result", str(result_path),
                                   "--await-recorder", "60", *DEADLINES), log=log["dmo"], env=ENV)
@@ -54,13 +59,14 @@ def test_a_day_across_three_hosts_routers_settles_and_outlives_one_of_them(tmp_p
                                        "--auth-dir", str(auth)), log=log["recorder"], env=ENV)
         with Spy(run_id, at["r3"], auth) as spy:  # mg1's credentials, tried on host 3's router
             assert spy.clock_answered(120), log["dmo"].read_text()[-3000:]
+            r3 = spy.router
             spy.forge()
             for i, (agent, host) in enumerate(AGENTS.items()):
                 # Zenoh's lease (10 s): the link a killed router closes is seen at once, and a process starved of
                 # the CPU on a loaded machine is not taken for gone
                 roles.start(agent, dmosim("agent", *common, "--id", agent, "--connect", at[host], "--seed", str(i),
                                           "--auth-dir", str(auth), *TINY), log=log[agent], env=ENV)
-            wait_for_line(log["dmo"], r"phase realtime hour 4/24", 600, alive("dmo"))
+            assert spy.hour_began(4, 600), log["dmo"].read_text()[-3000:]
         roles.kill("r3")
         assert roles.roles["dmo"].process.wait(timeout=300) == 0, log["dmo"].read_text()[-3000:]
         assert roles.roles["mg1"].process.wait(timeout=120) == 0, log["mg1"].read_text()[-3000:]
@@ -68,9 +74,10 @@ def test_a_day_across_three_hosts_routers_settles_and_outlives_one_of_them(tmp_p
         assert roles.roles["recorder"].process.wait(timeout=60) == 0, log["recorder"].read_text()[-2000:]
     result = json.loads(result_path.read_text())
 
-    # host 3's router reached host 1 through host 2's only: routers do not find one another unasked
-    assert len(re.findall("router link up", log["r3"].read_text())) == 1
-    assert len(re.findall("router link up", log["r2"].read_text())) == 2
+    # host 3's router reached host 1 through host 2's only, all day: routers do not find one another unasked
+    links = {frozenset(link) for link in mesh.ever}
+    (r2,) = set().union(*links) - {mesh.router, r3}
+    assert links == {frozenset((mesh.router, r2)), frozenset((r2, r3))}
     # mg2 registered, bid, was awarded and reported across two routers' hops, until its host's router died
     rec = read_recording(str(recording))
     reported = {msg.sender: set() for _, msg in rec.decoded("registration")}
@@ -97,20 +104,36 @@ def test_a_day_across_three_hosts_routers_settles_and_outlives_one_of_them(tmp_p
 
 
 class Spy:
-    """A session with mg1's credentials on host 3's router: it asks the DMO for its clock (which mg1 may, so it knows
-    its session works through the mesh; the clock published as registration opened may have gone out before the
-    session was up), listens to mg2's award, and puts a bid on mg2's key."""
+    """A session with mg1's credentials on host 3's router (``router``, its Zenoh id): it asks the DMO for its clock
+    (which mg1 may, so it knows its session works through the mesh; the clock published as registration opened may
+    have gone out before the session was up) and follows it, listens to mg2's award, and puts a bid on mg2's key."""
 
     def __init__(self, run_id: str, endpoint: str, auth):
         self.keys = Keys(run_id)
         self.config = BusConfig(mode="client", connect=(endpoint,), overrides=bundle_settings(auth, "mg1"))
         self.heard: list[str] = []
+        self.hours: set[int] = set()  # the real-time hours whose clock it has heard
+        self._clock = threading.Condition()
 
     def __enter__(self) -> Spy:
         self.session = zenoh.open(self.config.to_zenoh())
+        self.router = str(self.session.info.routers_zid()[0])
         self.session.declare_subscriber(f"{self.keys.prefix}/dmo/award/mg2",
                                         lambda sample: self.heard.append(str(sample.key_expr)))
+        self.session.declare_subscriber(self.keys.clock(), self._tick)
         return self
+
+    def _tick(self, sample) -> None:
+        clock = decode(sample.payload.to_bytes())
+        with self._clock:
+            if clock.phase == "realtime":
+                self.hours.add(clock.hour)
+            self._clock.notify_all()
+
+    def hour_began(self, hour: int, timeout_s: float) -> bool:
+        """Whether the DMO's clock says real-time ``hour`` has begun within ``timeout_s``."""
+        with self._clock:
+            return self._clock.wait_for(lambda: hour in self.hours, timeout_s)
 
     def clock_answered(self, timeout_s: float) -> bool:
         """Whether the DMO answers a query for its clock within ``timeout_s`` (asked again every 2 s)."""
@@ -142,6 +165,6 @@ def test_dmosim_run_starts_a_router_per_simulated_host_and_spreads_the_agents_ov
     logs = tmp_path / "run" / "logs"
     at = {host: re.search(r"listening on (tls/\S+?)[;\s]", (logs / f"{host}.log").read_text()).group(1)
           for host in ("host1", "host2")}
-    assert "router link up" in (logs / "host2.log").read_text()
+    # host2's link to host1 was up before the DMO started: the run waits for its token (dmosim/launch/mesh.py)
     for role, host in {"dmo": "host1", "recorder": "host1", "mg1": "host1", "mg2": "host1", "mg3": "host2"}.items():
         assert f"connecting to {at[host]} " in (logs / f"{role}.log").read_text(), role

@@ -9,7 +9,7 @@ import signal
 import subprocess
 import threading
 
-from dmosim.launch.processes import Roles, free_port, wait_for_line, wait_listening
+from dmosim.launch.processes import Roles, free_port, wait_listening
 from messages import new_run_id
 from messages.transport import Bus, BusConfig
 from messages.recording import content_signature, read_recording
@@ -20,7 +20,7 @@ from test_market_day import DAY, DEADLINES, ENV, ROOT, TINY, dmosim
 READERS = ("recorder", "bidding", "noon", "blind", "watch")
 
 
-def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path):
+def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path, fifo):
     run_id, port = new_run_id(), free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     auth = create_auth_dir(tmp_path / "auth", run_id, ["mg1", "mg2"], readers=READERS, dmo_client=False)
@@ -61,11 +61,11 @@ def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path):
             record(roles, "bidding")
             assert reached["noon"].wait(600), (tmp_path / "dmo.log").read_text()[-3000:]
             try:
-                record(roles, "noon")
-                record(roles, "blind", "--no-backfill")
-                for name in ("noon", "blind"):
-                    wait_for_line(tmp_path / f"{name}.log", r"INFO recording ", 120,
-                                  lambda name=name: roles.roles[name].process.poll() is None)
+                record(roles, "noon", "--ready-file", str(fifo.path))
+                record(roles, "blind", "--no-backfill", "--ready-file", str(fifo.path))
+                # each says, once it records, where to: caught up (noon) and listening, both
+                ready = {fifo.line(roles.roles[name].process.pid, 120) for name in ("noon", "blind")}
+                assert ready == {str(recordings["noon"]), str(recordings["blind"])}
             finally:
                 for agent in ("mg1", "mg2"):
                     roles.roles[agent].process.send_signal(signal.SIGCONT)
