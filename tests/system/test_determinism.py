@@ -7,11 +7,10 @@ instead of one."""
 from __future__ import annotations
 
 import json
-import subprocess
 
 import pytest
 
-from test_market_day import ENV, ROOT, dmosim
+from test_market_day import ENV, ROOT, dmosim, ended
 from messages.recording import read_recording
 
 pytestmark = pytest.mark.slow
@@ -26,7 +25,7 @@ ENVELOPE = {"seq", "sent_at", "run", "incarnation"}
 
 
 def run(tmp_path, name: str, *flags: str) -> dict:
-    out = subprocess.run(dmosim("run", *EXPERIMENT, *flags, "--out", str(tmp_path / name), "--json", "--quiet"),
+    out = ended(dmosim("run", *EXPERIMENT, *flags, "--out", str(tmp_path / name), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout)

@@ -12,7 +12,7 @@ import pytest
 
 from messages.recording import read_recording
 from scenarios.case import DATA_DIR
-from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
+from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim, ended
 
 
 def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(tmp_path):
@@ -24,7 +24,7 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     out = tmp_path / "run"
     argv = dmosim("run", str(tmp_path / "e.toml"), "--subperiods", "1", *TINY, *DEADLINES,
                   "--settlement", "price-linked", "--out", str(out), "--json", "--quiet")
-    done = subprocess.run(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    done = ended(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout)
 

@@ -26,7 +26,7 @@ from messages.recording import read_recording
 from messages.transport import BusConfig
 from messages.transport.access import bundle_settings
 from messages.transport.credentials import create_auth_dir
-from test_market_day import DAY, DEADLINES, ENV, ROOT, TINY, dmosim
+from test_market_day import DAY, DEADLINES, ENV, ROOT, TINY, dmosim, ended
 
 HOSTS = ("r1", "r2", "r3")  # host 1's router serves the DMO and the recorder; r2 and r3 log in with their bundles
 UPSTREAM = {"r2": "r1", "r3": "r2"}  # a chain: host 3 reaches host 1 through host 2's router
@@ -157,7 +157,7 @@ def test_dmosim_run_starts_a_router_per_simulated_host_and_spreads_the_agents_ov
     run's verdict), with no agent lost on the way."""
     argv = dmosim("run", "--agents", "3", "--routers", "2", "--subperiods", "1", *TINY, *DEADLINES, "--seed", "3",
                   "--out", str(tmp_path / "run"), "--json", "--quiet")
-    out = subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    out = ended(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     assert result["verdict"]["ok"] and result["recorded"]["resettled"]["identical"]

@@ -6,18 +6,17 @@ instead of leaving the DMO to wait for it."""
 from __future__ import annotations
 
 import json
-import subprocess
 import tomllib
 
 import pytest
 
-from test_market_day import ENV, ROOT, dmosim
+from test_market_day import ENV, ROOT, dmosim, ended
 
 pytestmark = pytest.mark.slow
 
 
 def test_sixty_agents_with_the_defaults_end_verdict_ok(tmp_path):
-    out = subprocess.run(dmosim("run", "--agents", "60", "--scenarios", "1", "--subperiods", "1", "--out",
+    out = ended(dmosim("run", "--agents", "60", "--scenarios", "1", "--subperiods", "1", "--out",
                                 str(tmp_path / "run"), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=1200, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -31,7 +30,7 @@ def test_sixty_agents_with_the_defaults_end_verdict_ok(tmp_path):
 
 def test_the_feeder_example_ends_verdict_ok_with_both_cores_busy(tmp_path, busy_cores):
     with busy_cores():
-        out = subprocess.run(dmosim("run", str(ROOT / "examples" / "feeder.toml"), "--days", "1", "--scenarios", "1",
+        out = ended(dmosim("run", str(ROOT / "examples" / "feeder.toml"), "--days", "1", "--scenarios", "1",
                                     "--subperiods", "1", "--out", str(tmp_path / "run"), "--json", "--quiet"),
                              capture_output=True, text=True, timeout=1800, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -58,7 +57,7 @@ def test_an_agent_that_dies_before_it_registers_fails_the_run_at_once_naming_it(
     fleet = tmp_path / "fleet.toml"
     fleet.write_text('[[agents]]\nid = "mg1"\ncase = "paper"\n\n[[agents]]\nid = "mg2"\ncase = "paper"\n'
                      f'strategy = "{tmp_path / "dies.py"}:DiesAtStart"\n')
-    out = subprocess.run(dmosim("run", "--fleet", str(fleet), "--scenarios", "1", "--subperiods", "1", "--out",
+    out = ended(dmosim("run", "--fleet", str(fleet), "--scenarios", "1", "--subperiods", "1", "--out",
                                 str(tmp_path / "run"), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     last = out.stderr.splitlines()[-1]

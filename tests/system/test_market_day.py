@@ -6,8 +6,10 @@ under a fresh run prefix, so tests never cross and nothing is left behind when o
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -33,6 +35,35 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
 
 def dmosim(*args: str) -> list[str]:
     return [sys.executable, "-m", "dmosim", *args]
+
+
+def ended(argv: list[str], *, timeout: float, capture_output: bool = True, text: bool = True,
+          **popen) -> subprocess.CompletedProcess:
+    """``subprocess.run(argv, capture_output=True, text=True, timeout=...)`` for a command that starts processes of
+    its own (``dmosim run``: a DMO, agents, a recorder): it runs in a session of its own, and if it outlasts
+    ``timeout`` every process of that session is killed, not only the command, and the test fails."""
+    assert capture_output and text
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                         **popen)
+    try:
+        out, err = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        kill_session(p.pid)
+        out, err = p.communicate()
+        pytest.fail(f"{' '.join(argv[2:5])} ... outlasted {timeout:g} s; its stderr: {err[-3000:]}")
+    return subprocess.CompletedProcess(argv, p.returncode, out, err)
+
+
+def kill_session(sid: int) -> None:
+    """SIGKILL every process of session ``sid`` (read from /proc: its roles lead process groups of their own)."""
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[3]) == sid:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(int(stat.parent.name), signal.SIGKILL)
 
 
 class Tap:
@@ -148,7 +179,7 @@ def test_an_agent_leaves_only_once_it_has_its_own_statement(tmp_path):
 
 def test_dmosim_run_prints_the_summary_and_json(tmp_path):
     argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--out", str(tmp_path), "--json")
-    out = subprocess.run(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    out = ended(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     for key in ("run_id", "recording", "agents", "clearing_prices", "awards", "settlement", "rejected_messages",

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from test_market_day import ENV, ROOT, dmosim
+from test_market_day import ENV, ROOT, dmosim, ended
 
 from dmo.replay.reproduce import differences
 from dmosim.cli.main import main
@@ -117,7 +117,7 @@ def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on
     # the variant at penalty 150 again, its agents forked on the two workers: settled as when all were on one host
     variant = table[table["market.penalty"] == 150]["label"].iloc[0]
     on_one_host = json.loads((tmp_path / "sweep" / variant / "result.json").read_text())
-    out = subprocess.run(dmosim("run", str(tmp_path / "sweep" / "experiments" / f"{variant}.toml"), "--hosting",
+    out = ended(dmosim("run", str(tmp_path / "sweep" / "experiments" / f"{variant}.toml"), "--hosting",
                                 "fork", "--cluster", cluster.scheduler.address, "--cluster-auth", str(auth),
                                 "--advertise", "127.0.0.2", "--out", str(tmp_path / "run"), "--json", "--quiet"),
                          capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)

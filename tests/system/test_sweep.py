@@ -8,7 +8,7 @@ import json
 import subprocess
 
 import pandas as pd
-from test_market_day import ENV, ROOT, dmosim
+from test_market_day import ENV, ROOT, dmosim, ended
 
 from dmo.replay.reproduce import differences
 from messages.recording import read_recording
@@ -32,7 +32,7 @@ hour = 60.0
 
 def test_a_sweep_runs_each_variant_and_tables_every_bill(tmp_path):
     (tmp_path / "tiny.toml").write_text(EXPERIMENT)
-    out = subprocess.run(dmosim("sweep", str(tmp_path / "tiny.toml"), "--set", "market.penalty=0,400",
+    out = ended(dmosim("sweep", str(tmp_path / "tiny.toml"), "--set", "market.penalty=0,400",
                                 "--parallel", "2", "--out", str(tmp_path / "sweep"), "--json"),
                          capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
