@@ -156,7 +156,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
                                tls=tls, valid_days=2, dmo_client=bool(names), routers=tuple(names[1:]),
                                hosts=tuple(dict.fromkeys([*DEFAULT_HOSTS, *([cluster.host] if cluster else [])])))
         login = ["--auth-dir", str(auth)]
-        routers = start_routers(roles, names, scheme, run_id, auth, logs) if names else []
+        routers = start_routers(roles, names, scheme, run_id, auth, logs, starting_s) if names else []
         if routers:
             local = reach = routers[0]
             say(f"{len(routers)} router(s): " + ", ".join(f"{n} on {at}" for n, at in zip(names, routers)))
@@ -211,6 +211,10 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     result.update(experiment=e.name, run_dir=str(rundir.root.resolve()), logs=str(logs.resolve()),
                   recording=str(record.resolve()) if record else None, faults=[str(f) for f in parsed],
                   restarts=restarts)
+    if routers:  # which router each role was told to connect to
+        result["routers"] = {"endpoints": dict(zip(names, routers)), "roles": {
+            "dmo": names[0], **({"recorder": names[0]} if record else {}),
+            **{m.id: names[router_of[m.id]] for m in fleet}}}
     if remote is not None:
         result["cluster"] = {"scheduler": cluster.address, "dmo": reach, "agents": remote.placed}
     # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.

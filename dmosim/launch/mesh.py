@@ -45,10 +45,11 @@ def spread(agents: list[str], routers: int) -> dict[str, int]:
     return {agent: i * routers // len(agents) for i, agent in enumerate(agents)}
 
 
-def start_routers(roles: Roles, names: list[str], scheme: str, run_id: str, auth: Path, logs: Path) -> list[str]:
+def start_routers(roles: Roles, names: list[str], scheme: str, run_id: str, auth: Path, logs: Path,
+                  starting_s: float = ROUTER_START_S) -> list[str]:
     """Start one ``dmosim router`` per name on a free loopback port, every one after the first connecting to the
-    first as its own user, and wait until each listens and the first holds every other's link to it; their
-    endpoints."""
+    first as its own user, and wait (at most ``starting_s``, while they run) until each listens and the first holds
+    every other's link to it; their endpoints."""
     at = [f"{scheme}/127.0.0.1:{free_port()}" for _ in names]
     for i, name in enumerate(names):
         relay = ["--user", name, "--connect", at[0]] if i else []
@@ -56,12 +57,12 @@ def start_routers(roles: Roles, names: list[str], scheme: str, run_id: str, auth
                                          "--lease", repr(ROUTER_LEASE_S), *relay), log=logs / f"{name}.log")
     for i, name in enumerate(names):
         alive = roles.roles[name].process.poll
-        wait_listening(int(at[i].rsplit(":", 1)[1]), ROUTER_START_S, lambda poll=alive: poll() is None)
+        wait_listening(int(at[i].rsplit(":", 1)[1]), starting_s, lambda poll=alive: poll() is None)
     if len(names) > 1:
         running = lambda: all(roles.roles[name].process.poll() is None for name in names)  # noqa: E731
         with MeshLinks(at[0], run_id, auth) as mesh:
             mesh.wait(lambda up: len({router for router, peer in up if peer == mesh.router}) == len(names) - 1,
-                      ROUTER_START_S, running)
+                      starting_s, running)
     return at
 
 
