@@ -128,3 +128,15 @@ def listener():
     made = Listener()
     yield made
     made.close()
+
+
+# Module fixtures that run a real market day (file, fixture): the tests that share one go to one xdist worker
+# together (the README's --dist loadgroup), so that the day runs once, not once on each worker that has one of them.
+SHARED_DAYS = {("test_determinism.py", "base"), ("test_recording.py", "day"), ("test_untrusted_runs.py", "killed")}
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        for fixture in getattr(item, "fixturenames", ()):
+            if (item.path.name, fixture) in SHARED_DAYS:
+                item.add_marker(pytest.mark.xdist_group(f"{item.path.stem}-{fixture}"))
