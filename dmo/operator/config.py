@@ -23,14 +23,13 @@ CLOCKS = (LOGICAL, WALL)  # how a phase ends: when every live agent has answered
 
 @dataclass(frozen=True)
 class DayConfig:
-    """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. On the ``logical``
-    clock a phase (an hour in real time) ends when every live agent has answered, however long that takes, and the
-    deadlines are only what the clock messages announce; on the ``wall`` clock a phase ends at the latest when its
-    deadline, wall-clock seconds, passes (docs/experiments.md, "Logical and wall-clock time"). What an experiment sets has no default here: its defaults
-    are the experiment's (dmosim/experiment/spec.py). ``settlement`` is the rule, checked (``market.choice``).
-    ``fixed_awards`` (24 MW) replaces clearing by those
-    awards for every agent (the paper's Table I). ``islanded_hours`` holds for every day unless
-    ``islanding_by_day`` gives each day its own."""
+    """Everything the DMO needs to run ``days`` consecutive market days from ``market_day``. On the ``logical`` clock a
+    phase (an hour in real time) ends when every live agent has answered, however long that takes, and the deadlines
+    are only what the clock messages announce; on the ``wall`` clock a phase ends at the latest when its deadline,
+    wall-clock seconds, passes (docs/experiments.md, "Logical and wall-clock time"). What an experiment sets has no
+    default here: its defaults are the experiment's (dmosim/experiment/spec.py). ``settlement`` is the rule, checked
+    (``market.choice``). ``fixed_awards`` (24 MW) replaces clearing by those awards for every agent (the paper's
+    Table I). ``islanded_hours`` holds for every day unless ``islanding_by_day`` gives each day its own."""
 
     market_day: str
     agents: int
@@ -64,7 +63,7 @@ class DayConfig:
     # agents the run restarts (its restart faults): one that vanishes is waited for until a new process of it is
     # back, at most registration_s, as a new agent is at registration
     restarting: frozenset[str] = frozenset()
-    clock: str = "wall"  # one of CLOCKS; the experiment's default is the logical clock
+    clock: str = WALL  # one of CLOCKS; the experiment's default is the logical clock
 
     @property
     def logical(self) -> bool:

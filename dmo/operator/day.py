@@ -1,16 +1,16 @@
 """The DMO's market day: its phases in order, each with a deadline, driven over a Bus and ending in settlement
 (docs/protocol.md).
 
-The DMO reads everything it receives from one queue on its main thread, so the day's state is touched by one
-thread only; Zenoh's callback threads just enqueue. Each phase ends when every live registered agent has
-answered (accepted, or refused: an agent told no is not waited for) or, on the wall clock, its deadline passes;
-on the logical clock a phase has no deadline, so a loaded machine makes a run slower, never different
-(docs/experiments.md, "Logical and wall-clock time"). What the day accepts is decided by intake.py, on the market's rules
+The DMO reads everything it receives from one queue on its main thread, so the day's state is touched by one thread
+only; Zenoh's callback threads just enqueue. Each phase ends when every live registered agent has answered
+(accepted, or refused: an agent told no is not waited for) or, on the wall clock, its deadline passes; on the
+logical clock a phase has no deadline, so a loaded machine makes a run slower, never different (docs/experiments.md,
+"Logical and wall-clock time"). What the day accepts is decided by intake.py, on the market's rules
 (market/acceptance.py) and the replay guard (guard.py); what it publishes is built by outbox.py; the journal
-(journal.py) lets a restarted DMO resume the day, and rejoin.py decides what an agent that comes back is sent
-again. A settled day goes to disk as its report (finished.py), and so does each realised day an agent reports, so
-that the DMO does not grow with the days of a run. A refused message is published on ``dmo/rejected`` with its
-reason, counted, and never changes an award or a settlement.
+(journal.py) lets a restarted DMO resume the day, and rejoin.py decides what an agent that comes back is sent again.
+A settled day goes to disk as its report (finished.py), and so does each realised day an agent reports, so that the
+DMO does not grow with the days of a run. A refused message is published on ``dmo/rejected`` with its reason,
+counted, and never changes an award or a settlement.
 """
 
 from __future__ import annotations
@@ -396,8 +396,9 @@ class MarketDay:
     def _awaited(self) -> list[str]:
         """The agents a phase or hour waits for: the live ones, and one the run restarts (``restarting``) from when
         it vanishes until it is back (on the wall clock, at most until a new process of it would be past the
-        registration deadline; a phase or hour still ends at its own deadline). Without this a fast day ran its remaining hours in a second while the
-        restarted process was still starting, and settled it as missing for 11 to 24 of them."""
+        registration deadline; a phase or hour still ends at its own deadline). Without this a fast day ran its
+        remaining hours in a second while the restarted process was still starting, and settled it as missing for 11
+        to 24 of them."""
         now, s = time.monotonic(), self.state
         back = [a for a, until in self._returning.items() if a in s.gone and now < until]
         return sorted({*s.live(), *back})
@@ -522,9 +523,9 @@ class MarketDay:
     def _handle(self, event: Event, accept) -> None:
         if isinstance(event, OverBudget):
             self._over.add(event.agent)
-            self._incident(event.agent, f"over its budget of {self.budget.messages} messages and {self.budget.size} bytes "
-                                     f"in this {'hour' if self.state.hour else 'phase'}: what it sends more until the "
-                                     "next is dropped unread (dropped_messages)")
+            self._incident(event.agent, f"over its budget of {self.budget.messages} messages and {self.budget.size} "
+                                        f"bytes in this {'hour' if self.state.hour else 'phase'}: what it sends more "
+                                        "until the next is dropped unread (dropped_messages)")
         elif isinstance(event, Unreadable):
             self._reject(event.key, event.payload, event.error, agent_of(event.key))
         elif isinstance(event, Joined):

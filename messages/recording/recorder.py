@@ -92,7 +92,6 @@ class Recorder:
         self.dropped: collections.Counter[str] = collections.Counter()  # sender ("" for a key naming none) -> how many
         self._wake = threading.Event()  # a day summary came, or an agent left: check the DMO's history
         self._dmo_gone = threading.Event()  # the DMO left: a check under way waits for an answer that cannot come
-        self._closing = False
         self._closed = threading.Event()  # set as the recorder closes: a check waiting out IN_FLIGHT_S ends its wait
         self._answered = threading.Event()  # the check under way has the DMO's whole answer: it needs no DMO to end
         self._catching_up: threading.Thread | None = None
@@ -154,8 +153,8 @@ class Recorder:
         on the way here (an agent's registration behind a router link that went down, an award its agent alone
         asked for again, a statement dropped by a fault) would be missing from the recording. Off Zenoh's threads:
         a query must not block one."""
-        while not self._closing:
-            if not self._wake.wait(timeout=0.5) or self._closing:  # closing wakes it to end, not to check
+        while not self._closed.is_set():
+            if not self._wake.wait(timeout=0.5) or self._closed.is_set():  # closing wakes it to end, not to check
                 continue
             self._wake.clear()
             try:
@@ -258,7 +257,6 @@ class Recorder:
         """Let a check of the DMO's history under way end (its answer may hold the last registrations the file
         lacks, or the last statements, which a DMO that has left at once answered just before), for at most
         ``CLOSING_WAIT_S`` while the DMO is there to answer or its answer is in; then no new one starts."""
-        self._closing = True
         self._closed.set()
         thread = self._catching_up
         if thread is not None and thread is not threading.current_thread():

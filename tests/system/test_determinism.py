@@ -26,7 +26,7 @@ ENVELOPE = {"seq", "sent_at", "run", "incarnation"}
 
 def run(tmp_path, name: str, *flags: str) -> dict:
     out = ended(dmosim("run", *EXPERIMENT, *flags, "--out", str(tmp_path / name), "--json", "--quiet"),
-                         capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+                timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     return json.loads(out.stdout)
 

@@ -585,7 +585,7 @@ def test_dmosim_run_survives_message_faults_and_a_restart_and_settles_what_it_ac
     assert DEADLINES[-2] == "--hour-timeout"
     argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *deadlines, "--out", str(tmp_path), "--json",
                   "--seed", "3", *[flag for f in faults for flag in ("--fault", f)])
-    out = ended(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    out = ended(argv, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     assert result["faults"] == faults and result["restarts"] == {"mg1": 1}
@@ -662,7 +662,7 @@ def test_the_dmo_and_an_agent_restarted_in_the_same_hour_and_across_midnight_loc
     argv = dmosim("run", "--agents", "2", "--subperiods", "1", "--days", "2", *TINY, *DEADLINES[:-1], "10",
                   "--out", str(tmp_path), "--json", "--quiet", "--seed", "2",
                   *[flag for f in faults for flag in ("--fault", f)])
-    out = ended(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    out = ended(argv, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     assert result["restarts"] == {"dmo": 2, "mg1": 2} and result["locked_out"] == []

@@ -24,7 +24,7 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     out = tmp_path / "run"
     argv = dmosim("run", str(tmp_path / "e.toml"), "--subperiods", "1", *TINY, *DEADLINES,
                   "--settlement", "price-linked", "--out", str(out), "--json", "--quiet")
-    done = ended(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    done = ended(argv, timeout=900, cwd=ROOT, env=ENV)
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout)
 

@@ -156,7 +156,7 @@ def test_dmosim_run_starts_a_router_per_simulated_host_and_spreads_the_agents_ov
     run's verdict), with no agent lost on the way."""
     argv = dmosim("run", "--agents", "3", "--routers", "2", "--subperiods", "1", *TINY, *DEADLINES, "--seed", "3",
                   "--out", str(tmp_path / "run"), "--json", "--quiet")
-    out = ended(argv, capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    out = ended(argv, timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     assert result["verdict"]["ok"] and result["recorded"]["resettled"]["identical"]

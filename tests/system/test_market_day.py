@@ -37,12 +37,10 @@ def dmosim(*args: str) -> list[str]:
     return [sys.executable, "-m", "dmosim", *args]
 
 
-def ended(argv: list[str], *, timeout: float, capture_output: bool = True, text: bool = True,
-          **popen) -> subprocess.CompletedProcess:
+def ended(argv: list[str], *, timeout: float, **popen) -> subprocess.CompletedProcess:
     """``subprocess.run(argv, capture_output=True, text=True, timeout=...)`` for a command that starts processes of
     its own (``dmosim run``: a DMO, agents, a recorder): it runs in a session of its own, and if it outlasts
     ``timeout`` every process of that session is killed, not only the command, and the test fails."""
-    assert capture_output and text
     p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                          **popen)
     try:
@@ -179,7 +177,7 @@ def test_an_agent_leaves_only_once_it_has_its_own_statement(tmp_path):
 
 def test_dmosim_run_prints_the_summary_and_json(tmp_path):
     argv = dmosim("run", "--agents", "2", "--subperiods", "1", *TINY, *DEADLINES, "--out", str(tmp_path), "--json")
-    out = ended(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    out = ended(argv, timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     for key in ("run_id", "recording", "agents", "clearing_prices", "awards", "settlement", "rejected_messages",

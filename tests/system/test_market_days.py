@@ -25,7 +25,7 @@ def test_two_days_carry_over_midnight_survive_a_dmo_restart_and_settle_from_the_
                   *DEADLINES, "--seed", "4", "--load-scale", "1,0.8", "--fault", "restart:dmo:5:2",
                   "--fault", "delay:agent/*/meter:0.6",  # hour 5's reports are on their way when the DMO dies
                   "--settlement", RULE, "--out", str(tmp_path), "--json", "--quiet")
-    out = ended(argv, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    out = ended(argv, timeout=900, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     result = json.loads(out.stdout)
     assert [d["market_day"] for d in result["days"]] == [FIRST, SECOND] and result["restarts"] == {"dmo": 1}

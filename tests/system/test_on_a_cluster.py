@@ -118,9 +118,9 @@ def test_a_sweep_on_a_cluster_and_agents_forked_on_its_workers_settle_as_runs_on
     variant = table[table["market.penalty"] == 150]["label"].iloc[0]
     on_one_host = json.loads((tmp_path / "sweep" / variant / "result.json").read_text())
     out = ended(dmosim("run", str(tmp_path / "sweep" / "experiments" / f"{variant}.toml"), "--hosting",
-                                "fork", "--cluster", cluster.scheduler.address, "--cluster-auth", str(auth),
-                                "--advertise", "127.0.0.2", "--out", str(tmp_path / "run"), "--json", "--quiet"),
-                         capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+                       "fork", "--cluster", cluster.scheduler.address, "--cluster-auth", str(auth),
+                       "--advertise", "127.0.0.2", "--out", str(tmp_path / "run"), "--json", "--quiet"),
+                timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     spread = json.loads(out.stdout)
     assert spread["settlement"] == on_one_host["settlement"] and spread["awards"] == on_one_host["awards"]

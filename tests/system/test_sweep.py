@@ -33,8 +33,8 @@ hour = 60.0
 def test_a_sweep_runs_each_variant_and_tables_every_bill(tmp_path):
     (tmp_path / "tiny.toml").write_text(EXPERIMENT)
     out = ended(dmosim("sweep", str(tmp_path / "tiny.toml"), "--set", "market.penalty=0,400",
-                                "--parallel", "2", "--out", str(tmp_path / "sweep"), "--json"),
-                         capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+                       "--parallel", "2", "--out", str(tmp_path / "sweep"), "--json"),
+                timeout=600, cwd=ROOT, env=ENV)
     assert out.returncode == 0, out.stderr[-3000:]
     summary = json.loads(out.stdout)
     assert summary["runs"] == 2 and summary["failed"] == [] and summary["keys"] == ["market.penalty"]
