@@ -1,5 +1,5 @@
 """Which messages of a market day the DMO accepts: the rules, as pure functions, that the live DMO
-(``operator/day.py``) and the replayed one (``replay/as_dmo.py``) both apply.
+(``operator/machine.py``) and the replayed one (``replay/as_dmo.py``) both apply.
 
 Each function returns None for an acceptable message, or the refusal as ``(code, reason)``: ``code`` one of
 ``messages.REJECT_CODES``, ``reason`` one line. A refused message is published on ``dmo/rejected`` with both and

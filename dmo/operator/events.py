@@ -1,5 +1,5 @@
-"""What happens to the DMO's day, as it is told: each event one small typed value, made on Zenoh's threads and
-handled in order on the DMO's own (day.py)."""
+"""What happens to the DMO's day, as its machine is told (machine.py): each event one small typed value, made by a
+driver (on Zenoh's threads, by the in-process market, or from a recording) and handled in order."""
 
 from __future__ import annotations
 
@@ -48,4 +48,25 @@ class OverBudget:
     agent: str | None
 
 
-Event = Received | Unreadable | Joined | Left | OverBudget
+@dataclass(frozen=True)
+class TimedOut:
+    """What the machine waited for (``Wait``) did not all come by its deadline; or, for a wait without one, nothing
+    more is queued."""
+
+
+@dataclass(frozen=True)
+class Present:
+    """The answer to ``CheckPresence``: those of the names asked about whose process is there."""
+
+    names: frozenset[str]
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """The answer to ``OpenWindow``: how many messages of each agent the window that closed dropped unread, its
+    budget spent (None: keys that name no valid agent)."""
+
+    counts: dict[str | None, int]
+
+
+Event = Received | Unreadable | Joined | Left | OverBudget | TimedOut | Present | Dropped

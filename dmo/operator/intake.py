@@ -2,7 +2,7 @@
 copy of a message taken before, admitted (day, sender, process, sequence number), a rejoin, a realised day (taken in
 any phase once its day is operated, and never read by clearing or settlement), or the phase's to take.
 
-Pure but for the state it updates, so the live DMO (``day.py``) and the tests drive the same decisions; the DMO
+Pure but for the state it updates, so the DMO's machine (``machine.py``) and the tests drive the same decisions; it
 then journals, receipts, publishes and logs what the outcome says.
 """
 

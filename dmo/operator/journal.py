@@ -60,22 +60,6 @@ class Journal:
                 self.size += len(line)
             return at
 
-    def clock(self, phase: str, hour: int | None, day: int = 1, market_day: str | None = None) -> None:
-        self.write({"clock": phase, "hour": hour, "day": day, "market_day": market_day})
-
-    def run_token(self, token: str) -> None:
-        self.write({"run_token": token})
-
-    def accepted(self, key: str, payload: bytes) -> None:
-        """A payload the DMO accepted, as it received it (valid JSON, so UTF-8 text)."""
-        self.write({"accepted": key, "message": bytes(payload).decode()})
-
-    def incident(self, incident: Incident) -> None:
-        self.write({"incident": incident.model_dump()})
-
-    def rejected(self, code: str) -> None:
-        self.write({"rejected": code})
-
     def traffic(self, key: str, payload: bytes, at: int) -> int:
         """Append a payload sent or received; the offset of its line."""
         return self.write(traffic_entry(key, payload, at))
@@ -84,6 +68,28 @@ class Journal:
     def close(self) -> None:
         with self._lock:
             self._file.close()
+
+
+def clock_entry(phase: str, hour: int | None, day: int = 1, market_day: str | None = None) -> dict:
+    """A clock step: the phase (and real-time hour) of day ``day`` the DMO opened."""
+    return {"clock": phase, "hour": hour, "day": day, "market_day": market_day}
+
+
+def run_token_entry(token: str) -> dict:
+    return {"run_token": token}
+
+
+def accepted_entry(key: str, payload: bytes) -> dict:
+    """A payload the DMO accepted, as it received it (valid JSON, so UTF-8 text)."""
+    return {"accepted": key, "message": bytes(payload).decode()}
+
+
+def incident_entry(incident: Incident) -> dict:
+    return {"incident": incident.model_dump()}
+
+
+def rejected_entry(code: str) -> dict:
+    return {"rejected": code}
 
 
 def restore(state: DayState, entries: list[dict], realised: Callable[[AgentDay], None] | None = None

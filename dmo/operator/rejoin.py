@@ -2,7 +2,7 @@
 again what it needs to go on; one restarted (a later incarnation of it registers) rejoins the run, if nothing about
 it changed, whatever the DMO saw of its presence and whichever phase the day is in.
 
-Pure decisions on the DMO's state; ``MarketDay`` publishes what they name. Agents take what they already have as
+Pure decisions on the DMO's state; its machine (machine.py) publishes what they name. Agents take what they already have as
 a no-op, so a message sent again harms no one. Hours an agent does not report are settled by the missing-data
 rule (docs/market.md).
 """

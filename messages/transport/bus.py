@@ -24,9 +24,10 @@ import zenoh
 
 from scenarios.names import NAME_PATTERN, is_name
 
-from ..codec import MessageError, decode, encode
+from ..codec import MessageError, decode
 from ..keys import Keys, check_route, parse_key
 from ..schemas import Envelope, Message
+from ..stamping import Sender
 from .faults import FaultInjector
 
 log = logging.getLogger(__name__)
@@ -165,9 +166,7 @@ class Bus:
         self._token = None
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._subscriptions: list[Subscription] = []
-        self._seq = 0
-        self.incarnation = time.time_ns()
-        self.run_token = ""
+        self._sender = Sender(self.keys, name, time.time_ns())  # what it stamps on each message
         self._send_lock = threading.RLock()  # also guards the publisher cache
         self._state_lock = threading.Lock()
         self._published = 0
@@ -250,6 +249,20 @@ class Bus:
         self.close()
 
     @property
+    def incarnation(self) -> int:
+        """This process's (its bus's creation time, ns)."""
+        return self._sender.incarnation
+
+    @property
+    def run_token(self) -> str:
+        """The run's token, stamped on every message published."""
+        return self._sender.run_token
+
+    @run_token.setter
+    def run_token(self, token: str) -> None:
+        self._sender.run_token = token
+
+    @property
     def session(self) -> zenoh.Session:
         if self._session is None:
             raise RuntimeError(f"bus {self.name!r} is not open")
@@ -264,18 +277,11 @@ class Bus:
         ``before_put(key, payload, stamped)`` is called just before the put, so that what tracks the payload (an
         agent's ``Delivery``) knows it before any answer to it can arrive. Returns the stamped message; ``encode``
         of it is the payload sent."""
-        if msg.sender != self.name:
-            raise ValueError(f"bus {self.name!r} cannot publish a message from {msg.sender!r}")
         with self._send_lock:
-            stamped = msg.model_copy(update={"run": self.run_token, "incarnation": self.incarnation,
-                                             "seq": self._seq, "sent_at": time.time_ns()})
-            key = key or self.keys.for_message(stamped)
-            check_route(key, stamped, self.keys.run_id)
-            payload = encode(stamped)
+            key, payload, stamped = self._sender.stamp(msg, key, time.time_ns())
             if before_put is not None:
                 before_put(key, payload, stamped)
             self._send(key, payload)
-            self._seq += 1
             self._published += 1
         return stamped
 

@@ -11,7 +11,7 @@ import pytest
 from dmo.market import acceptance
 from dmo.market.settlement import READING_TOLERANCE_MW, settle
 from dmo.operator import intake
-from dmo.operator.day import RunResult
+from dmo.operator.results import RunResult
 from dmo.operator.finished import FinishedDays
 from dmo.operator.state import DayState
 from dmo.replay.as_dmo import AsDmo

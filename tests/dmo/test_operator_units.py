@@ -15,7 +15,8 @@ from dmo.operator.config import DayConfig, draw_islanding
 from dmo.operator.guard import REMEMBERED, SequenceGuard
 from dmo.operator.history import DayHistory, asks_history
 from dmo.operator.incidents import IncidentLog
-from dmo.operator.journal import Journal, restore, traffic
+from dmo.operator.journal import (Journal, accepted_entry, clock_entry, incident_entry, rejected_entry, restore,
+                                  run_token_entry, traffic)
 from dmo.operator.rejoin import AWARD, CALL_FOR_BIDS, GRID_STATE, readmit, rejoin_refusal, resend_plan
 from dmo.operator.state import DayState
 from messages import Bid, MeterReport, Registration, decode, encode, sha256
@@ -109,18 +110,20 @@ def test_rejections_are_listed_up_to_a_cap_then_counted_and_the_list_is_capped(m
 def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
     path = tmp_path / "dmo.journal"
     journal = Journal(path, "run1", DAY)
-    journal.run_token("ab" * 16)
-    journal.clock("registration", None)
+    journal.write(run_token_entry("ab" * 16))
+    journal.write(clock_entry("registration", None))
     for msg in (registration("mg1"), registration("mg2", seq=0)):
-        journal.accepted(f"dmosim/run1/agent/{msg.sender}/register", encode(msg))
-    journal.clock("bidding", None)
+        journal.write(accepted_entry(f"dmosim/run1/agent/{msg.sender}/register", encode(msg)))
+    journal.write(clock_entry("bidding", None))
     bid = Bid(sender="mg1", market_day=DAY, hours=((),) * HOURS, seq=1, incarnation=1)
     as_received = encode(bid).replace(b'"hours":', b'"hours" :')  # the bytes as they came, not re-encoded
-    journal.accepted("dmosim/run1/agent/mg1/bid", as_received)
-    journal.clock("realtime", 3)
-    journal.accepted("dmosim/run1/agent/mg2/meter", encode(meter("mg2", hour=3, seq=1 + REMEMBERED)))
-    journal.incident(IncidentLog().add("mg1", "realtime", 3, "late: no meter report for hour 3 by the deadline"))
-    journal.rejected("duplicate")
+    journal.write(accepted_entry("dmosim/run1/agent/mg1/bid", as_received))
+    journal.write(clock_entry("realtime", 3))
+    journal.write(accepted_entry("dmosim/run1/agent/mg2/meter",
+                                 encode(meter("mg2", hour=3, seq=1 + REMEMBERED))))
+    journal.write(incident_entry(IncidentLog().add("mg1", "realtime", 3,
+                                                   "late: no meter report for hour 3 by the deadline")))
+    journal.write(rejected_entry("duplicate"))
     journal.close()
     with open(path, "a") as f:
         f.write('{"accepted": "cut by a kil')  # a line cut by SIGKILL: the ones before it stand
@@ -140,13 +143,13 @@ def test_a_journal_restores_what_was_accepted_and_where_the_day_stood(tmp_path):
 
 def test_a_journal_of_several_days_restores_the_finished_days_and_the_one_under_way(tmp_path):
     journal = Journal(tmp_path / "dmo.journal", "run1", DAY)
-    journal.clock("registration", None)
-    journal.accepted("dmosim/run1/agent/mg1/register", encode(registration("mg1")))
-    journal.clock("realtime", 24, day=1, market_day=DAY)
-    journal.accepted("dmosim/run1/agent/mg1/meter", encode(meter("mg1", hour=24, seq=1)))
-    journal.incident(IncidentLog().add("mg1", "realtime", 24, "late: day one"))
-    journal.clock("bidding", None, day=2, market_day="2026-07-02")
-    journal.accepted("dmosim/run1/agent/mg1/meter", encode(meter("mg1", hour=1, seq=2)))
+    journal.write(clock_entry("registration", None))
+    journal.write(accepted_entry("dmosim/run1/agent/mg1/register", encode(registration("mg1"))))
+    journal.write(clock_entry("realtime", 24, day=1, market_day=DAY))
+    journal.write(accepted_entry("dmosim/run1/agent/mg1/meter", encode(meter("mg1", hour=24, seq=1))))
+    journal.write(incident_entry(IncidentLog().add("mg1", "realtime", 24, "late: day one")))
+    journal.write(clock_entry("bidding", None, day=2, market_day="2026-07-02"))
+    journal.write(accepted_entry("dmosim/run1/agent/mg1/meter", encode(meter("mg1", hour=1, seq=2))))
     journal.close()
     state = DayState()
     clock, finished = restore(state, Journal(tmp_path / "dmo.journal", "run1", DAY).entries)
@@ -161,7 +164,7 @@ def test_a_journal_of_several_days_restores_the_finished_days_and_the_one_under_
 def test_a_journal_of_another_run_or_day_is_started_afresh(tmp_path):
     path = tmp_path / "dmo.journal"
     journal = Journal(path, "run1", DAY)
-    journal.clock("bidding", None)
+    journal.write(clock_entry("bidding", None))
     journal.close()
     for run_id, day in (("run2", DAY), ("run1", "2026-07-02")):
         other = Journal(path, run_id, day)
@@ -234,13 +237,13 @@ def test_the_history_since_a_time_reads_the_file_from_a_mark_shortly_before_it(t
 def test_a_journal_cut_by_a_kill_goes_on_after_its_last_whole_line(tmp_path):
     path = tmp_path / "dmo.journal"
     journal = Journal(path, "run1", DAY)
-    journal.clock("bidding", None)
+    journal.write(clock_entry("bidding", None))
     journal.close()
     with open(path, "ab") as f:
         f.write(b'{"clock":"clearing","ho')  # the kill came mid-line
     again = Journal(path, "run1", DAY)
     assert [e["clock"] for e in again.entries] == ["bidding"] and again.size == path.stat().st_size
-    again.clock("scheduling", None)
+    again.write(clock_entry("scheduling", None))
     again.close()
     assert [e["clock"] for e in Journal(path, "run1", DAY).entries] == ["bidding", "scheduling"]
 

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dmo.operator import intake, rejoin
-from dmo.operator.journal import Journal, restore
+from dmo.operator.journal import Journal, accepted_entry, clock_entry, restore, run_token_entry
 from dmo.operator.state import DayState
 from messages import Bid, BidStep, GridState, MeterReport, Registration, Schedule, decode, encode, sha256
 
@@ -58,7 +58,7 @@ class Dmo:
         self.resumed, self.finished = restore(self.state, self.journal.entries)
         if not self.state.run_token:
             self.state.run_token = token
-            self.journal.run_token(token)
+            self.journal.write(run_token_entry(token))
         self.rule = None
 
     def clock(self, day: int, phase: str, hour: int | None) -> None:
@@ -66,7 +66,7 @@ class Dmo:
         if day > s.day:
             s.start_day(day, DAYS[day - 1])
         s.phase, s.hour = phase, hour
-        self.journal.clock(phase, hour, day, s.market_day)
+        self.journal.write(clock_entry(phase, hour, day, s.market_day))
         self.rule = {"registration": lambda: intake.registration(s),
                      "bidding": lambda: intake.first_of_each(s, s.bids),
                      "scheduling": lambda: intake.first_of_each(s, s.schedules),
@@ -77,7 +77,7 @@ class Dmo:
     def receive(self, key: str, payload: bytes) -> intake.Outcome:
         outcome = intake.receive(self.state, decode(payload), sha256(payload), self.rule)
         if outcome.taken:  # journaled before the receipt goes, as MarketDay does
-            self.journal.accepted(key, payload)
+            self.journal.write(accepted_entry(key, payload))
         return outcome
 
     def waiting_for(self, phase: str, hour: int | None) -> list[str]:

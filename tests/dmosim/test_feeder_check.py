@@ -2,7 +2,7 @@
 loads it clears in the DMO, and every message the DMO builds of its day is valid on the wire; one that does not
 load is refused in one line. Feeder files of a few buses, TOML and pandapower JSON, are drawn with names and numbers
 at and past every limit, and what the DMO does with them is run in this process: its clearing
-(``dmo.market.distflow`` through ``dmo.operator.day.clearing_of``), its awards, network_hour messages and their AC
+(``dmo.market.distflow`` through ``dmo.operator.machine.clearing_of``), its awards, network_hour messages and their AC
 checks, the operating envelope in the grid states, and the statements.
 """
 
@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dmo.operator import feeder, outbox
-from dmo.operator.day import clearing_of, settlement_of
+from dmo.operator.machine import clearing_of, settlement_of
 from dmo.operator.state import DayState
 from dmosim.cli.checks import check_inputs
 from dmosim.experiment.spec import ExperimentError, parse_experiment
