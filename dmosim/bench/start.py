@@ -1,6 +1,6 @@
 """Each day's Benders schedule solved cold and started from the day before's first stage: the time a start saves.
 
-A multi-day run hands each agent's solve the first stage of its previous schedule (microgrid_agent/agent/process.py);
+A multi-day run hands each agent's solve the first stage of its previous schedule (microgrid_agent/agent/machine.py);
 the Benders route evaluates it once its LP phase ends and, if the master's first-stage constraints allow it, takes
 it as its first incumbent: an upper bound from the start, the first MILP master's cutoff and its MIP start
 (``benders.begin_from``). Here consecutive days of the paper's microgrid (scenario seeds ``--seed``, ``--seed`` + 1,

@@ -196,7 +196,7 @@ def member_of(experiment: Experiment, agent_id: str) -> FleetMember:
 def agent_config(experiment: Experiment, member: FleetMember):
     """How ``member`` schedules its days (``AgentConfig``): the experiment's schedule settings and profiles, the
     islanding hours the market announces, the member's own seed."""
-    from microgrid_agent.agent.process import AgentConfig  # noqa: PLC0415  (the solver stack: for agents only)
+    from microgrid_agent.agent.machine import AgentConfig  # noqa: PLC0415  (the solver stack: for agents only)
 
     s, p = experiment.schedule, experiment.profiles
     return AgentConfig(scenarios=s.scenarios, island_hours=experiment.market.island_hours, gap=s.gap,

@@ -4,8 +4,8 @@ DMO's receipt for it comes (docs/protocol.md, "Receipts and sending again").
 A lost registration, bid, schedule or meter report is thus recovered within a second or so instead of being
 waited out to its phase's deadline; the DMO takes an exact copy of a payload it accepted as that payload again, so
 sending one twice is harmless. The resends run on a thread of their own, so an agent busy solving its schedule
-still resends what is waiting for a receipt. When to send again is ``Resends``, and when a silent agent asks the DMO
-again ``Silence``: pure policies, given the time.
+still resends what is waiting for a receipt. When to send again is ``Resends``, when a silent agent asks the DMO
+again ``Silence``, and when a joining agent asks it again for its clock ``Joining``: pure policies, given the time.
 """
 
 from __future__ import annotations
@@ -93,6 +93,27 @@ class Silence:
         """The agent has asked (at ``now``): how long to wait before it asks again, never past giving up."""
         self.wait = min(2 * self.wait, self.max_s, max(MIN_WAIT_S, self.since + self.idle_s - now))
         return self.wait
+
+
+class Joining:
+    """How an agent that joins asks the DMO for its clock until it answers: each query waits ``wait`` for the answer,
+    ``first_s`` at first. A query that waited all that time unanswered found the DMO there but busy (a thousand agents
+    joining): the next one waits twice as long, up to ``max_s``. One that found nobody at once found it not up yet:
+    the next one goes after ``pause_s``. The agent gives up ``idle_s`` after it began (``since``). Pure: given the
+    time."""
+
+    def __init__(self, idle_s: float, since: float, first_s: float, max_s: float, pause_s: float):
+        self.deadline, self.wait, self.max_s, self.pause_s = since + idle_s, first_s, max_s, pause_s
+
+    def unanswered(self, asked: float, now: float) -> float | None:
+        """The query asked at ``asked`` had no answer by ``now``: how long to pause before the next one, or None to
+        give up."""
+        if now >= self.deadline:
+            return None
+        if now - asked >= self.wait:
+            self.wait = min(2 * self.wait, self.max_s)
+            return 0.0
+        return self.pause_s
 
 
 class Delivery:

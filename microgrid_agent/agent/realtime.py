@@ -93,7 +93,7 @@ class Operator:
     """Operates one microgrid through a realised day. ``first_stage`` is ``model.first_stage_of(schedule)``;
     ``realised`` and ``forecast`` are one-scenario sets at ``subperiods`` (``forecast`` defaults to the exact
     expected forecast, grid-connected); ``p_sch`` (24,), ``penalty`` and ``deviation_cost`` (the announced rule's,
-    if the model carries it: ``process.award_params``) are the award's."""
+    if the model carries it: ``machine.award_params``) are the award's."""
 
     def __init__(self, case: Case, first_stage: dict, p_sch: Sequence[float], penalty: float, subperiods: int,
                  realised: ScenarioSet, forecast: ScenarioSet | None = None, time_limit: float | None = None,

@@ -12,7 +12,7 @@ import pytest
 from messages import BidStep, Registration, decode, encode
 from messages.schemas import MAX_BID_STEPS, SCHEMA_VERSION, Award
 from microgrid_agent.agent.bidding import bid_curve
-from microgrid_agent.agent.process import AgentConfig, MicrogridAgent
+from microgrid_agent.agent.machine import AgentConfig, AgentMachine
 from microgrid_agent.agent.strategies import (NO_BID, DayLearned, Microgrid, StrategyError, checked_curve,
                                               choose_strategy, make_strategy, net_load, strategy_name, trial_call)
 from microgrid_agent.instance import Instance
@@ -84,34 +84,14 @@ def test_naive_bids_the_forecast_net_load_at_the_iso_price(paper):
 def test_the_default_strategy_bids_exactly_what_bid_curve_gave(paper):
     """The agent's bid under the default strategy, as it goes on the wire, is byte for byte the bid the agent sent
     before strategies: bid_curve at the call's ISO price, the day's seed and the agent's gap."""
-    bus = _Bus()
-    config = agent_config(seed=7, gap=0.02)
-    agent = MicrogridAgent(bus, paper, config, DAY)
-    try:
-        call = trial_call(paper).model_copy(update={"market_day": DAY})
-        agent._bid(call)
-    finally:
-        agent.delivery.close()
-    (sent,) = bus.sent
+    agent = AgentMachine("mg1", paper, agent_config(seed=7, gap=0.02), DAY)
+    call = trial_call(paper).model_copy(update={"market_day": DAY})
+    (send,) = agent.handle(call)
+    sent = send.msg
     before = bid_curve(paper, np.asarray(call.iso_price_per_mwh), seed=day_seed(7, 1), gap=0.02)
     assert agent.strategy.label == "price-response"
     assert encode(sent) == encode(sent.model_copy(update={"hours": before}))
     assert sent.hours == before and sum(map(len, before)) > HOURS  # a curve of several steps, not a trivial one
-
-
-class _Bus:
-    """What an agent's bid needs of its bus: a name, and a publish that keeps what was sent."""
-
-    name = "mg1"
-
-    def __init__(self):
-        self.sent = []
-
-    def publish(self, msg, before_put=None):
-        self.sent.append(msg)
-
-    def republish(self, key, payload):
-        raise AssertionError("nothing is sent again here")
 
 
 # --- strategies of one's own, for the tests below (``tests.microgrid_agent.test_strategies:Class``) ---------------
@@ -243,14 +223,10 @@ def test_checked_curve_takes_any_sequences_of_bid_steps_as_tuples():
 # --- the agent with a strategy that fails on a day -----------------------------------------------------------------
 
 def test_an_agent_whose_strategy_fails_bids_nothing_that_day_says_why_and_observes_on(paper, caplog):
-    bus = _Bus()
-    agent = MicrogridAgent(bus, paper, agent_config(), DAY, make_strategy(strategy_name(f"{HERE}:Raises")))
-    try:
-        with caplog.at_level(logging.WARNING, "dmosim.agent"):
-            agent._bid(trial_call(paper).model_copy(update={"market_day": DAY}))
-    finally:
-        agent.delivery.close()
-    (sent,) = bus.sent
+    agent = AgentMachine("mg1", paper, agent_config(), DAY, make_strategy(strategy_name(f"{HERE}:Raises")))
+    with caplog.at_level(logging.WARNING, "dmosim.agent"):
+        (send,) = agent.handle(trial_call(paper).model_copy(update={"market_day": DAY}))
+    sent = send.msg
     assert sent.hours == NO_BID and agent._bid_sent
     (said,) = caplog.records  # why, in one warning: which strategy, and what it raised
     assert said.levelname == "WARNING" and f"{HERE}:Raises" in said.getMessage()
@@ -258,13 +234,9 @@ def test_an_agent_whose_strategy_fails_bids_nothing_that_day_says_why_and_observ
 
 
 def test_the_agent_tells_its_strategy_the_day_it_bid(paper):
-    bus = _Bus()
-    agent = MicrogridAgent(bus, paper, agent_config(), DAY, make_strategy(strategy_name(f"{HERE}:Flat:mw=2")))
-    try:
-        agent._bid(trial_call(paper).model_copy(update={"market_day": DAY}))
-        agent._observe()  # no award came: the strategy learns its bid and no prices
-    finally:
-        agent.delivery.close()
+    agent = AgentMachine("mg1", paper, agent_config(), DAY, make_strategy(strategy_name(f"{HERE}:Flat:mw=2")))
+    agent.handle(trial_call(paper).model_copy(update={"market_day": DAY}))
+    agent._observe()  # no award came: the strategy learns its bid and no prices
     assert agent.strategy.strategy.seen == [None]
     learned = DayLearned(1, DAY, NO_BID, None, None, None)
     assert learned.clearing_prices is None
@@ -294,13 +266,10 @@ def test_each_days_schedule_starts_from_the_one_before(paper, monkeypatch):
         return schedule
 
     monkeypatch.setattr(Instance, "solve", spy)
-    agent = MicrogridAgent(_Bus(), paper, agent_config(), DAY)
-    try:
-        for day in (1, 2):
-            agent.day = day
-            agent._schedule(Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=tuple(paper.grid.p_sch),
-                                  clearing_price_per_mwh=(50.0,) * HOURS, penalty_per_mwh=150.0, subperiods=1,
-                                  rules_version=1, rules="paper"))
-    finally:
-        agent.delivery.close()
+    agent = AgentMachine("mg1", paper, agent_config(), DAY)
+    for day in (1, 2):
+        agent.day = day
+        agent._schedule(Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=tuple(paper.grid.p_sch),
+                              clearing_price_per_mwh=(50.0,) * HOURS, penalty_per_mwh=150.0, subperiods=1,
+                              rules_version=1, rules="paper"))
     assert starts[0] is None and starts[2] is starts[1]

@@ -522,7 +522,8 @@ def test_an_agent_the_run_restarts_is_waited_for_while_its_new_process_starts(ba
 def test_an_agent_that_may_not_join_is_told_why_and_exits_1(tmp_path):
     from dmosim.experiment.spec import Experiment  # noqa: PLC0415
     from dmosim.launch.roles import agent_config, member_of  # noqa: PLC0415
-    from microgrid_agent.agent.process import AgentRefused, MicrogridAgent  # noqa: PLC0415
+    from microgrid_agent.agent.machine import AgentRefused  # noqa: PLC0415
+    from microgrid_agent.agent.process import MicrogridAgent  # noqa: PLC0415
     from scenarios.case import load_case  # noqa: PLC0415
 
     reached = threading.Event()
