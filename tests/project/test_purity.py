@@ -11,7 +11,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 PURE = ("dmo.market", "dmo.market.acflow", "dmo.market.acceptance", "dmo.market.distflow", "dmo.market.settlement",
-        "microgrid_agent.model", "microgrid_agent.agent.bidding", "messages", "messages.schemas")
+        "microgrid_agent.model", "microgrid_agent.agent.bidding", "microgrid_agent.agent.machine", "messages",
+        "messages.schemas")
 HEAVY = ("zenoh", "matplotlib")
 
 pytestmark = pytest.mark.slow  # only a fresh interpreter can say what an import loads
