@@ -1,11 +1,14 @@
-"""The wall time of a whole market day as processes, split into the agents' computation and protocol overhead.
+"""The wall time of a whole market day as processes, split into the agents' computation and protocol overhead, and
+beside it the same day in one process (``--hosting in-process``).
 
 For each N, ``dmosim run --agents N`` runs a day of small agents; the DMO reports the wall time of each phase
 (``phase_s``) and each agent reports, after its last meter report of the day, the wall and CPU time of every message
 it handled, when it took it up and how long it waited for its turn (the ``compute`` of its ``agent_day`` message,
 which the DMO's result gives under ``realised``). The split is ``split_day``: the time in which at least one agent
 computed is the agents' computation, and the rest of the day, when none did and the day waited on messages and the
-DMO, is the overhead (definition in docs/benchmarks.md).
+DMO, is the overhead (definition in docs/benchmarks.md). The same day then runs in one process, and ``speedup`` is
+the command's wall time as processes over its wall time in one process; ``--experiment FILE`` measures an
+experiment file the same two ways (e.g. examples/week.toml).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
 from ..console import stopping_on_terminate
-from ..experiment.spec import HOSTINGS, Agents
+from ..experiment.spec import HOSTINGS, IN_PROCESS, Agents
 from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
 
 GOAL_PCT = 5.0
@@ -42,30 +45,44 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--time-limit", type=nonneg_float, default=120.0, help="seconds per agent solve (default: 120)")
     parser.add_argument("--timeout", type=nonneg_float, default=1800.0,
                         help="seconds one day may take before the bench stops it (default: 1800)")
+    parser.add_argument("--experiment", action="append", default=[], metavar="FILE",
+                        help="also run this experiment file as processes and in one process, side by side "
+                             "(repeatable; e.g. examples/week.toml)")
 
 
 def run(args) -> dict:
     cores = os.cpu_count() or 1
-    rows, phases, notes = [], [], []
+    rows, phases, notes, files = [], [], [], []
     for n in args.agents:
-        day = run_and_read(["--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods",
-                            str(args.subperiods), "--gap", repr(args.gap), "--time-limit", repr(args.time_limit),
-                            "--no-record"], args.timeout)
+        flags = ["--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
+                 "--gap", repr(args.gap), "--time-limit", repr(args.time_limit), "--no-record"]
+        day = run_and_read(flags, args.timeout)
+        one = run_and_read([*flags, "--hosting", IN_PROCESS], args.timeout)
         split = split_day(day["result"]["phase_s"], day["compute"], cores)
         incidents = day["result"].get("incidents", [])
-        rows.append({"agents": n, "process_s": day["process_s"], **split["totals"], "incidents": len(incidents)})
+        rows.append({"agents": n, "process_s": day["process_s"], "in_process_s": one["process_s"],
+                     "speedup": day["process_s"] / one["process_s"], **split["totals"], "incidents": len(incidents)})
         phases += [{"agents": n, **row} for row in split["phases"]]
         if incidents:
             notes.append(f"N={n}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
                          "every agent answered every step")
+        if one["result"]["settlement"] != day["result"]["settlement"]:
+            notes.append(f"N={n}: the statements in one process differ from those of the processes")
+    for path in args.experiment:
+        day, one = run_and_read([path], args.timeout), run_and_read([path, "--hosting", IN_PROCESS], args.timeout)
+        files.append({"experiment": path, "process_s": day["process_s"], "in_process_s": one["process_s"],
+                      "speedup": day["process_s"] / one["process_s"],
+                      "same_statements": one["result"]["settlement"] == day["result"]["settlement"]})
     largest = max(rows, key=lambda r: r["agents"])
     return {
         "setup": {"agents": "paper case, fleet of dmosim run (scaled and shifted copies)",
                   "scenarios": args.scenarios, "subperiods": args.subperiods, "gap": args.gap,
-                  "recording": "off (--no-record)",
+                  "recording": "off (--no-record); experiment files as they say",
+                  "speedup": "the command's wall time as processes over its wall time with --hosting in-process",
                   "machine": f"{cores} cores shared with other work: one run per N, noisy; with N > {cores} "
                              f"the agents share {cores} cores, so their compute times include waiting for a core"},
         "days": rows,
+        **({"experiments": files} if files else {}),
         "phases": phases,
         "goal": {"agents": largest["agents"], "overhead_pct": largest["overhead_pct"], "target_pct": GOAL_PCT,
                  "met": largest["overhead_pct"] <= GOAL_PCT},

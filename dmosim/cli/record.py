@@ -5,14 +5,14 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import logging
-import mimetypes
 import signal
 import threading
 import time
 from pathlib import Path
 
 from messages.keys import check_run_id
-from messages.recording import BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, Recorder, RecordingWriter
+from messages.recording import (BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, Recorder, RecordingWriter,
+                                read_attachments)
 from messages.transport import Bus
 
 from ..arguments import nonneg_float, positive_int
@@ -54,24 +54,6 @@ def parse_meta(items: list[str]) -> dict[str, str]:
     return meta
 
 
-def read_attachments(paths: list[str]) -> list[tuple[str, str, bytes]]:
-    out, names = [], set()
-    for path in paths:
-        p = Path(path)
-        try:
-            data = p.read_bytes()
-        except OSError as exc:
-            raise UsageError(f"--attach {path}: {exc.strerror or exc}") from None
-        name, n = p.name, 1
-        while name in names:  # two files of the same name from different directories
-            n += 1
-            name = f"{p.stem}-{n}{p.suffix}"
-        names.add(name)
-        media = "application/toml" if p.suffix == ".toml" else mimetypes.guess_type(p.name)[0] or "application/octet-stream"
-        out.append((name, media, data))
-    return out
-
-
 def run(args) -> int:
     setup_logging("recorder", args.quiet)
     try:
@@ -79,7 +61,11 @@ def run(args) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     out = recording_path(args.out, args.overwrite)
-    meta, attachments = parse_meta(args.meta), read_attachments(args.attach)
+    meta = parse_meta(args.meta)
+    try:
+        attachments = read_attachments(args.attach)
+    except OSError as exc:
+        raise UsageError(f"--attach {exc.filename}: {exc.strerror or exc}") from None
     config = bus_config(args, "client", "recorder")  # a reader of another name logs in and announces as --user
 
     stop = threading.Event()

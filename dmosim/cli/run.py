@@ -23,8 +23,8 @@ from scenarios.network import NETWORKS
 
 from ..console import Progress, UsageError, print_json, stop_on_terminate
 from ..experiment.rundir import RunDir, RunDirError
-from ..experiment.spec import (FLAGS, Experiment, ExperimentError, load_experiment, parse_experiment, settled_by,
-                               with_settings)
+from ..experiment.spec import (FLAGS, IN_PROCESS, Experiment, ExperimentError, load_experiment, parse_experiment,
+                               settled_by, with_settings)
 from ..launch.cluster import Cluster
 from ..launch.faults import Fault, parse_fault
 from .placement import add_cluster_flag, check_cluster, check_shared, connected
@@ -53,6 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run again the experiment that a recording, or a run directory, of dmosim run holds (flags override it)")
     setting = p.add_argument_group("the experiment (each overrides the file; default: the file's, else shown)")
     add_setting_flags(setting, FLAGS)
+    setting.add_argument("--in-process", dest=FLAGS["agents.hosting"], action="store_const", const=IN_PROCESS,
+                         help=f"the same as --hosting {IN_PROCESS}: the whole market in this process, no network")
     setting.add_argument("--fault", action="append", metavar="SPEC", help=FAULT_HELP)
     out = p.add_argument_group("output")
     out.add_argument("--out", metavar="DIR", help="the run directory (default: runs/<run_id>)")
@@ -242,6 +244,9 @@ def _check_placement(args, experiment: Experiment, fleet) -> None:
     if args.advertise is not None and not re.fullmatch(r"[A-Za-z0-9.:_-]{1,253}", args.advertise):
         raise UsageError(f"--advertise {args.advertise!r}: expected a host name or an IP address")
     check_cluster(args)
+    if experiment.agents.hosting == IN_PROCESS and (args.cluster or args.tls):
+        raise UsageError(f"--{'cluster' if args.cluster else 'tls'}: hosting \"{IN_PROCESS}\" runs every role in this "
+                         "process, with no network")
     agents = {m.id for m in fleet}
     remote = [f for f in map(parse_fault, experiment.faults) if isinstance(f, Fault) and f.agent in agents]
     if args.cluster and remote:

@@ -56,7 +56,10 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
             "how the agents' processes start: process, each a Python of its own; fork, forked from one process that "
             "has loaded their code, which they share (less memory and start-up for large fleets: docs/benchmarks.md, "
             f"\"Hosting agents\"); auto, process up to {PROCESSES_UP_TO} agents, else fork, at most "
-            f"{FORKED_PROCESSES} processes of agents; the results are the same (default: {default.agents.hosting})"))),
+            f"{FORKED_PROCESSES} processes of agents; in-process, the DMO, every agent and the recorder in this one "
+            "process with no network, on the logical clock, several times faster, without faults, routers or "
+            "agents of other languages (docs/experiments.md, \"In one process\"); the results are the same "
+            f"(default: {default.agents.hosting})"))),
         "agents.per_process": ("--per-process", dict(type=integer(1, MAX_AGENTS), metavar="K", help=(
             "with --hosting fork, K agents in each forked process, a thread each: the pages a process copies from "
             "the host are paid once per K agents; an agent a kill or restart fault names runs alone "

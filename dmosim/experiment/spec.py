@@ -43,8 +43,10 @@ MAX_FAULT_SPEC = 200       # one fault as written
 MAX_NAME = 100             # an experiment's name: part of a sweep's directory name
 MAX_VOLTAGE_MARGIN = 0.1   # p.u. kept inside a bus's voltage limits: a tenth of nominal, twice ANSI's whole band
 # How the agents run (dmosim/launch/local.py): each a Python process of its own, or forked from one process that has
-# imported their code, sharing its memory. The market's results are the same either way.
-HOSTINGS = ("auto", "process", "fork")
+# imported their code, sharing its memory; or, with the DMO and the recorder, in the launcher's own process, with no
+# network (dmosim/launch/inprocess.py). The market's results are the same every way.
+IN_PROCESS = "in-process"
+HOSTINGS = ("auto", "process", "fork", IN_PROCESS)
 
 
 class ExperimentError(ValueError):
@@ -220,6 +222,20 @@ class Experiment(_Section):
         if self.network.feeder is not None and self.market.mode == "fixed":
             raise ValueError("network.feeder: a feeder is cleared from bids; market.mode \"fixed\" publishes given "
                              "awards and clears nothing")
+        return self
+
+    @model_validator(mode="after")
+    def _in_one_process(self):
+        """A market in one process has no network and no processes to fault, and runs on the logical clock."""
+        if self.agents.hosting != IN_PROCESS:
+            return self
+        if self.faults:
+            raise ValueError(f"faults: hosting \"{IN_PROCESS}\" has no processes to kill and no network to lose "
+                             "messages on; run the faults as processes")
+        if self.agents.routers:
+            raise ValueError(f"agents.routers: hosting \"{IN_PROCESS}\" has no network")
+        if self.deadlines.clock != LOGICAL:
+            raise ValueError(f"deadlines.clock: hosting \"{IN_PROCESS}\" runs on the logical clock only")
         return self
 
     @field_validator("name")

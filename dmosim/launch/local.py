@@ -38,7 +38,7 @@ from scenarios.case import case_path
 from scenarios.fleet import FleetMember
 
 from ..experiment.rundir import RunDir
-from ..experiment.spec import MAX_SECONDS, Experiment, load_experiment, to_toml
+from ..experiment.spec import IN_PROCESS, MAX_SECONDS, Experiment, load_experiment, to_toml
 from ..results.journaled import journal_recording
 from ..results.verdict import problems, verdict
 from .cluster import Cluster, RemoteAgents, endpoint
@@ -63,6 +63,7 @@ AGENT_MODULES = ("dmosim.cli.main", "dmosim.cli.agent", "microgrid_agent.agent.p
 # vanished. A killed agent's link closes at once, whatever the lease; a live one that is starved of a core for a
 # moment must not be called gone: with 1 s, 200 agents bidding at once on 2 cores all vanished within 10 s.
 AGENT_LEASE_S = 10.0
+IN_PROCESS_LOG = "market.log"  # with hosting = "in-process", the log of the DMO and every agent
 HOST = "_host"  # the host of forked agents: its log, its line of memory_mib (no agent id starts with "_")
 
 
@@ -126,13 +127,34 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     clock (``dmosim.console.Progress.update``); without it, ``say`` gets a line per clock message."""
     e = experiment
     fleet = fleet_of(e)
-    parsed = [parse_fault(f) for f in e.faults]
-    faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     began = time.monotonic()
-    starting_s = STARTING_S[e.deadlines.clock]
     hosting, per_process = hosting_of(e.agents, len(fleet), cluster is not None)  # the run directory's experiment
     e = e.model_copy(update={"agents": e.agents.model_copy(update={"hosting": hosting, "per_process": per_process})})
     rundir.experiment.write_text(to_toml(e))
+    if hosting == IN_PROCESS:
+        from .inprocess import run_in_process  # noqa: PLC0415  (the solver stack: the launcher of processes needs none)
+
+        say(f"run {run_id}: DMO and {len(fleet)} agents in this process, {e.days} day(s) from {e.market_day}; "
+            f"writing to {rundir.root}" + ("" if record else "; not recording"))
+        tick = tick or (lambda done, total, text: say(text))
+        result = run_in_process(e, run_id, record, recording_inputs(e, fleet, rundir), rundir.logs / IN_PROCESS_LOG,
+                                lambda clock: tick(*progress_of(clock)))
+        result.update(wall_s=round(time.monotonic() - began, 3), run_dir=str(rundir.root.resolve()),
+                      logs=str(rundir.logs.resolve()), recording=str(record.resolve()) if record else None)
+        return concluded(result, e, run_id, rundir, record, repeat_of=repeat_of, say=say)
+    return _as_processes(e, run_id, rundir, record, tls, repeat_of, say, tick, cluster, began)
+
+
+def _as_processes(e: Experiment, run_id: str, rundir: RunDir, record: Path | None, tls: bool,
+                  repeat_of: str | Path | None, say: Callable[[str], None],
+                  tick: Callable[[int, int, str], None] | None, cluster: Cluster | None, began: float) -> dict:
+    """The run as processes over Zenoh (``run_locally``)."""
+    fleet = fleet_of(e)
+    parsed = [parse_fault(f) for f in e.faults]
+    faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
+    starting_s = STARTING_S[e.deadlines.clock]
+    hosting = e.agents.hosting
+    per_process = e.agents.per_process
     names = router_names(e.agents.routers)  # none: the DMO is the router
     tls = tls or len(names) > 1  # routers of a mesh relay for one another over mutual TLS only
     port, scheme = free_port(), "tls" if tls else "tcp"
@@ -217,13 +239,23 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
             **{m.id: names[router_of[m.id]] for m in fleet}}}
     if remote is not None:
         result["cluster"] = {"scheduler": cluster.address, "dmo": reach, "agents": remote.placed}
+    return concluded(result, e, run_id, rundir, record, recorder, repeat_of, say)
+
+
+def concluded(result: dict, e: Experiment, run_id: str, rundir: RunDir, record: Path | None,
+              recorder: str | None = None, repeat_of: str | Path | None = None,
+              say: Callable[[str], None] = lambda text: None) -> dict:
+    """The run's ``result`` (the DMO's, with what the launcher adds) concluded: what the recording holds, its
+    tables and figure, its re-settlement, the comparison with the run it repeats, and the verdict, written to the
+    run directory. ``recorder``: how the recorder failed (None: it did not)."""
+    fleet = fleet_of(e)
     # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.
     rec, complete = None, False
     if record:
         rec, result["recorded"] = _recorded(record, recorder)
         complete = result["recorded"]["complete"]
     if record or repeat_of is not None:
-        said = rec if complete else journal_recording(logs / "dmo.journal", run_id, _run_metadata(e, fleet))
+        said = rec if complete else journal_recording(rundir.logs / "dmo.journal", run_id, _run_metadata(e, fleet))
         if repeat_of is not None:
             result["reproduced"] = reproduction(repeat_of, said, say)
         if record and said.messages:
@@ -271,8 +303,15 @@ def _run_metadata(experiment: Experiment, fleet: list[FleetMember]) -> dict[str,
 
 
 def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir: RunDir) -> list[str]:
-    """The recorder's --meta and --attach flags: the run's metadata, and the resolved experiment (so that the
-    recording can be run again), the case and fleet files as attachments."""
+    """The recorder's --meta and --attach flags (``recording_inputs``)."""
+    meta, paths = recording_inputs(experiment, fleet, rundir)
+    flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
+    return flags + [flag for path in paths for flag in ("--attach", path)]
+
+
+def recording_inputs(experiment: Experiment, fleet: list[FleetMember], rundir: RunDir) -> tuple[dict, list[str]]:
+    """What a recording of the run holds besides its messages: the run's metadata, and the files it attaches (the
+    resolved experiment, so that the recording can be run again, the case and fleet files)."""
     meta = _run_metadata(experiment, fleet)
     fleet_file = rundir.logs / "fleet.toml"
     fleet_file.write_text("".join(f"[[agents]]\nid = {json.dumps(m.id)}\ncase = {json.dumps(m.case)}\n"
@@ -283,8 +322,7 @@ def _recording_metadata(experiment: Experiment, fleet: list[FleetMember], rundir
     cases = sorted({str(p) for p in map(case_path, [experiment.market.case, *(m.case for m in fleet)]) if p.is_file()})
     feeder = experiment.network.feeder
     cases += [feeder] if feeder is not None and Path(feeder).is_file() else []  # a network file goes with its run
-    flags = [flag for k, v in meta.items() for flag in ("--meta", f"{k}={v}")]
-    return flags + [flag for path in [str(rundir.experiment), *cases, str(fleet_file)] for flag in ("--attach", path)]
+    return meta, [str(rundir.experiment), *cases, str(fleet_file)]
 
 
 def _write_results(rec: Recording, rundir: RunDir, run_id: str) -> dict:
@@ -426,6 +464,13 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Ite
     return []
 
 
+def progress_of(clock: Clock) -> tuple[int, int, str]:
+    """Where a clock message says the run is: hours done, hours in all, and in words."""
+    done = HOURS * clock.day if clock.phase == "settlement" else HOURS * (clock.day - 1) + (clock.hour or 1) - 1
+    day = f"day {clock.day}/{clock.days}, " if clock.days > 1 else ""
+    return done, HOURS * clock.days, f"{day}phase {clock.phase}" + (f", hour {clock.hour}/24" if clock.hour else "")
+
+
 class _Watch:
     """What the run shows of the DMO's clock and the agents' schedules, and the process faults it fires on the clock.
 
@@ -461,9 +506,9 @@ class _Watch:
             self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
-            done = 24 * msg.day if msg.phase == "settlement" else 24 * (msg.day - 1) + (msg.hour or 1) - 1
-            self.hours = (done, 24 * msg.days)
-            self.tick(*self.hours, f"{self.day}phase {msg.phase}" + (f", hour {msg.hour}/24" if msg.hour else ""))
+            done, total, text = progress_of(msg)
+            self.hours = (done, total)
+            self.tick(done, total, text)
             for f in self.faults:
                 if msg.phase == "realtime" and (msg.day, msg.hour) == (f.day, f.hour) and f not in self.fired:
                     self.fired.add(f)

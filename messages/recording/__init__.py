@@ -7,8 +7,8 @@ from .layout import BACKFILL_METADATA, CHUNK_MESSAGES, FLUSH_INTERVAL_S, INVALID
 from .player import Player, PlayStats, select
 from .reader import ChannelInfo, RecordedMessage, Recording, RecordingError, read_recording
 from .recorder import Recorder
-from .writer import RecordingWriter
+from .writer import RecordingWriter, read_attachments
 
 __all__ = ["BACKFILL_METADATA", "CHUNK_MESSAGES", "FLUSH_INTERVAL_S", "INVALID_KEY", "METADATA_NAME", "ChannelInfo", "PlayStats", "Player",
            "RecordedMessage", "Recorder", "Recording", "RecordingError", "RecordingWriter", "content_signature",
-           "read_recording", "select", "versions"]
+           "read_attachments", "read_recording", "select", "versions"]

@@ -12,6 +12,7 @@ import collections
 import datetime as _dt
 import hashlib
 import json
+import mimetypes
 import os
 import tempfile
 import time
@@ -182,6 +183,23 @@ class RecordingWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def read_attachments(paths: Iterable[str | os.PathLike]) -> list[tuple[str, str, bytes]]:
+    """The files ``paths`` as attachments (name, media type, bytes) for ``RecordingWriter.start``: each by its file
+    name, made unique where two from different directories share one. A file that cannot be read is an OSError."""
+    out, names = [], set()
+    for path in paths:
+        p = Path(path)
+        data = p.read_bytes()
+        name, n = p.name, 1
+        while name in names:
+            n += 1
+            name = f"{p.stem}-{n}{p.suffix}"
+        names.add(name)
+        media = "application/toml" if p.suffix == ".toml" else mimetypes.guess_type(p.name)[0] or "application/octet-stream"
+        out.append((name, media, data))
+    return out
 
 
 class WrittenChunkIndex:

@@ -60,6 +60,8 @@ def test_day_runs_end_to_end(capsys):
     assert row["day_s"] > 0 and row["compute_s"] > 0 and row["startup_s"] > 0 and row["agent_cpu_s"] > 0
     assert math.isclose(row["overhead_s"], row["day_s"] - row["compute_s"])
     assert row["process_s"] > row["day_s"]
+    assert row["in_process_s"] > 0 and math.isclose(row["speedup"], row["process_s"] / row["in_process_s"])
+    assert "notes" not in out  # the statements in one process are those of the processes
     assert [p["phase"] for p in out["phases"]] == ["bidding", "clearing", "scheduling", "realtime", "settlement"]
     assert math.isclose(sum(p["wall_s"] for p in out["phases"]), row["day_s"])
     assert out["goal"]["agents"] == 1 and out["goal"]["target_pct"] == 5.0

@@ -41,7 +41,7 @@ def test_every_key_has_a_default_and_the_resolved_file_reads_back_the_same():
     ({"market": {"import_curve": [[1.0, 0.0]], "mode": "fixed"}}, "market: import_curve and"),
     ({"deadlines": {"clock": "sundial"}}, "deadlines.clock: Input should be 'logical' or 'wall'"),
     ({"schedule": {"time_limit": 0}}, "schedule.time_limit: Input should be greater than 0"),
-    ({"agents": {"hosting": "cloud"}}, "agents.hosting: Input should be 'auto', 'process' or 'fork'"),
+    ({"agents": {"hosting": "cloud"}}, "agents.hosting: Input should be 'auto', 'process', 'fork' or 'in-process'"),
 ])
 def test_a_bad_experiment_is_one_line_naming_the_key(data, message):
     with pytest.raises(ExperimentError) as err:

@@ -1,0 +1,55 @@
+"""A market in one process (``agents.hosting = "in-process"``, dmosim/launch/inprocess.py): the DMO's machine, the
+agents' machines and the recorder driven with no network and no process, so it runs in the fast tier. What the
+processes give it gives too: tests/system/test_determinism.py compares the two on one experiment."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from dmosim.cli import main
+from dmosim.experiment.spec import parse_experiment
+from dmosim.launch.local import run_experiment
+from messages.recording import read_recording
+
+TINY = {"seed": 3, "market_day": "2026-07-01", "agents": {"count": 2, "hosting": "in-process"},
+        "market": {"subperiods": 1}, "schedule": {"scenarios": 1, "gap": 0.05}}
+
+
+@pytest.fixture(scope="module")
+def day(tmp_path_factory):
+    out = tmp_path_factory.mktemp("in-process") / "run"
+    return run_experiment(parse_experiment(TINY), out)
+
+
+def test_a_day_in_one_process_settles_and_its_recording_re_settles_identically(day):
+    assert day["verdict"]["ok"], day["verdict"]
+    assert day["recorded"]["complete"] and day["recorded"]["resettled"] == {"identical": True, "differences": []}
+    rec = read_recording(day["recording"])
+    statements = {msg.agent: msg.total for _, msg in rec.decoded("settlement_statement")}
+    assert statements == {a: day["settlement"][a]["total"] for a in ("mg1", "mg2")}
+    # every agent operated its day and said so: 24 meter reports each, and its realised day
+    assert sorted(msg.sender for _, msg in rec.decoded("meter_report")) == ["mg1"] * 24 + ["mg2"] * 24
+    assert [d["market_day"] for d in day["realised"]["mg1"]] == ["2026-07-01"]
+    # each message once: nothing is lost, so nothing is sent again
+    assert day["realised"]["mg1"][0]["messages"]["sent_again"] == 0 and day["received_again"] == 0
+
+
+def test_the_run_directory_holds_what_a_run_of_processes_gives(day):
+    run_dir = day["run_dir"]
+    assert json.loads(open(f"{run_dir}/result.json").read())["verdict"] == day["verdict"]
+    assert "in-process" in open(f"{run_dir}/experiment.toml").read()
+    assert open(f"{run_dir}/logs/market.log").read()  # the roles' log, one for the whole market
+
+
+@pytest.mark.parametrize("flags, says", [
+    (["--fault", "kill:mg1:3"], "has no processes to kill and no network to lose messages on"),
+    (["--routers", "2"], "agents.routers: hosting \"in-process\" has no network"),
+    (["--clock", "wall"], "deadlines.clock: hosting \"in-process\" runs on the logical clock only"),
+    (["--tls"], "--tls: hosting \"in-process\" runs every role in this process"),
+])
+def test_what_needs_processes_or_a_network_is_refused_in_one_line(flags, says, capsys):
+    assert main(["run", "--in-process", *flags, "--check"]) == 2
+    err = capsys.readouterr().err
+    assert says in err and err.count("\n") == 1, err
