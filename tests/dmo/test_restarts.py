@@ -1,13 +1,13 @@
 """Restarts of the DMO and of agents, in any order and phase, across midnight, with messages and receipts lost: a
-property test over random schedules of them, driving the DMO's own decisions (``intake.receive`` and each phase's
-rule, the replay guard, ``rejoin``, the journal and ``journal.restore``) without a network.
+property test over random schedules of them, driving the DMO's own machine (``dmo/operator/machine.py``) without a
+network; a DMO restart is a new machine on the journal the old one's actions wrote.
 
 The simulated agents behave as dmosim's do (docs/protocol.md): every payload is sent again, the same bytes, until
 its receipt comes; a process sends nothing before its registration's receipt; a restarted process registers again
-and answers what the DMO sends it on rejoining (``rejoin.resend_plan``). A restart is instantaneous here (the new
-process is up within the same step), so every agent is up for every hour: no agent is ever locked out, every hour
-of every agent is settled from the report its process metered, nothing its processes sent is refused but what a
-process that is gone sent, and a resumed DMO holds everything it had receipted.
+and answers what the DMO sends it on rejoining. A restart is instantaneous here (the new process is up within the
+same step, and the DMO sees no presence change), so every agent is up for every hour: no agent is ever locked out,
+every hour of every agent is settled from the report its process metered, nothing its processes sent is refused but
+what a process that is gone sent, and a resumed DMO holds everything it had receipted.
 """
 
 from __future__ import annotations
@@ -20,24 +20,32 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from dmo.operator import intake, rejoin
-from dmo.operator.journal import Journal, accepted_entry, clock_entry, restore, run_token_entry
-from dmo.operator.state import DayState
-from messages import Bid, BidStep, GridState, MeterReport, Registration, Schedule, decode, encode, sha256
+from dmo.operator.actions import CheckPresence, Journaled, OpenWindow, Publish, Settled, Stop, Wait
+from dmo.operator.config import LOGICAL, DayConfig
+from dmo.operator.events import Dropped, Left, Present, Received, TimedOut
+from dmo.operator.journal import Journal
+from dmo.operator.machine import DmoMachine
+from messages import (Award, Bid, BidStep, CallForBids, Clock, GridState, MeterReport, Receipt, Registration,
+                      Schedule, decode, encode, sha256)
 
 DAYS = ("2026-07-01", "2026-07-02")
-HOURS = 3  # real-time hours simulated per day (the DMO's rules take any hour 1..24)
+HOURS = 24
 AGENTS = ("mg1", "mg2")
 CAP = 10.0
 RUN_ID = "restarts"
+CONFIG = DayConfig(market_day=DAYS[0], agents=len(AGENTS), iso_price=(50.0,) * HOURS, import_limit=100.0,
+                   export_limit=100.0, penalty=150.0, credit=0.0, subperiods=1, islanded_hours=(),
+                   fixed_awards=(1.0,) * HOURS, registration_s=60.0, bids_s=60.0, schedule_s=60.0, hour_s=60.0,
+                   days=len(DAYS), clock=LOGICAL)
 
 
 def steps() -> list[tuple[int, str, int | None]]:
-    """The DMO's clock over the run: (day, phase, hour)."""
+    """The DMO's clock over the run where it waits for the agents: (day, phase, hour). (Clearing and settlement
+    wait for nobody: a restart right after midnight is one at the next day's bidding.)"""
     out = [(1, "registration", None)]
     for day in range(1, len(DAYS) + 1):
         out += [(day, "bidding", None), (day, "scheduling", None)]
-        out += [(day, "realtime", hour) for hour in range(1, HOURS + 1)] + [(day, "settlement", None)]
+        out += [(day, "realtime", hour) for hour in range(1, HOURS + 1)]
     return out
 
 
@@ -46,52 +54,57 @@ STEPS = steps()
 
 def metered(agent: str, day: int, hour: int) -> float:
     """What the agent meters in an hour, whichever of its processes operates it."""
-    return round((1 if agent == "mg1" else -1) * (0.5 * hour + day), 3)
+    return round((1 if agent == "mg1" else -1) * (0.1 * hour + day), 3)
 
 
 class Dmo:
-    """The DMO's state and journal, and the rule of the step it is in; a restart is a new Dmo on the journal."""
+    """The DMO's machine and its journal; a restart is a new Dmo on the journal. Its requests for presence and a
+    budget window are answered at once (every agent is up; nobody is over budget); ``give`` hands it an event and
+    returns what it published meanwhile."""
 
     def __init__(self, path: Path, token: str):
         self.journal = Journal(path, RUN_ID, DAYS[0])
-        self.state = DayState(market_day=DAYS[0])
-        self.resumed, self.finished = restore(self.state, self.journal.entries)
-        if not self.state.run_token:
-            self.state.run_token = token
-            self.journal.write(run_token_entry(token))
-        self.rule = None
+        self.machine = DmoMachine(CONFIG, token, self.journal.entries)
+        self.resumed = self.machine._resumed  # noqa: SLF001  (where the journal had the day: what the test checks)
+        self.clock: Clock | None = None
+        self.settled: list[dict] = []
+        self.published: list = []
+        self.request = self._do(self.machine.start(0.0))
 
-    def clock(self, day: int, phase: str, hour: int | None) -> None:
-        s = self.state
-        if day > s.day:
-            s.start_day(day, DAYS[day - 1])
-        s.phase, s.hour = phase, hour
-        self.journal.write(clock_entry(phase, hour, day, s.market_day))
-        self.rule = {"registration": lambda: intake.registration(s),
-                     "bidding": lambda: intake.first_of_each(s, s.bids),
-                     "scheduling": lambda: intake.first_of_each(s, s.schedules),
-                     "realtime": lambda: intake.meter_report(s, hour, 1, GridState(
-                         sender="dmo", market_day=s.market_day, hour=hour, subperiods=1, connected=(True,))),
-                     "settlement": lambda: intake.out_of_phase(s)}[phase]()
+    @property
+    def state(self):
+        return self.machine.state
 
-    def receive(self, key: str, payload: bytes) -> intake.Outcome:
-        outcome = intake.receive(self.state, decode(payload), sha256(payload), self.rule)
-        if outcome.taken:  # journaled before the receipt goes, as MarketDay does
-            self.journal.write(accepted_entry(key, payload))
-        return outcome
+    @property
+    def step(self) -> tuple[int, str, int | None]:
+        return self.clock.day, self.clock.phase, self.clock.hour
 
-    def waiting_for(self, phase: str, hour: int | None) -> list[str]:
-        """Who the step waits for (MarketDay's ``waiting_for``); the step ends when nobody."""
-        s = self.state
-        if phase == "registration":
-            return [a for a in AGENTS if a not in s.registered]
-        if phase == "bidding":
-            return [a for a in AGENTS if a not in s.bids]
-        if phase == "scheduling":
-            return [a for a in AGENTS if a not in s.schedules or a in s.rescheduling]
-        if phase == "realtime":
-            return [a for a in AGENTS if hour - 1 not in s.meter[a]]
-        return []
+    def give(self, event) -> list:
+        """Hand the machine ``event``; what it published meanwhile."""
+        start = len(self.published)
+        self.request = self._do(self.machine.handle(event, 0.0))
+        return self.published[start:]
+
+    def _do(self, actions):
+        while True:
+            *done, request = actions
+            for action in done:
+                if isinstance(action, Publish):
+                    self.published.append(action.msg)
+                    if isinstance(action.msg, Clock):
+                        self.clock = action.msg
+                elif isinstance(action, Journaled):
+                    self.journal.write(action.entry)
+                elif isinstance(action, Settled):
+                    self.settled.append(action.report)
+            if isinstance(request, OpenWindow):
+                actions = self.machine.handle(Dropped({}), 0.0)
+            elif isinstance(request, CheckPresence):
+                actions = self.machine.handle(Present(frozenset(request.names)), 0.0)
+            elif isinstance(request, Wait) and request.until == -float("inf"):
+                actions = self.machine.handle(TimedOut(), 0.0)  # nothing is queued: the agents send as they step
+            else:
+                return request
 
 
 class Agent:
@@ -149,10 +162,10 @@ class Agent:
         if self.plan is None:
             return
         kinds, day, phase, hour = self.plan
-        if phase == "bidding" and rejoin.CALL_FOR_BIDS not in kinds:
+        if phase == "bidding" and "call_for_bids" not in kinds:
             self.answered.add((day, "bid"))
         if phase == "realtime":
-            if rejoin.GRID_STATE in kinds:
+            if "grid_state" in kinds:
                 self.answer(day, phase, hour)
             self.answered.add((day, hour))
 
@@ -165,17 +178,21 @@ def deliver(agent: Agent, dmo: Dmo, lost) -> None:
             continue  # nothing before the registration's receipt
         if next(lost):
             continue  # lost on the way: sent again next round
-        outcome = dmo.receive(key, payload)
-        if outcome.what == intake.REFUSED:
-            agent.refused.append(f"{msg.kind} #{msg.seq}: {outcome.refusal}")
-        if outcome.what == intake.REJOINED:  # what the DMO sends it now, whether or not the receipt gets through
-            s = dmo.state
-            kinds, _ = rejoin.resend_plan(s, agent.name, s.phase in ("scheduling", "realtime"), s.phase == "realtime")
-            agent.plan = kinds, s.day, s.phase, s.hour
+        # a new process's registration of a registered agent (not a copy of the one taken)
+        rejoining = (isinstance(msg, Registration) and msg.sender in dmo.state.registered
+                     and msg.incarnation != dmo.state.guard.incarnation.get(msg.sender))
+        published = dmo.give(Received(f"dmosim/{RUN_ID}/{key}", msg, payload))
+        (receipt,) = [m for m in published if isinstance(m, Receipt) and m.payload_sha256 == sha]
+        if not receipt.accepted:
+            agent.refused.append(f"{msg.kind} #{msg.seq}: {receipt.code}: {receipt.reason}")
+        elif rejoining:  # what the DMO sent it on rejoining, whether or not the receipt gets through
+            kinds = {m.kind for m in published if isinstance(m, (CallForBids, GridState))
+                     or (isinstance(m, Award) and m.agent == agent.name)}
+            agent.plan = (kinds, *dmo.step)
         if next(lost):
             continue  # the receipt is lost: the payload goes again
         del agent.pending[sha]
-        if outcome.what != intake.REFUSED:
+        if receipt.accepted:
             agent.receipt(msg.kind)
 
 
@@ -183,42 +200,54 @@ def run(schedule: dict[int, list[tuple[str, int]]], drops: list[bool], straggler
         outages: frozenset[tuple[int, int, str]] = frozenset()) -> dict:
     """The run under ``schedule`` (step index -> [(who restarts, after how many delivery rounds)]), with each
     delivery lost as ``drops`` say in turn, and agents cut off in the rounds ``outages`` name (step index, round,
-    agent): what each day settled, and what was refused to whom."""
+    agent): what each day settled (day -> agent -> {hour: MWh, of the hours not settled as missing}), and what was
+    refused to whom."""
     token = "ab" * 16
     dmo = Dmo(journal, token)
     agents = {a: Agent(a, token) for a in AGENTS}
     lost = itertools.chain(drops, itertools.repeat(False))
-    settled: dict[int, dict] = {}
-    for index, (day, phase, hour) in enumerate(STEPS):
-        dmo.clock(day, phase, hour)
-        for rounds in itertools.count():
-            for who, _ in [e for e in schedule.get(index, []) if e[1] == rounds]:
-                if who == "dmo":
-                    receipted = {a: dict(m) for a, m in dmo.state.meter.items()}
-                    dmo.journal.close()
-                    dmo = Dmo(journal, token)  # resumed where it was, with all it receipted
-                    assert dmo.resumed == (phase, hour) and dmo.state.day == day
-                    assert dmo.state.meter == receipted
-                    dmo.clock(day, phase, hour)  # and it runs the step again from its start
-                else:
-                    agents[who].restart(DAYS[day - 1])
-            if not dmo.waiting_for(phase, hour):
+    statements: list = []
+    at, rounds = None, 0
+    while not isinstance(dmo.request, Stop):
+        if dmo.request.what == "their leaving":  # every agent has its summary, and leaves
+            dmo.give(Left(dmo.request.waiting[0]))
+            continue
+        if dmo.step != at:
+            at, rounds = dmo.step, 0
+        day, phase, hour = at
+        index = STEPS.index(at)
+        for who, _ in [e for e in schedule.get(index, []) if e[1] == rounds]:
+            if who == "dmo":
+                receipted = {a: dict(m) for a, m in dmo.state.meter.items()}
+                statements += [m for m in dmo.published if m.kind == "settlement_statement"]
+                dmo.journal.close()
+                dmo = Dmo(journal, token)  # resumed where it was, with all it receipted, and runs the step again
+                assert dmo.resumed == (phase, hour) and dmo.state.day == day
+                assert dmo.state.meter == receipted and dmo.step == at
+            else:
+                agents[who].restart(DAYS[day - 1])
+        assert rounds < 200, f"step {at} never ends: waiting for {dmo.request.waiting}"
+        for agent in agents.values():
+            if isinstance(dmo.request, Stop) or dmo.request.what == "their leaving":
                 break
-            assert rounds < 200, f"step {STEPS[index]} never ends: waiting for {dmo.waiting_for(phase, hour)}"
-            for agent in agents.values():
-                agent.answer(day, phase, hour)
-                if (index, rounds, agent.name) not in outages:
-                    deliver(agent, dmo, lost)
-                for key, payload in agent.stragglers if stragglers else ():
-                    # a dead process's message arrives late: taken if its successor has not registered yet (the
-                    # DMO cannot tell it is dead), else refused
-                    outcome = dmo.receive(key, payload)
-                    assert outcome.what != intake.REFUSED or outcome.refusal[0] in ("stale", "wrong_day"), outcome
-                agent.stragglers.clear()
-        if phase == "settlement":
-            settled[day] = {a: dict(m) for a, m in dmo.state.meter.items()}
-            assert dmo.state.guard.locked_out() == []
+            agent.answer(*dmo.step)  # the step it sees now: one that ended in this round has moved on
+            if (index, rounds, agent.name) not in outages:
+                deliver(agent, dmo, lost)
+            for key, payload in agent.stragglers if stragglers else ():
+                # a dead process's message arrives late: taken if its successor has not registered yet (the DMO
+                # cannot tell it is dead), else refused
+                published = dmo.give(Received(f"dmosim/{RUN_ID}/{key}", decode(payload), payload))
+                (receipt,) = [m for m in published if isinstance(m, Receipt)
+                              and m.payload_sha256 == sha256(payload)]
+                assert receipt.accepted or receipt.code in ("stale", "wrong_day"), receipt
+            agent.stragglers.clear()
+        rounds += 1
     dmo.journal.close()
+    assert not dmo.state.guard.locked_out()
+    settled: dict[int, dict] = {}
+    for statement in statements + [m for m in dmo.published if m.kind == "settlement_statement"]:
+        settled.setdefault(DAYS.index(statement.market_day) + 1, {})[statement.agent] = {
+            line.hour - 1: (line.import_mwh,) for line in statement.lines if not line.missing}
     return {"settled": settled, "refused": {a: agent.refused for a, agent in agents.items()}}
 
 
@@ -249,7 +278,7 @@ def test_the_issue_s_case_dmo_and_agent_restarted_in_the_same_hour_with_its_rejo
     """The DMO and mg1 restarted in the same hour (before protocol 4 the resumed DMO refused mg1's new
     registration as a duplicate, and mg1 was billed every later hour as missing), with mg1's new registration
     lost once, and then both again across midnight."""
-    hour_2, midnight = STEPS.index((1, "realtime", 2)), STEPS.index((1, "settlement", None))
+    hour_2, midnight = STEPS.index((1, "realtime", 2)), STEPS.index((2, "bidding", None))
     with tempfile.TemporaryDirectory() as tmp:
         out = run({hour_2: [("mg1", 1), ("dmo", 1)], midnight: [("dmo", 0), ("mg1", 0)]}, [False] * 2 + [True],
                   False, Path(tmp) / "journal.jsonl")
