@@ -1,5 +1,5 @@
-"""Which messages of a market day the DMO accepts: the rules, as pure functions, that the live DMO
-(``operator/machine.py``) and the replayed one (``replay/as_dmo.py``) both apply.
+"""Which messages of a market day the DMO accepts: the rules, as pure functions, that the DMO's machine
+(``operator/machine.py``) applies, live or replaying a recorded day.
 
 Each function returns None for an acceptable message, or the refusal as ``(code, reason)``: ``code`` one of
 ``messages.REJECT_CODES``, ``reason`` one line. A refused message is published on ``dmo/rejected`` with both and
@@ -19,8 +19,8 @@ from .settlement import READING_TOLERANCE_MW
 Refusal = tuple[str, str]
 
 PHASE_ORDER = {phase: i for i, phase in enumerate(PHASES)}  # the clock's phases, in the order of the day
-# The phase in which each kind an agent sends is due, and so the kind each phase waits for: the one table the live
-# DMO (operator/intake.py) and the replayed one (replay/as_dmo.py) both read. An agent_day is taken when it comes
+# The phase in which each kind an agent sends is due, and so the kind each phase waits for: the one table the DMO
+# reads (operator/intake.py). An agent_day is taken when it comes
 # (operator/intake.py), never waited for.
 ANSWER_PHASE = {"registration": "registration", "bid": "bidding", "schedule": "scheduling", "meter_report": "realtime",
                 "agent_day": "realtime"}

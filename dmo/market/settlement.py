@@ -239,7 +239,7 @@ def accepted_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float],
     """The day the DMO settles, from what it accepted: each awarded agent's P_sch (MW) and the clearing prices, the
     meter reports it took (agent -> {hour index 0..23: K readings}; an absent hour is missing) and each agent's
     registration, whose limits bound its readings and price its missing sub-periods. The live DMO
-    (operator/machine.py), re-settlement (replay/resettle.py) and the replayed DMO (replay/as_dmo.py) all settle this
+    (operator/machine.py), re-settlement (replay/resettle.py) and the replayed DMO (replay/recorded.py) all settle this
     day, so a recorded day re-settles identically. On a feeder, ``prices`` are the substation's and
     ``agent_prices`` each agent's bus prices, its award's clearing prices."""
     return settlement_day(awards, prices, meter, subperiods=subperiods,

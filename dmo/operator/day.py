@@ -33,6 +33,7 @@ from .finished import FinishedDays
 from .history import DayHistory, asks_history
 from .journal import Journal
 from .machine import DmoMachine, presence_check_s
+from .markets import DayMarket
 from .results import RunResult
 
 log = logging.getLogger("dmosim.dmo")
@@ -40,10 +41,12 @@ log = logging.getLogger("dmosim.dmo")
 
 class MarketDay:
     """Runs the market days of one run on an open bus: the machine's events from Zenoh, its actions onto it.
-    ``on_progress(phase, hour)`` is called as the clock advances."""
+    ``on_progress(phase, hour)`` is called as the clock advances; ``market`` is the machine's (markets.py; by
+    default the one ``config`` describes)."""
 
-    def __init__(self, bus: Bus, config: DayConfig, on_progress: Callable[[str, int | None], None] | None = None):
-        self.bus, self.config = bus, config
+    def __init__(self, bus: Bus, config: DayConfig, on_progress: Callable[[str, int | None], None] | None = None,
+                 market: DayMarket | None = None):
+        self.bus, self.config, self.market = bus, config, market
         self.events: queue.Queue = queue.Queue()
         self.on_progress = on_progress or (lambda phase, hour: None)
         self.journal: Journal | None = None
@@ -69,7 +72,8 @@ class MarketDay:
             self.journal = Journal(c.journal, self.bus.keys.run_id, c.market_day)
             if self.journal.entries:
                 log.warning("resuming the run from %s", self.journal.path)
-        self.machine = DmoMachine(c, secrets.token_hex(16), self.journal.entries if self.journal else None)
+        self.machine = DmoMachine(c, secrets.token_hex(16), self.journal.entries if self.journal else None,
+                                  self.market)
         self.bus.run_token = self.machine.state.run_token
         self.history = DayHistory(self.journal)
         self._listen()

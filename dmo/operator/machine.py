@@ -24,22 +24,21 @@ import logging
 import math
 from collections.abc import Callable, Generator
 
-from messages import PHASES, Bid, GridState, make_receipt, make_rejection, sha256
+from messages import PHASES, GridState, make_receipt, make_rejection, sha256
 from messages.codec import MessageError
 from messages.keys import agent_of
 from messages.schemas import AgentDay
 from scenarios.horizon import HOURS
 
 from ..market.acceptance import PHASE_ORDER
-from ..market.clearing import BidCurve, ClearingResult, Step, clear, fixed_awards
-from ..market.distflow import NetworkClearing, clear_network
-from ..market.settlement import DayTotals, Statement, accepted_day
-from . import feeder, intake, outbox, rejoin
+from ..market.settlement import DayTotals, Statement
+from . import intake, outbox, rejoin
 from .actions import (Action, CheckPresence, Journaled, OpenWindow, Publish, Realised, Request, Settled, Stop,
                       Wait)
 from .config import DayConfig
 from .events import Dropped, Event, Joined, Left, OverBudget, Present, Received, TimedOut, Unreadable
-from .journal import (accepted_entry, clock_entry, incident_entry, rejected_entry, restore, run_token_entry)
+from .journal import accepted_entry, clock_entry, incident_entry, rejected_entry, restore, run_token_entry
+from .markets import Clearing, DayMarket, LiveMarket
 from .results import DayResult
 from .state import DayState
 
@@ -48,49 +47,22 @@ log = logging.getLogger("dmosim.dmo")
 Phase = Generator[Request, Event, None]
 
 
-def bid_curve(bid: Bid) -> BidCurve:
-    """A received bid as the clearing reads it (hours 0..23)."""
-    return BidCurve(bid.sender, tuple(tuple(Step(st.price_per_mwh, st.quantity_mw) for st in hour)
-                                      for hour in bid.hours))
-
-
-def clearing_of(config: DayConfig, state: DayState) -> ClearingResult | NetworkClearing:
-    """The day's clearing, a pure function of the bids it accepted (a resumed DMO gets the same awards again): on
-    the copper plate, or on the feeder with each agent at its bus."""
-    agents = sorted(state.registered)
-    if config.fixed_awards is not None:
-        return fixed_awards({a: config.fixed_awards for a in agents}, config.iso_price)
-    bids = [bid_curve(state.bids[a]) for a in sorted(state.bids)]
-    if config.network is not None:
-        return clear_network(bids, config.network, feeder.sites(config, state), config.iso_price,
-                             config.import_limit, config.export_limit, agents=agents, margin=config.voltage_margin,
-                             curve=config.iso_curve)
-    return clear(bids, config.iso_price, config.import_limit, config.export_limit, agents=agents,
-                 curve=config.iso_curve)
-
-
-def settlement_of(config: DayConfig, state: DayState, clearing: ClearingResult | NetworkClearing
-                  ) -> tuple[dict[str, Statement], DayTotals]:
-    """The day's statements, a pure function of its awards and the meter reports it accepted; on a feeder each
-    agent's energy at its own bus's prices."""
-    own = dict(clearing.agent_price) if isinstance(clearing, NetworkClearing) else None
-    return config.rule.settle(accepted_day(clearing.awards, clearing.price, state.meter, subperiods=config.subperiods,
-                                           registered=state.registered, agent_prices=own))
-
-
 class DmoMachine:
-    """The market days of one run. ``run_token`` is the run's token, drawn by the driver (a DMO resumed on its
-    journal, whose ``journal`` entries are given, keeps the one they hold). ``start(now)`` gives the first actions;
+    """The market days of one run, of ``market`` (markets.py; by default the one ``config`` describes, clearing the
+    bids it accepts). ``run_token`` is the run's token, drawn by the driver (a DMO resumed on its journal, whose
+    ``journal`` entries are given, keeps the one they hold). ``start(now)`` gives the first actions;
     ``handle(event, now)`` the actions an event leads to. The last action of each is the request the next event
     answers, or ``Stop``: then the run is over, its days' reports were the ``Settled`` actions and its agents'
     realised days the ``Realised`` ones (the driver keeps them: ``RunResult``), and ``last`` is its last day's
     whole result."""
 
-    def __init__(self, config: DayConfig, run_token: str, journal: list[dict] | None = None):
+    def __init__(self, config: DayConfig, run_token: str, journal: list[dict] | None = None,
+                 market: DayMarket | None = None):
         self.config = config
+        self.market = market or LiveMarket(config)
         self.state = DayState(market_day=config.market_day)
         self.now = 0.0
-        self.clearing: ClearingResult | NetworkClearing | None = None
+        self.clearing: Clearing | None = None
         self.last: DayResult | None = None  # the last day's whole result, once the run is over
         self._actions: list[Action] = []
         self._grid: GridState | None = None  # the current hour's, re-sent to an agent that rejoins
@@ -158,7 +130,7 @@ class DmoMachine:
         if self._resumed is not None:
             first = PHASE_ORDER[self._resumed[0]]
             if first > PHASE_ORDER["clearing"]:
-                self.clearing = clearing_of(c, s)
+                self.clearing = self.market.clear(s)
                 if first == PHASE_ORDER["scheduling"]:  # some awards may not have gone out; agents ignore a repeat
                     self._publish_awards()
         timings = {}
@@ -173,15 +145,15 @@ class DmoMachine:
 
     def _settled_again(self, closed: DayState) -> DayResult:
         """A day finished before the DMO restarted, settled again from its journal (nothing is published)."""
-        clearing = clearing_of(self.config, closed)
-        statements, totals = settlement_of(self.config, closed, clearing)
+        clearing = self.market.clear(closed)
+        statements, totals = self.market.settle(closed, clearing)
         return DayResult(closed.day, closed.market_day, self.config.islanded(closed.day), clearing, statements,
                          totals, closed, {})
 
     def _registration(self) -> Phase:
         s, c = self.state, self.config
         yield from self._clock("registration", c.registration_s)
-        rule = intake.registration(s, c.network, c.placement)
+        rule = self.market.registration(s)
 
         def accept(msg):
             refusal = rule(msg)
@@ -200,23 +172,20 @@ class DmoMachine:
         s, c = self.state, self.config
         yield from self._clock("bidding", c.bids_s)
         self._bids_due = self.now + c.bids_s
-        self._publish(outbox.call_for_bids(c, s.day, c.bids_s))
+        self._publish(self.market.call_for_bids(s.day, c.bids_s))
         yield from self._wait(c.bids_s, lambda: self._unanswered(s.bids, "bid"), "bid",
                               intake.first_of_each(s, s.bids))
 
     def _clearing(self) -> Phase:
         yield from self._clock("clearing", self.config.bids_s)
-        self.clearing = clearing_of(self.config, self.state)
+        self.clearing = self.market.clear(self.state)
         self._publish_awards()
-        if isinstance(self.clearing, NetworkClearing):  # after the awards: the agents need not wait for the AC check
-            at = feeder.sites(self.config, self.state)
-            for msg in feeder.planned(self.config, self.state.day, self.clearing, at):
-                self._publish(msg)
+        for msg in self.market.planned(self.state, self.clearing):  # after the awards: agents need not wait for it
+            self._publish(msg)
 
     def _publish_awards(self) -> None:
-        at = feeder.sites(self.config, self.state)
         for agent in sorted(self.state.registered):
-            self._publish(outbox.award(self.config, self.state.day, self.clearing, agent, at.get(agent)))
+            self._publish(self.market.award(self.state, self.clearing, agent))
 
     def _scheduling(self) -> Phase:
         s, c = self.state, self.config
@@ -227,12 +196,10 @@ class DmoMachine:
     def _realtime(self) -> Phase:
         s, c = self.state, self.config
         first = self._resumed[1] if self._resumed and self._resumed[0] == "realtime" else 1
-        room = None  # on a feeder, the day's operating envelope: once a day, from its clearing (a resumed day's too)
-        if isinstance(self.clearing, NetworkClearing):
-            room = feeder.envelope(c, self.clearing, feeder.sites(c, s))
+        grids = self.market.grid_states(s, self.clearing)  # once a day, from its clearing (a resumed day's too)
         for hour in range(first, HOURS + 1):
             yield from self._clock("realtime", c.hour_s, hour)
-            self._grid = outbox.grid_state(c, s.day, hour, room)
+            self._grid = grids[hour - 1]
             self._publish(self._grid)
             accept = intake.meter_report(s, hour, c.subperiods, self._grid)
             yield from self._wait(c.hour_s, lambda: self._unanswered({a for a in s.meter if hour - 1 in s.meter[a]},
@@ -252,12 +219,11 @@ class DmoMachine:
                                   "registration was refused, or never came)")
         for incident in s.log.close(s.phase, s.hour):
             log.warning("settlement: %s", incident.reason)
-        statements, totals = settlement_of(c, s, self.clearing)
-        if c.network is not None:
-            for msg in feeder.realised(c, s.day, s, feeder.sites(c, s)):
-                self._publish(msg)
+        statements, totals = self.market.settle(s, self.clearing)
+        for msg in self.market.realised(s):
+            self._publish(msg)
         for st in statements.values():
-            self._publish(outbox.statement_message(st, s.market_day, *c.rates, c.rule.label))
+            self._publish(self.market.statement(s, st))
         self._publish(outbox.day_summary(s.market_day, s.registered, self.clearing.price, statements, s.rejected,
                                          s.incidents))
         return statements, totals, locked_out
@@ -343,10 +309,9 @@ class DmoMachine:
         for kind in kinds:
             if kind == rejoin.CALL_FOR_BIDS:
                 due = self.config.bids_s if self.config.logical else round(max(0.1, self._bids_due - self.now), 1)
-                self._publish(outbox.call_for_bids(self.config, self.state.day, due))
+                self._publish(self.market.call_for_bids(self.state.day, due))
             elif kind == rejoin.AWARD:
-                self._publish(outbox.award(self.config, self.state.day, self.clearing, agent,
-                                           feeder.sites(self.config, self.state).get(agent)))
+                self._publish(self.market.award(self.state, self.clearing, agent))
             else:
                 self._publish(self._grid)
         return said

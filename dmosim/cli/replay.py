@@ -1,5 +1,6 @@
 """``dmosim replay PATH``: republish a recorded day over Zenoh, or, with ``--as-dmo``, play the DMO's side of it to
-a live agent process and settle that agent by the recorded rules (replay/as_dmo.py; a rule of the recording's own
+a live agent process and settle that agent by the recorded rules (the DMO's machine running the recorded day,
+replay/recorded.py; a rule of the recording's own
 only with ``--trust-rules``).
 
 Plain replay publishes every selected message at its recorded spacing scaled by ``--rate``, under a new run
@@ -13,17 +14,17 @@ import argparse
 import signal
 import sys
 import threading
-import time
 
 from dmo.market.choice import Trust, UntrustedRule
-from dmo.replay.as_dmo import AsDmo, dmo_steps, render
+from dmo.operator.day import MarketDay
+from dmo.replay.recorded import RecordedMarket, render, replay_config, replay_result
 from dmo.replay.resettle import ResettleError, recorded_day, recorded_rule
 from messages import DMO, check_agent_id, check_run_id, new_run_id
 from messages.recording import Player, Recorder, Recording, RecordingWriter, select
 from messages.transport import Bus
 
 from ..arguments import market_day, nonneg_float
-from ..console import UsageError, print_json, progress
+from ..console import UsageError, print_json, progress, stop_on_terminate
 from .flags import (RECORDING_HELP, TRUST_FLAG, add_bus_flags, add_trust_flag, bus_config, credentials_for,
                     load_recording, recorded_day_flag, recording_path, setup_logging, untrusted)
 
@@ -79,11 +80,12 @@ def run(args) -> int:
         raise UsageError(f"--agent, --record and {TRUST_FLAG} go with --as-dmo")
     rec = load_recording(args.path)
     recorded_day_flag(rec, args.day)
+    if args.as_dmo:
+        stop_on_terminate()  # SIGTERM as Ctrl-C: the recording is closed on the way out
+        return _as_dmo(args, rec, run_id)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
-    if args.as_dmo:
-        return _as_dmo(args, rec, run_id, stop)
 
     messages = select(rec, args.topics, args.start_offset, args.day)
     if not messages:
@@ -118,8 +120,9 @@ def _say(args, text: str) -> None:
         progress(text)
 
 
-def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
-    """``--as-dmo``: the DMO's side of the recorded day, played to a live agent (replay/as_dmo.py)."""
+def _as_dmo(args, rec: Recording, run_id: str) -> int:
+    """``--as-dmo``: the recorded day played to a live agent, the DMO's machine running its market
+    (replay/recorded.py)."""
     try:
         day = recorded_day(rec, args.day)
         rule = recorded_rule(day, Trust(everything=args.trust_rules))  # said now, before anything starts
@@ -135,9 +138,10 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
     if agent not in day.awards:
         raise UsageError(f"{args.path}: no award recorded for {agent} (awarded: {', '.join(sorted(day.awards))})")
     out = recording_path(args.record, args.overwrite) if args.record else None
-    steps = dmo_steps(rec, agent, day.market_day)
-    if rec.cut_note:
-        print(f"warning: {args.path}: {rec.cut_note}; playing what was recorded before the cut", file=sys.stderr)
+    try:
+        market = RecordedMarket(rec, day, agent, rule)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     credentials_for(args, run_id, [agent], dmo_client=False)
     config = bus_config(args, "router", run_id=run_id)
     endpoint = (config.listen or config.connect or ("zenoh's default",))[0]
@@ -159,9 +163,13 @@ def _as_dmo(args, rec: Recording, run_id: str, stop: threading.Event) -> int:
                 recorder.start(backfill=False)  # this process is the day's DMO: nothing to ask it
                 recorder_thread = threading.Thread(target=recorder.run, args=(recorder_stop,), name="recorder")
                 recorder_thread.start()
-            driver = AsDmo(bus, day, agent, steps, args.timeout, rule)
-            result = driver.run(stop)
-            time.sleep(0.2)  # the last messages reach the recorder
+            try:
+                run = MarketDay(bus, replay_config(day, args.timeout), market=market).run()
+            except RuntimeError as exc:
+                if "no agent registered" in str(exc):
+                    raise RuntimeError(f"agent {agent} did not register within {args.timeout:g} s") from None
+                raise
+            result = replay_result(run, market, run_id)
     finally:
         recorder_stop.set()
         if recorder_thread is not None:

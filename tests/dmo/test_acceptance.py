@@ -4,7 +4,6 @@ applies the same rules."""
 from __future__ import annotations
 
 import itertools
-from types import SimpleNamespace
 
 import pytest
 
@@ -14,8 +13,7 @@ from dmo.operator import intake
 from dmo.operator.results import RunResult
 from dmo.operator.finished import FinishedDays
 from dmo.operator.state import DayState
-from dmo.replay.as_dmo import AsDmo
-from messages import Bid, GridState, Keys, MeterReport, Registration, Schedule, decode, encode, sha256
+from messages import Bid, GridState, MeterReport, Registration, decode, encode, sha256
 from messages.schemas import AgentDay, MessageCounts
 from scenarios.horizon import HOURS
 
@@ -56,36 +54,6 @@ def test_out_of_phase_messages_are_late_once_their_phase_has_passed_else_invalid
     assert acceptance.check_registered(bid, {})[0] == "unregistered"
     assert acceptance.check_registered(reg, {}) is None
     assert acceptance.repeated("bid", "mg1") == ("duplicate", "second bid from mg1; the first one stands")
-
-
-def test_the_replayed_dmo_refuses_what_the_live_one_refuses():
-    bus = SimpleNamespace(keys=Keys("replay1"), on_reject=None)
-    terms = SimpleNamespace(subperiods=2)
-    driver = AsDmo(bus, SimpleNamespace(market_day=DAY, terms=terms), "mg1", [], 1.0)
-    reg = REG
-    assert driver.refusal(report()) == acceptance.check_registered(report(), {})
-    driver.registration = reg
-    driver.phase, driver.hour = "realtime", 3
-    for msg, reported in ((report(), {}), (report(hour=2), {}), (report(p_m=(1.0, 11.0)), {}),
-                          (report(p_m=(-5.0, 1.0)), {}), (report(), {2: (0.0, 0.0)}), (report(p_m=(1.0,)), {})):
-        driver.meter = dict(reported)
-        assert driver.refusal(msg) == acceptance.check_meter_report(msg, 3, 2, reported, REG)
-    assert driver.refusal(reg) == acceptance.repeated("registration", "mg1")
-    schedule = Schedule(sender="mg1", market_day=DAY, status="optimal", commitment={}, expected_cost=0.0,
-                        p_m_expected_mw=(0.0,) * HOURS, scenarios=1)
-    assert driver.refusal(schedule) == acceptance.out_of_phase(schedule, "realtime")
-    driver.phase, driver.hour = "scheduling", None
-    assert driver.refusal(schedule) is None
-    driver.answered.add("schedule")
-    assert driver.refusal(schedule) == acceptance.repeated("schedule", "mg1")
-    # the agent's realised day, as the DMO takes it: from the day's last hour, once (a fast agent's comes before
-    # the replayed day is over)
-    for phase, hour in (("realtime", 23), ("realtime", HOURS), ("settlement", None)):
-        driver.phase, driver.hour = phase, hour
-        assert driver.refusal(agent_day(DAY)) == acceptance.check_agent_day(agent_day(DAY), DAY, DAY, phase, hour, ())
-    assert driver.refusal(agent_day(DAY)) is None
-    driver.realised.add(DAY)
-    assert driver.refusal(agent_day(DAY))[0] == "duplicate"
 
 
 @pytest.mark.parametrize("excess", [0.0, READING_TOLERANCE_MW / 2, READING_TOLERANCE_MW, 2 * READING_TOLERANCE_MW,

@@ -2,7 +2,7 @@
 loads it clears in the DMO, and every message the DMO builds of its day is valid on the wire; one that does not
 load is refused in one line. Feeder files of a few buses, TOML and pandapower JSON, are drawn with names and numbers
 at and past every limit, and what the DMO does with them is run in this process: its clearing
-(``dmo.market.distflow`` through ``dmo.operator.machine.clearing_of``), its awards, network_hour messages and their AC
+(``dmo.market.distflow`` through ``dmo.operator.markets.LiveMarket``), its awards, network_hour messages and their AC
 checks, the operating envelope in the grid states, and the statements.
 """
 
@@ -18,7 +18,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from dmo.operator import feeder, outbox
-from dmo.operator.machine import clearing_of, settlement_of
+from dmo.operator.markets import LiveMarket
 from dmo.operator.state import DayState
 from dmosim.cli.checks import check_inputs
 from dmosim.experiment.spec import ExperimentError, parse_experiment
@@ -131,7 +131,7 @@ def the_dmos_day(experiment, seed: int) -> list:
         state.bids[agent] = Bid(sender=agent, market_day=DAY, hours=tuple(
             (BidStep(price_per_mwh=20.0 + 7.0 * ((h + seed + k) % 9), quantity_mw=(-1.0) ** (h + k) * (1 + k)),)
             if h != seed else () for h in range(HOURS)))  # an hour nobody bids in: the feeder's load alone
-    clearing = clearing_of(config, state)
+    clearing = LiveMarket(config).clear(state)
     at = feeder.sites(config, state)
     sent = [outbox.award(config, 1, clearing, agent, at[agent]) for agent in sorted(state.registered)]
     sent += feeder.planned(config, 1, clearing, at)
@@ -143,7 +143,7 @@ def the_dmos_day(experiment, seed: int) -> list:
         state.meter[agent] = {h: (award[h],) * k for h in range(HOURS)}
         sent += [MeterReport(sender=agent, market_day=DAY, hour=h + 1, subperiods=k, p_m_mw=(award[h],) * k,
                              deviation_mw=(0.0,) * k) for h in range(HOURS)]
-    statements, _ = settlement_of(config, state, clearing)
+    statements, _ = LiveMarket(config).settle(state, clearing)
     sent += [outbox.statement_message(st, DAY, *config.rates, config.rule.label) for st in statements.values()]
     for message in sent:
         assert decode(encode(message)) == message

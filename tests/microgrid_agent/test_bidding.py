@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from dmo.market.clearing import clear
-from dmo.operator.machine import bid_curve as received_bid
+from dmo.operator.markets import bid_curve as received_bid
 from messages import Bid, BidStep
 from messages.schemas import MAX_BID_STEPS
 from microgrid_agent.agent.bidding import (DEFAULT_MULTIPLIERS, bid_curve, curve_of, hour_steps, monotone,

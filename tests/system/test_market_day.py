@@ -107,9 +107,9 @@ def recompute(awards, prices, meters, penalty, subperiods, caps):
     return out
 
 
-def run_day(tmp_path, agents=("mg1", "mg2"), extra_dmo=(), kill=None):
-    """Start a DMO and agents; optionally SIGKILL one agent when the clock reaches an hour. Returns the tap and
-    the DMO's result."""
+def run_day(tmp_path, agents=("mg1", "mg2"), extra_dmo=(), kill=None, extra_agent=(), env=ENV):
+    """Start a DMO and agents (with ``extra_agent`` flags, in ``env``); optionally SIGKILL one agent when the clock
+    reaches an hour. Returns the tap and the DMO's result."""
     run_id, port = new_run_id(), free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     result = tmp_path / "result.json"
@@ -125,8 +125,8 @@ def run_day(tmp_path, agents=("mg1", "mg2"), extra_dmo=(), kill=None):
             tap = Tap(bus)
             for i, agent in enumerate(agents):
                 roles.start(agent, dmosim("agent", *common, "--id", agent, "--connect", endpoint, "--seed", str(i),
-                                          "--lease", "1", "--auth-dir", str(auth), *TINY),
-                            log=tmp_path / f"{agent}.log", env=ENV)
+                                          "--lease", "1", "--auth-dir", str(auth), *TINY, *extra_agent),
+                            log=tmp_path / f"{agent}.log", env=env)
             if kill:
                 agent, hour = kill
                 assert tap.hour_reached[hour].wait(300), "the day never reached the kill hour"
@@ -166,13 +166,16 @@ def test_an_agent_killed_mid_day_is_settled_by_the_missing_data_rule(tmp_path):
 
 
 def test_an_agent_leaves_only_once_it_has_its_own_statement(tmp_path):
-    """The DMO's statements are held back 2 s (a message fault), so each agent has the day summary first."""
-    tap, result = run_day(tmp_path, extra_dmo=("--fault", "delay:dmo/statement/*:2"))
+    """The DMO's statements are held back 2 s (a message fault), so each agent has the day summary first: it asks
+    for its statement, and its day ends with it (what its strategy learned of the day, written to a file)."""
+    observed = tmp_path / "observed"
+    observed.mkdir()
+    strategy = f"{ROOT / 'tests' / 'data' / 'observing_strategy.py'}:Observing"
+    tap, result = run_day(tmp_path, extra_dmo=("--fault", "delay:dmo/statement/*:2"),
+                          extra_agent=("--strategy", strategy), env={**ENV, "DMOSIM_TEST_OBSERVED": str(observed)})
     for agent in ("mg1", "mg2"):
-        log = (tmp_path / f"{agent}.log").read_text()
-        total = result["settlement"][agent]["total"]
-        assert f"{agent} statement: total ${total:.2f}" in log, log[-2000:]
-        assert "gave up waiting" not in log
+        (learned,) = [json.loads(line) for line in (observed / f"{agent}.jsonl").read_text().splitlines()]
+        assert learned == {"market_day": DAY, "statement_total": result["settlement"][agent]["total"]}
 
 
 def test_dmosim_run_prints_the_summary_and_json(tmp_path):
