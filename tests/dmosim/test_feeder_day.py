@@ -1,30 +1,31 @@
 """A market day on a feeder, end to end: two agents at their buses of a five-bus feeder whose far line is rated low,
 cleared with prices per bus, operated within the feeder's operating envelope, settled at each agent's own price and
-again, to the cent, from the recording."""
+again, to the cent, from the recording. The market runs in this process (``--in-process``), as do ``info`` and
+``settle``; the day, its AC checks, tables and figure take about 12 s, so it is in the slow tier all the same."""
 
 from __future__ import annotations
 
 import json
-import subprocess
 
 import pandas as pd
 import pytest
 
 from messages.recording import read_recording
 from scenarios.case import DATA_DIR
-from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim, ended
+
+TINY = ["--scenarios", "1", "--gap", "0.05"]
 
 
-def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(tmp_path):
+@pytest.mark.slow  # 12 s in this process
+def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(tmp_path, cli):
     # feeder5 with its far line 2-3 rated 0.5 MVA: an agent at bus 3 importing more than the line's room congests it
     feeder = (DATA_DIR / "feeder5.toml").read_text().replace("s_max_mva = 3.0", "s_max_mva = 0.5")
     (tmp_path / "feeder.toml").write_text(feeder)
     (tmp_path / "fleet.toml").write_text('[[agents]]\nid = "near"\nbus = "1"\n\n[[agents]]\nid = "far"\nbus = "3"\n')
     (tmp_path / "e.toml").write_text('[agents]\nfleet = "fleet.toml"\n[network]\nfeeder = "feeder.toml"\n')
     out = tmp_path / "run"
-    argv = dmosim("run", str(tmp_path / "e.toml"), "--subperiods", "1", *TINY, *DEADLINES,
-                  "--settlement", "price-linked", "--out", str(out), "--json", "--quiet")
-    done = ended(argv, timeout=900, cwd=ROOT, env=ENV)
+    done = cli("run", str(tmp_path / "e.toml"), "--subperiods", "1", *TINY, "--settlement", "price-linked",
+               "--in-process", "--out", str(out), "--json", "--quiet")
     assert done.returncode == 0, done.stderr[-3000:]
     result = json.loads(done.stdout)
 
@@ -73,10 +74,8 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     assert len(pd.read_csv(out / "tables" / "buses.csv")) == 48 * 5
     assert result["figure"].endswith("run.png") and (out / "run.png").read_bytes()[:4] == b"\x89PNG"  # feeder row too
 
-    info = subprocess.run(dmosim("info", result["recording"]), capture_output=True, text=True, timeout=120, cwd=ROOT,
-                          env=ENV).stdout
+    info = cli("info", result["recording"]).stdout
     assert "feeder:      feeder5 (5 buses): far at bus 3, near at bus 1\n" in info
 
-    settled = json.loads(subprocess.run(dmosim("settle", result["recording"], "--json"), capture_output=True,
-                                        text=True, timeout=300, cwd=ROOT, env=ENV).stdout)
+    settled = json.loads(cli("settle", result["recording"], "--json").stdout)
     assert settled["identical"], settled
