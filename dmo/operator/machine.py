@@ -73,11 +73,12 @@ class DmoMachine:
         self._refused: set[tuple[str, str, int | None]] = set()
         self._over: set[str] = set()
         realised: list[AgentDay] = []
-        self._resumed, self._closed = restore(self.state, journal or [], realised.append)
+        # where the journal had the run, (phase, hour) of its day, run again from its start (None: a new run)
+        self.resumed, self._closed = restore(self.state, journal or [], realised.append)
         self._actions.extend(Realised(msg) for msg in realised)
-        if self._resumed is not None:
+        if self.resumed is not None:
             log.warning("resuming the run from its journal: day %d %s, %d accepted messages", self.state.day,
-                        _when(*self._resumed), sum(self.state.accepted.values()))
+                        _when(*self.resumed), sum(self.state.accepted.values()))
         if not self.state.run_token:  # a new run (a resumed one keeps the token its journal holds)
             self.state.run_token = run_token
             self._journal(run_token_entry(run_token))
@@ -127,8 +128,8 @@ class DmoMachine:
         steps = dict(zip(PHASES, (self._registration, self._bidding, self._clearing, self._scheduling,
                                   self._realtime, self._settlement)))
         first = PHASE_ORDER["registration" if day == 1 else "bidding"]
-        if self._resumed is not None:
-            first = PHASE_ORDER[self._resumed[0]]
+        if self.resumed is not None:
+            first = PHASE_ORDER[self.resumed[0]]
             if first > PHASE_ORDER["clearing"]:
                 self.clearing = self.market.clear(s)
                 if first == PHASE_ORDER["scheduling"]:  # some awards may not have gone out; agents ignore a repeat
@@ -138,7 +139,7 @@ class DmoMachine:
             start = self.now
             out = yield from steps[phase]()
             timings[phase] = self.now - start
-        self._resumed = None
+        self.resumed = None
         statements, totals, locked_out = out
         return DayResult(day, s.market_day, c.islanded(day), self.clearing, statements, totals, copy.copy(s), timings,
                          locked_out)
@@ -195,7 +196,7 @@ class DmoMachine:
 
     def _realtime(self) -> Phase:
         s, c = self.state, self.config
-        first = self._resumed[1] if self._resumed and self._resumed[0] == "realtime" else 1
+        first = self.resumed[1] if self.resumed and self.resumed[0] == "realtime" else 1
         grids = self.market.grid_states(s, self.clearing)  # once a day, from its clearing (a resumed day's too)
         for hour in range(first, HOURS + 1):
             yield from self._clock("realtime", c.hour_s, hour)
@@ -254,7 +255,7 @@ class DmoMachine:
     def _await_resumed_agents(self) -> Phase:
         """A resumed DMO waits (at most ``resume_wait_s``) for its agents to reconnect before it goes on; those
         that do not are noted gone, as vanished."""
-        if self._resumed is None:
+        if self.resumed is None:
             return
         s = self.state
         present: Present = yield CheckPresence(tuple(sorted(s.registered)), 1.0, self.config.resume_wait_s)
@@ -262,7 +263,7 @@ class DmoMachine:
         for agent in waiting:
             s.gone.add(agent)
             s.vanished[agent] = (s.phase, s.hour)
-        self._incident(None, f"the DMO restarted and resumed day {s.day} {_when(*self._resumed)} from its journal "
+        self._incident(None, f"the DMO restarted and resumed day {s.day} {_when(*self.resumed)} from its journal "
                              f"({sum(s.accepted.values())} accepted messages recovered)"
                              + (f"; not back: {', '.join(waiting)}" if waiting else ""))
 

@@ -65,7 +65,7 @@ class Dmo:
     def __init__(self, path: Path, token: str):
         self.journal = Journal(path, RUN_ID, DAYS[0])
         self.machine = DmoMachine(CONFIG, token, self.journal.entries)
-        self.resumed = self.machine._resumed  # noqa: SLF001  (where the journal had the day: what the test checks)
+        self.resumed = self.machine.resumed
         self.clock: Clock | None = None
         self.settled: list[dict] = []
         self.published: list = []
