@@ -34,7 +34,8 @@ from messages.recording import RecordingWriter, read_attachments
 from messages.schemas import HandlingTime, MessageCounts, Receipt
 from messages.stamping import Sender
 from microgrid_agent.agent.delivery import RefusedPayload
-from microgrid_agent.agent.machine import AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send
+from microgrid_agent.agent.machine import (AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send, Solve,
+                                           Solved)
 from scenarios.fleet import member_case
 
 from ..experiment.spec import Experiment
@@ -176,6 +177,8 @@ class InProcessMarket:
         started_at, started = time.time_ns(), (time.perf_counter(), time.thread_time())
         try:
             actions = m.handle(msg)
+            while actions and isinstance(actions[-1], Solve):
+                actions = actions[:-1] + m.handle(Solved(actions[-1].job.run()))
             ended = (time.perf_counter(), time.thread_time())
             if not isinstance(msg, RefusedPayload):
                 actions += m.handle(Handled(HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
