@@ -3,8 +3,8 @@
 Zenoh's callback threads only enqueue what arrives; the agent hands it to its machine in order on its main thread, and
 carries out what the machine says: it solves the schedule there and then, so a long solve delays, but never reorders
 or drops, what comes next; it publishes what it sends, waits for receipts and asks the DMO for a statement that did
-not come. The run ends when
-the machine is done with the last day the DMO's clock announces, or when the agent hears nothing for ``idle_s``.
+not come. The run ends when the machine is done with the last day the DMO's clock announces, or when the agent hears
+nothing for ``idle_s``.
 
 Nothing is waited out for want of one message (docs/protocol.md, "Receipts and sending again"): what the agent
 sends goes again until the DMO's receipt comes (delivery.py), and when the DMO has been silent for a while the
