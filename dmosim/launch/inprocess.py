@@ -3,10 +3,13 @@ and on the logical clock (docs/experiments.md, "In one process").
 
 The driver is the network. What a role sends is stamped as a bus stamps it (messages/stamping.py), encoded, filed
 in the recording, and handed to the roles that would receive it on its key, in the order it was sent: the DMO's
-messages to the agents they are for, the agents' to the DMO. Each agent's solve is called directly. Nothing is
-lost, so nothing is sent again; an agent whose machine is done leaves (the DMO sees its presence go), and one that
-fails ends the run with its error. A phase ends when every agent has answered, so the run settles as a run of
-processes on the logical clock does, only faster: no process starts, imports or waits on another.
+messages to the agents they are for, the agents' to the DMO. An agent whose machine asks for its schedule's solve
+(``Solve``) waits for it while the others go on; when nothing more can happen without a solve's result, the solves
+waited for run side by side, in worker processes (solves.py), and their results go in in the agents' name order.
+Nothing is lost, so nothing is sent again; an agent whose machine is done leaves (the DMO sees its presence go), and
+one that fails ends the run with its error. A phase ends when every agent has answered, so the run settles as a run
+of processes on the logical clock does, only faster: no process but the solves' workers starts, imports or waits on
+another.
 """
 
 from __future__ import annotations
@@ -34,11 +37,13 @@ from messages.recording import RecordingWriter, read_attachments
 from messages.schemas import HandlingTime, MessageCounts, Receipt
 from messages.stamping import Sender
 from microgrid_agent.agent.delivery import RefusedPayload
-from microgrid_agent.agent.machine import AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send
+from microgrid_agent.agent.machine import (AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send, Solve,
+                                           Solved)
 from scenarios.fleet import member_case
 
 from ..experiment.spec import Experiment
 from .roles import agent_config, day_config, fleet_of, strategy_of
+from .solves import Solves
 
 log = logging.getLogger("dmosim")
 
@@ -49,12 +54,28 @@ TO_ITS_AGENT = ("award", "settlement_statement")
 
 
 class AgentFailed(RuntimeError):
-    """An agent's machine raised: the run stops, naming it."""
+    """An agent's machine, or its solve, raised: the run stops, naming it."""
+
+
+@dataclass
+class _Handling:
+    """A message an agent's machine handles: when it was handed in, the CPU seconds its handling has taken so far, and
+    the actions so far (a ``Solve`` last while the agent waits for the solve)."""
+
+    msg: object
+    started_at: int  # ns since the epoch
+    started: float  # perf_counter
+    cpu_s: float
+    actions: list
+
+    def waits(self) -> bool:
+        return bool(self.actions) and isinstance(self.actions[-1], Solve)
 
 
 @dataclass
 class _Agent:
-    """One agent's machine and what the driver keeps of it: its numbering, its inbox, and its counts."""
+    """One agent's machine and what the driver keeps of it: its numbering, its inbox, its counts and the message it
+    handles while it waits for a solve."""
 
     machine: AgentMachine
     sender: Sender
@@ -64,6 +85,7 @@ class _Agent:
     published: int = 0
     received: int = 0
     pending: dict[str, tuple[str, int]] = field(default_factory=dict)  # sha256 -> (kind, seq), until receipted
+    solving: _Handling | None = None  # the message whose handling waits for its solve
 
 
 class InProcessMarket:
@@ -83,25 +105,27 @@ class InProcessMarket:
                        for i, (name, machine) in enumerate(sorted(agents.items()))}
         self._to_dmo: collections.deque = collections.deque()
         self._latest: dict[str, object] = {}  # the DMO's latest message on each key (what an agent may ask for)
+        self._solves = Solves(min(os.cpu_count() or 1, len(self.agents)))  # an agent has one solve out at most
 
     def run(self) -> RunResult:
         """The run's days, to the DMO's ``Stop``; its result as a DMO process gives it."""
         finished = FinishedDays()
-        actions = self.dmo.start(time.monotonic())
-        while True:
-            *done, request = actions
-            for action in done:
-                if isinstance(action, Publish):
-                    self._from_dmo(action.msg)
-                elif isinstance(action, Realised):
-                    finished.realised(action.msg)
-                elif isinstance(action, Settled):
-                    finished.day(action.report)
-                elif not isinstance(action, Journaled):  # nothing to resume: the run is this process
-                    raise TypeError(f"the in-process market cannot do {action!r}")
-            if isinstance(request, Stop):
-                break
-            actions = self.dmo.handle(self._answer(request), time.monotonic())
+        with self._solves:
+            actions = self.dmo.start(time.monotonic())
+            while True:
+                *done, request = actions
+                for action in done:
+                    if isinstance(action, Publish):
+                        self._from_dmo(action.msg)
+                    elif isinstance(action, Realised):
+                        finished.realised(action.msg)
+                    elif isinstance(action, Settled):
+                        finished.day(action.report)
+                    elif not isinstance(action, Journaled):  # nothing to resume: the run is this process
+                        raise TypeError(f"the in-process market cannot do {action!r}")
+                if isinstance(request, Stop):
+                    break
+                actions = self.dmo.handle(self._answer(request), time.monotonic())
         days, realised = finished.read()
         return RunResult(days, self.config.rule.label, sorted(self.dmo.state.registered), realised, self.dmo.last)
 
@@ -121,7 +145,7 @@ class InProcessMarket:
         if not isinstance(request, Wait):
             raise TypeError(f"the in-process market cannot answer {request!r}")
         while not self._to_dmo:
-            if request.until == -math.inf or not self._deliver_one():
+            if request.until == -math.inf or not self._step():
                 break
         if self._to_dmo:
             return self._to_dmo.popleft()
@@ -154,14 +178,14 @@ class InProcessMarket:
 
     # --- the agents' side ------------------------------------------------------------------------------------
 
-    def _deliver_one(self) -> bool:
-        """Hand the oldest message of the first agent (in name order) that has one to its machine; whether there
-        was one."""
+    def _step(self) -> bool:
+        """Hand the oldest message of the first agent (in name order) that has one, and waits for no solve, to its
+        machine; if none has, run the solves the agents wait for. Whether anything was done."""
         for name, agent in self.agents.items():
-            if agent.inbox and not agent.left:
+            if agent.inbox and not agent.left and agent.solving is None:
                 self._handle(name, agent, agent.inbox.popleft())
                 return True
-        return False
+        return self._solve()
 
     def _handle(self, name: str, agent: _Agent, msg) -> None:
         m = agent.machine
@@ -173,16 +197,41 @@ class InProcessMarket:
             self._send(name, agent, m.registration())
             return
         agent.received += not isinstance(msg, RefusedPayload)
-        started_at, started = time.time_ns(), (time.perf_counter(), time.thread_time())
-        try:
+        started_at, started, cpu = time.time_ns(), time.perf_counter(), time.thread_time()
+        with failing_as(name):
             actions = m.handle(msg)
-            ended = (time.perf_counter(), time.thread_time())
-            if not isinstance(msg, RefusedPayload):
-                actions += m.handle(Handled(HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
-                                                         wall_s=ended[0] - started[0], cpu_s=ended[1] - started[1],
-                                                         started_at=started_at, turn_s=0.0), self._counts(agent)))
-        except Exception as exc:
-            raise AgentFailed(f"{name} failed: {exc}") from exc
+        self._went_on(name, agent, _Handling(msg, started_at, started, time.thread_time() - cpu, actions))
+
+    def _solve(self) -> bool:
+        """Run the solves the agents wait for side by side, and hand each result in, in the agents' name order, as it
+        comes; whether there were any. The solve's CPU, in its worker or here, counts in its message's handling."""
+        waiting = {name: agent for name, agent in self.agents.items() if agent.solving is not None}
+        if not waiting:
+            return False
+        solutions = self._solves.run([agent.solving.actions[-1].job for agent in waiting.values()])
+        for name, agent in waiting.items():
+            handling, agent.solving = agent.solving, None
+            with failing_as(name):
+                schedule, solve_cpu_s = next(solutions)
+                cpu = time.thread_time()
+                handling.actions[-1:] = agent.machine.handle(Solved(schedule))
+            handling.cpu_s += solve_cpu_s + time.thread_time() - cpu
+            self._went_on(name, agent, handling)
+        return True
+
+    def _went_on(self, name: str, agent: _Agent, handling: _Handling) -> None:
+        """The agent waits for the solve its machine asked for; or it has handled the message: its computation goes
+        in (wall: from handing the message in to the last result handled) and what it decided is carried out."""
+        if handling.waits():
+            agent.solving = handling
+            return
+        m, msg, actions = agent.machine, handling.msg, handling.actions
+        if not isinstance(msg, RefusedPayload):
+            compute = HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None),
+                                   wall_s=time.perf_counter() - handling.started, cpu_s=handling.cpu_s,
+                                   started_at=handling.started_at, turn_s=0.0)
+            with failing_as(name):
+                actions += m.handle(Handled(compute, self._counts(agent)))
         for action in actions:
             if isinstance(action, Send):
                 self._send(name, agent, action.msg)
@@ -238,6 +287,15 @@ def run_in_process(e: Experiment, run_id: str, record: Path | None, recording: t
         if writer is not None:
             writer.close()
     return {**result, "experiment": e.name, "faults": [], "restarts": {}}
+
+
+@contextlib.contextmanager
+def failing_as(name: str) -> Iterator[None]:
+    """What an agent's machine or solve raises in the block ends the run, naming the agent (``AgentFailed``)."""
+    try:
+        yield
+    except Exception as exc:
+        raise AgentFailed(f"{name} failed: {exc}") from exc
 
 
 @contextlib.contextmanager

@@ -1,11 +1,14 @@
 """What a microgrid agent decides through the market days of a run, as a state machine with no network, thread or
 clock (sans IO, as h11 and wsproto are): each event goes in, and what the agent does about it comes out.
 
-The events are the DMO's messages, a refusal of what the agent sent (``RefusedPayload``), the computation of each
-message its driver handled (``Handled``) and a statement that never came (``NoStatement``). The actions are what the
-driver carries out, in order: ``Send`` a message (again until its receipt comes), ``AwaitReceipts`` of everything sent
-so far before the next ``Send``, ``AskStatement`` of the DMO. The driver over Zenoh is ``process.MicrogridAgent``;
-the decisions are all here, so that they are the same whoever drives them and are tested by handing messages in.
+The events are the DMO's messages, a refusal of what the agent sent (``RefusedPayload``), the result of a solve
+(``Solved``), the computation of each message its driver handled (``Handled``) and a statement that never came
+(``NoStatement``). The actions are what the driver carries out, in order: ``Send`` a message (again until its receipt
+comes), ``AwaitReceipts`` of everything sent so far before the next ``Send``, ``AskStatement`` of the DMO, and
+``Solve`` the schedule: the one long computation of a day is the driver's to run where it likes (on its own thread,
+or beside other agents' in worker processes), and the machine goes on when its result is handed in. The driver over
+Zenoh is ``process.MicrogridAgent``, in one process ``dmosim.launch.inprocess``; the decisions are all here, so that
+they are the same whoever drives them and are tested by handing messages in.
 
 The agent registers once, then each day bids, schedules against the award and operates hour by hour, carrying the
 microgrid's state across midnight into the next day. A day ends once the agent has the DMO's day summary and its own
@@ -39,7 +42,7 @@ from scenarios.horizon import HOURS
 
 from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
-from ..schedule import FirstStage
+from ..schedule import FirstStage, StochasticSchedule
 from .delivery import RefusedPayload
 from .realtime import Operator
 from .strategies import (DEFAULT_STRATEGY, NO_BID, ChosenStrategy, DayLearned, Microgrid, StrategyError,
@@ -105,7 +108,41 @@ class AskStatement:
     ``NoStatement``."""
 
 
-Action = Send | AwaitReceipts | AskStatement
+@dataclass(frozen=True)
+class ScheduleJob:
+    """The solve of a day's stochastic schedule against its award (objective (1), constraints (2)-(21)): the instance
+    and how to solve it (microgrid_agent/solvers/routes.py), from the day before's first stage (``start``). A plain
+    value that pickles, so that a driver may run it in another process."""
+
+    instance: Instance
+    method: str
+    workers: int
+    gap: float
+    time_limit: float | None
+    start: FirstStage | None
+
+    def run(self) -> StochasticSchedule:
+        return self.instance.solve(method=self.method, workers=self.workers, gap=self.gap,
+                                   time_limit=self.time_limit, start=self.start)
+
+
+@dataclass(frozen=True)
+class Solve:
+    """Run ``job`` and hand its schedule in (``Solved``), before any other event of this agent's: always the last
+    action of its batch. The solve is part of the handling of the message that asked for it, and its computation
+    counts in that message's."""
+
+    job: ScheduleJob
+
+
+Action = Send | AwaitReceipts | AskStatement | Solve
+
+
+@dataclass(frozen=True)
+class Solved:
+    """The schedule that the job of the last ``Solve`` gave."""
+
+    schedule: StochasticSchedule
 
 
 @dataclass(frozen=True)
@@ -139,6 +176,8 @@ class AgentMachine:
         self.ignored: collections.Counter[str] = collections.Counter()  # messages handled as no-ops, by why
         self._ahead: list = []  # messages of a later market day than the one being run, kept for it
         self._first_stage: FirstStage | None = None  # of the latest schedule: the next day's solve starts from it
+        self._solving: ScheduleJob | None = None  # the solve out (a Solve), until its Solved comes
+        self._after_solve: list = []  # messages the machine had to handle after the one that asked for the solve
         self._start_day()
         self._counted_in = self.compute  # the day the computation of the message being handled counts in
 
@@ -177,8 +216,14 @@ class AgentMachine:
                             bus=self.config.bus)
 
     def handle(self, event) -> list[Action]:
-        """What the agent does about ``event``: a message of the DMO's, a ``RefusedPayload``, ``Handled`` or
-        ``NoStatement``. A refused registration raises ``AgentRefused``."""
+        """What the agent does about ``event``: a message of the DMO's, a ``RefusedPayload``, ``Solved``, ``Handled``
+        or ``NoStatement``. A refused registration raises ``AgentRefused``; an event other than ``Solved`` while a
+        solve is out, or ``Solved`` while none is, raises ``RuntimeError`` (the driver broke its part, ``Solve``)."""
+        if (self._solving is not None) != isinstance(event, Solved):
+            out = "a solve is out" if self._solving is not None else "no solve is out"
+            raise RuntimeError(f"{self.name}: {type(event).__name__} handed in while {out}")
+        if isinstance(event, Solved):
+            return self._solved(event.schedule)
         if isinstance(event, Handled):
             return self._handled(event)
         if isinstance(event, NoStatement):
@@ -279,13 +324,20 @@ class AgentMachine:
         return [Send(Bid(sender=self.name, market_day=self.market_day, hours=curve))]
 
     def _schedule(self, award: Award) -> list[Action]:
-        """The stochastic schedule of the paper against the award (objective (1), constraints (2)-(21))."""
+        """The stochastic schedule of the paper against the award (objective (1), constraints (2)-(21)), for the
+        driver to solve (``Solve``)."""
         self.award = award
         c, k = self.config, award.subperiods
         scen = make_scenarios(self.case, c.scenarios, k, c.island_hours, seed=day_seed(c.seed, self.day))
-        params = award_params(award)
-        schedule = Instance(self.case, scen, params).solve(method=c.method, workers=c.workers, gap=c.gap,
-                                                           time_limit=c.time_limit, start=self._first_stage)
+        self._solving = ScheduleJob(Instance(self.case, scen, award_params(award)), c.method, c.workers, c.gap,
+                                    c.time_limit, self._first_stage)
+        return [Solve(self._solving)]
+
+    def _solved(self, schedule: StochasticSchedule) -> list[Action]:
+        """The award's schedule is solved: the day is operated by it, and the DMO told of it. Grid states that came
+        before it are operated up to the latest, and the messages that waited for it are handled."""
+        c, k, params = self.config, self.award.subperiods, self._solving.instance.params
+        self._solving = None
         self._first_stage = schedule.first  # the next day's solve starts from it
         realised = sample(self.case, 1, k, island_hours=0, seed=day_seed(c.seed, self.day) + 1000)
         self.operator = Operator(self.case, first_stage_of(schedule), params.p_sch, params.penalty, k, realised,
@@ -300,6 +352,18 @@ class AgentMachine:
             scenarios=schedule.scenarios, mip_gap=float(schedule.mip_gap)))]
         if self._grid_seen:  # grid states came first (the agent rejoined mid-day): operate up to the latest, report it
             actions += self._operate(self._grid_seen[max(self._grid_seen)])
+        waited, self._after_solve = self._after_solve, []
+        return actions + self._in_order(waited)
+
+    def _in_order(self, msgs: list) -> list[Action]:
+        """Handle ``msgs`` one after the other. Once one asks for a solve, the rest wait for its result (``Solved``),
+        as they waited when the solve was called in line."""
+        actions: list[Action] = []
+        for i, msg in enumerate(msgs):
+            actions += self._handle(msg)
+            if self._solving is not None:
+                self._after_solve = msgs[i + 1:]
+                break
         return actions
 
     def _clock(self, clock: Clock) -> list[Action]:
@@ -398,7 +462,7 @@ class AgentMachine:
         ahead, self._ahead = self._ahead, []
         if ahead:  # the message that ended the day took their computation with it: it counts in the new day
             self._counted_in = self.compute
-        return [action for msg in ahead for action in self._handle(msg)]
+        return self._in_order(ahead)
 
     def _observe(self) -> None:
         """Tell the strategy what the day brought; one that fails to listen is said in one line, and bids on."""

@@ -1,9 +1,10 @@
 """A microgrid agent's process: its decisions (machine.py, ``AgentMachine``) driven over a Bus.
 
-Zenoh's callback threads only enqueue what arrives; the agent hands it to its machine in order on its main thread, so
-a long solve delays, but never reorders or drops, what comes next, and carries out what the machine says: it
-publishes what it sends, waits for receipts and asks the DMO for a statement that did not come. The run ends when
-the machine is done with the last day the DMO's clock announces, or when the agent hears nothing for ``idle_s``.
+Zenoh's callback threads only enqueue what arrives; the agent hands it to its machine in order on its main thread, and
+carries out what the machine says: it solves the schedule there and then, so a long solve delays, but never reorders
+or drops, what comes next; it publishes what it sends, waits for receipts and asks the DMO for a statement that did
+not come. The run ends when the machine is done with the last day the DMO's clock announces, or when the agent hears
+nothing for ``idle_s``.
 
 Nothing is waited out for want of one message (docs/protocol.md, "Receipts and sending again"): what the agent
 sends goes again until the DMO's receipt comes (delivery.py), and when the DMO has been silent for a while the
@@ -11,8 +12,9 @@ agent asks it for the latest of what it is waiting for (its clock, then what the
 bids, the award, the grid state, the statement and summary). A refusal in a receipt goes to the machine, and a
 refused registration ends the agent with the DMO's reason (exit 1).
 
-Each message of the DMO's is timed here as the agent handled it (wall and CPU time, and the wait for its turn
-among the agents of a host, slots.py), and the machine reports the times in the day's ``agent_day``.
+Each message of the DMO's is timed here as the agent handled it (wall and CPU time, the schedule's solve of an award
+included, and the wait for its turn among the agents of a host, slots.py), and the machine reports the times in the
+day's ``agent_day``.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from messages.transport.heap import return_free_memory
 from scenarios.case import Case
 
 from .delivery import Delivery, Joining, RefusedPayload, Silence
-from .machine import Action, AgentConfig, AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send
+from .machine import (Action, AgentConfig, AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send, Solve,
+                      Solved)
 from .slots import computing
 from .strategies import ChosenStrategy
 
@@ -93,7 +96,7 @@ class MicrogridAgent:
         """Hand ``event`` to the machine and carry out what it says. A message of the DMO's is timed, and its time
         handed to the machine after it (``Handled``), with the message counts by then."""
         if isinstance(event, RefusedPayload):  # no computation to account for
-            self._carry_out(self.machine.handle(event))
+            self._carry_out(self._decide(event))
             return
         started_at = time.time_ns()
         # CPU of this thread: agents sharing a process each count their own (the process's counted, in each agent
@@ -101,12 +104,20 @@ class MicrogridAgent:
         started = (time.perf_counter(), time.thread_time())
         with computing():  # a turn among the agents of a host (slots.py): waiting counts in wall_s and turn_s
             turn_s = time.perf_counter() - started[0]
-            actions = self.machine.handle(event)
+            actions = self._decide(event)
             ended = (time.perf_counter(), time.thread_time())
         self._carry_out(actions)
         handled = HandlingTime(kind=event.kind, hour=getattr(event, "hour", None), wall_s=ended[0] - started[0],
                                cpu_s=ended[1] - started[1], started_at=started_at, turn_s=turn_s)
-        self._carry_out(self.machine.handle(Handled(handled, self.message_counts())))
+        self._carry_out(self._decide(Handled(handled, self.message_counts())))
+
+    def _decide(self, event) -> list[Action]:
+        """What the machine does about ``event``. A solve it asks for runs here and now, on this thread, and its
+        result goes in at once (``Solved``): the solve is part of the handling, as it was when the machine called it."""
+        actions = self.machine.handle(event)
+        if actions and isinstance(actions[-1], Solve):
+            return actions[:-1] + self._decide(Solved(actions[-1].job.run()))
+        return actions
 
     def _carry_out(self, actions: list[Action]) -> None:
         """Do what the machine said, in order. Once a schedule has gone the day's solves are over, and once an
@@ -201,7 +212,7 @@ class MicrogridAgent:
         if self._awaiting_statement():
             log.warning("%s: gave up waiting for my settlement statement %g s after the day summary", self.id,
                         wait)
-            self._carry_out(self.machine.handle(NoStatement()))
+            self._carry_out(self._decide(NoStatement()))
 
     def _awaiting_statement(self) -> bool:
         """Whether the day still waits for its statement: once it came the machine ends the day (the next has no

@@ -85,7 +85,7 @@ PR_SET_PDEATHSIG = 1  # prctl(2): the signal the kernel sends a process when its
 
 
 def _worker(conn, case, scen, params, indices, solver: int) -> None:
-    _dies_with(solver)
+    dies_with(solver)
     sub = Subproblems(case, scen, params, indices)
     conn.send("ready")
     while True:
@@ -98,10 +98,11 @@ def _worker(conn, case, scen, params, indices, solver: int) -> None:
             conn.send(("error", exc))
 
 
-def _dies_with(solver: int) -> None:
-    """Have the kernel SIGKILL this worker when the process that solves dies, however it dies (SIGTERM to ``dmosim
-    solve`` or a benchmark, SIGKILL): the worker waits on a pipe whose other end it holds itself (forked), so it never
-    sees that end close, and would wait for ever. Linux only (``PR_SET_PDEATHSIG``); elsewhere, nothing."""
+def dies_with(solver: int) -> None:
+    """Have the kernel SIGKILL this worker when the process that solves (``solver``, its parent) dies, however it dies
+    (SIGTERM to ``dmosim solve`` or a benchmark, SIGKILL): the worker waits on a pipe whose other end it holds itself
+    (forked), so it never sees that end close, and would wait for ever. A subproblems' worker here, a schedule's in a
+    market in one process (dmosim/launch/solves.py). Linux only (``PR_SET_PDEATHSIG``); elsewhere, nothing."""
     if not sys.platform.startswith("linux"):
         return
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)

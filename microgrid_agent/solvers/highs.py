@@ -48,6 +48,14 @@ def compile_problem(problem: cp.Problem) -> tuple[dict, Columns]:
     return data, Columns(dict(offsets))
 
 
+def forked() -> None:
+    """In a process just forked from one that has solved with HiGHS: let HiGHS start its threads anew. Its scheduler
+    is one for the whole process, and its worker threads are not forked with it: a MIP whose tasks wait for them
+    waits for ever (a schedule solved in a worker of dmosim/launch/solves.py did, spinning, once the market's process
+    had solved the agents' bids)."""
+    highspy.Highs.resetGlobalScheduler(False)  # not blocking: there is no thread to join
+
+
 def highs_model(data: dict, integer: bool = True) -> highspy.Highs:
     """A HiGHS instance holding cvxpy's conic data: rows A x = b (zero cone) then A x <= b (nonneg cone)."""
     A = data["A"].tocsc()

@@ -1,10 +1,12 @@
 """A market in one process (``agents.hosting = "in-process"``, dmosim/launch/inprocess.py): the DMO's machine, the
-agents' machines and the recorder driven with no network and no process, so it runs in the fast tier. What the
-processes give it gives too: tests/system/test_determinism.py compares the two on one experiment."""
+agents' machines and the recorder driven with no network and no process, so it runs in the fast tier (as on one
+core: the solves one after the other in this process, dmosim/launch/solves.py). What the processes give it gives
+too: tests/system/test_determinism.py compares the two on one experiment."""
 
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -17,10 +19,25 @@ TINY = {"seed": 3, "market_day": "2026-07-01", "agents": {"count": 2, "hosting":
         "market": {"subperiods": 1}, "schedule": {"scenarios": 1, "gap": 0.05}}
 
 
+def on_cores(monkeypatch: pytest.MonkeyPatch, cores: int) -> None:
+    """The market sees a machine of ``cores`` cores: as many solves run side by side, in worker processes when two or
+    more."""
+    monkeypatch.setattr(os, "cpu_count", lambda: cores)
+
+
 @pytest.fixture(scope="module")
 def day(tmp_path_factory):
     out = tmp_path_factory.mktemp("in-process") / "run"
-    return run_experiment(parse_experiment(TINY), out)
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        on_cores(monkeypatch, 1)
+        return run_experiment(parse_experiment(TINY), out)
+
+
+def schedules(result: dict) -> list[dict]:
+    """The schedules the agents sent, without their envelope."""
+    rec = read_recording(result["recording"])
+    return sorted((msg.model_dump(mode="json", exclude={"seq", "sent_at", "run", "incarnation"})
+                   for _, msg in rec.decoded("schedule")), key=lambda m: m["sender"])
 
 
 def test_a_day_in_one_process_settles_and_its_recording_re_settles_identically(day):
@@ -34,6 +51,17 @@ def test_a_day_in_one_process_settles_and_its_recording_re_settles_identically(d
     assert [d["market_day"] for d in day["realised"]["mg1"]] == ["2026-07-01"]
     # each message once: nothing is lost, so nothing is sent again
     assert day["realised"]["mg1"][0]["messages"]["sent_again"] == 0 and day["received_again"] == 0
+
+
+@pytest.mark.slow  # the solves side by side fork their workers
+def test_the_solves_side_by_side_in_worker_processes_give_the_day_they_give_one_after_another(day, tmp_path,
+                                                                                            monkeypatch):
+    on_cores(monkeypatch, 2)
+    side_by_side = run_experiment(parse_experiment(TINY), tmp_path / "run")
+    assert side_by_side["verdict"]["ok"], side_by_side["verdict"]
+    assert side_by_side["settlement"] == day["settlement"] and schedules(side_by_side) == schedules(day)
+    award = [c for c in side_by_side["realised"]["mg1"][0]["compute"] if c["kind"] == "award"]
+    assert len(award) == 1 and award[0]["cpu_s"] > 0  # the worker's CPU, counted in the award's handling
 
 
 def test_the_run_directory_holds_what_a_run_of_processes_gives(day):

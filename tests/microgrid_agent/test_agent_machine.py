@@ -1,8 +1,10 @@
 """The agent's decisions driven by hand (microgrid_agent/agent/machine.py): the DMO's messages of a small day go in,
-one by one with the computation a driver would measure, and what the agent sends, waits for and asks comes out. No
-process, no Zenoh session, no clock: a whole day of a two-unit microgrid takes well under a second."""
+one by one with the computation a driver would measure, and what the agent sends, waits for, asks and solves comes
+out. No process, no Zenoh session, no clock: a whole day of a two-unit microgrid takes well under a second."""
 
 from __future__ import annotations
+
+import pickle
 
 import pytest
 
@@ -11,7 +13,7 @@ from messages import (Award, CallForBids, Clock, DaySummary, GridState, MessageE
 from messages.schemas import AgentTotals, HandlingTime, MessageCounts, StatementLine
 from microgrid_agent.agent.delivery import RefusedPayload
 from microgrid_agent.agent.machine import (AgentConfig, AgentMachine, AgentRefused, AskStatement, AwaitReceipts,
-                                           Handled, NoStatement, Send)
+                                           Handled, NoStatement, Send, Solve, Solved)
 from scenarios.horizon import HOURS
 from tests.microgrid_agent.test_model import tiny_case
 
@@ -68,9 +70,18 @@ def joined(days: int = 1) -> AgentMachine:
     return machine
 
 
+def decided(machine: AgentMachine, event) -> list:
+    """What the machine does about ``event``, a solve it asks for run at once and its result handed in, as the Zenoh
+    driver does."""
+    actions = machine.handle(event)
+    if actions and isinstance(actions[-1], Solve):
+        return actions[:-1] + decided(machine, Solved(actions[-1].job.run()))
+    return actions
+
+
 def handled(machine: AgentMachine, msg) -> tuple[list, list]:
     """Hand ``msg`` in as a driver does, then its computation: the actions of each."""
-    actions = machine.handle(msg)
+    actions = decided(machine, msg)
     compute = HandlingTime(kind=msg.kind, hour=getattr(msg, "hour", None), wall_s=0.01, cpu_s=0.01, started_at=1,
                            turn_s=0.0)
     return actions, machine.handle(Handled(compute, COUNTS))
@@ -120,7 +131,7 @@ def test_a_message_of_the_next_day_while_the_day_ends_is_kept_and_handled_as_the
     assert machine.handle(summary()) == [AskStatement()]
     assert machine.handle(call_for_bids(NEXT_DAY)) == []  # the DMO went on while the statement was on its way
     assert machine.day == 1 and machine.ignored == {}
-    (bid,) = machine.handle(statement())  # the day ends, and the next one bids at once
+    (bid,) = decided(machine, statement())  # the day ends, and the next one bids at once
     assert (bid.msg.kind, bid.msg.market_day, machine.day, machine.market_day) == ("bid", NEXT_DAY, 2, NEXT_DAY)
     assert machine.handle(Handled(HandlingTime(kind="settlement_statement", hour=None, wall_s=0.2, cpu_s=0.2,
                                                started_at=1, turn_s=0.0), COUNTS)) == []
@@ -130,10 +141,36 @@ def test_a_message_of_the_next_day_while_the_day_ends_is_kept_and_handled_as_the
 
 def test_a_repeated_award_changes_nothing_and_is_counted_and_another_award_is_scheduled_again():
     machine = joined()
-    assert sent(machine.handle(award())) == ["schedule"]
+    assert sent(decided(machine, award())) == ["schedule"]
     assert machine.handle(award().model_copy(update={"seq": 7, "sent_at": 5})) == []  # a copy
     assert machine.ignored == {"award_again": 1}
-    assert sent(machine.handle(award(p_sch_mw=1.0))) == ["schedule"]
+    assert sent(decided(machine, award(p_sch_mw=1.0))) == ["schedule"]
+
+
+def test_the_award_asks_for_a_solve_and_the_schedule_goes_only_once_its_result_is_handed_in():
+    machine = joined()
+    machine.handle(call_for_bids())
+    (solve,) = machine.handle(award())
+    assert isinstance(solve, Solve) and machine.operator is None  # nothing is scheduled yet
+    with pytest.raises(RuntimeError, match="mg1: GridState handed in while a solve is out"):
+        machine.handle(grid_state(1))  # the driver hands the result in first
+    schedule = pickle.loads(pickle.dumps(solve.job)).run()  # a value a worker process can run
+    (sent_schedule,) = machine.handle(Solved(schedule))
+    assert sent_schedule.msg.kind == "schedule" and sent_schedule.msg.expected_cost == schedule.objective
+    assert sent(machine.handle(grid_state(1))) == ["meter_report"]
+    with pytest.raises(RuntimeError, match="mg1: Solved handed in while no solve is out"):
+        machine.handle(Solved(schedule))
+
+
+def test_the_next_days_messages_kept_while_the_day_ends_wait_for_its_schedules_solve():
+    machine = joined(days=2)
+    assert machine.handle(summary()) == [AskStatement()]
+    next_award = award().model_copy(update={"market_day": NEXT_DAY})
+    for msg in (call_for_bids(NEXT_DAY), next_award, grid_state(1).model_copy(update={"market_day": NEXT_DAY})):
+        assert machine.handle(msg) == []  # the DMO went on while the statement was on its way
+    *bid, solve = machine.handle(statement())  # the next day bids and asks for its schedule; the hour waits
+    assert sent(bid) == ["bid"] and isinstance(solve, Solve)
+    assert sent(machine.handle(Solved(solve.job.run()))) == ["schedule", "meter_report"]
 
 
 def test_a_refused_registration_ends_the_agent_with_the_dmos_reason_and_another_refusal_does_not():

@@ -12,10 +12,9 @@ import pytest
 from messages import BidStep, Registration, decode, encode
 from messages.schemas import MAX_BID_STEPS, SCHEMA_VERSION, Award
 from microgrid_agent.agent.bidding import bid_curve
-from microgrid_agent.agent.machine import AgentConfig, AgentMachine
+from microgrid_agent.agent.machine import AgentConfig, AgentMachine, Solved
 from microgrid_agent.agent.strategies import (NO_BID, DayLearned, Microgrid, StrategyError, checked_curve,
                                               choose_strategy, make_strategy, net_load, strategy_name, trial_call)
-from microgrid_agent.instance import Instance
 from scenarios.case import load_case
 from scenarios.days import day_seed
 from scenarios.horizon import HOURS
@@ -254,22 +253,18 @@ def test_the_registration_carries_the_strategy_and_an_older_one_reads_as_naming_
 
 
 
-def test_each_days_schedule_starts_from_the_one_before(paper, monkeypatch):
+def test_each_days_schedule_starts_from_the_one_before(paper):
     """An agent's solve is handed the first stage of its previous schedule (none on its first day): the Benders
     route takes it as its first incumbent (microgrid_agent/solvers/benders.py, ``begin_from``)."""
-    starts, solve = [], Instance.solve
-
-    def spy(self, *args, start=None, **kwargs):
-        starts.append(start)
-        schedule = solve(self, *args, start=start, **kwargs)
-        starts.append(schedule.first)
-        return schedule
-
-    monkeypatch.setattr(Instance, "solve", spy)
     agent = AgentMachine("mg1", paper, agent_config(), DAY)
+    starts, firsts = [], []
     for day in (1, 2):
         agent.day = day
-        agent._schedule(Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=tuple(paper.grid.p_sch),
-                              clearing_price_per_mwh=(50.0,) * HOURS, penalty_per_mwh=150.0, subperiods=1,
-                              rules_version=1, rules="paper"))
-    assert starts[0] is None and starts[2] is starts[1]
+        (solve,) = agent._schedule(Award(sender="dmo", market_day=DAY, agent="mg1", p_sch_mw=tuple(paper.grid.p_sch),
+                                         clearing_price_per_mwh=(50.0,) * HOURS, penalty_per_mwh=150.0, subperiods=1,
+                                         rules_version=1, rules="paper"))
+        schedule = solve.job.run()
+        agent.handle(Solved(schedule))
+        starts.append(solve.job.start)
+        firsts.append(schedule.first)
+    assert starts[0] is None and starts[1] is firsts[0]
