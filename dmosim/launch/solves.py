@@ -1,6 +1,7 @@
 """The schedules' solves that the agents of a market in one process wait for (inprocess.py), run side by side: each in
-a worker process of a pool, as many as the machine has cores, so that they use the cores as agents' processes do
-(the interpreter's lock lets threads gain little: three solves in threads ran 1.23 times as fast as in turn).
+a worker process of a pool (twice as many as the machine has cores: inprocess.py), so that they use the cores as
+agents' processes do (the interpreter's lock lets threads gain little: three solves in threads ran 1.23 times as
+fast as in turn).
 
 The pool is forked once, when the first solves come that can run side by side, and kept for the run; its workers die
 with this process, however it ends, and start HiGHS's threads anew (this process has solved the bids with its own).
