@@ -16,8 +16,6 @@ import sys
 import threading
 
 from dmo.market.choice import Trust, UntrustedRule
-from dmo.operator.day import MarketDay
-from dmo.replay.recorded import RecordedMarket, render, replay_config, replay_result
 from dmo.replay.resettle import ResettleError, recorded_day, recorded_rule
 from messages import DMO, check_agent_id, check_run_id, new_run_id
 from messages.recording import Player, Recorder, Recording, RecordingWriter, select
@@ -123,6 +121,9 @@ def _say(args, text: str) -> None:
 def _as_dmo(args, rec: Recording, run_id: str) -> int:
     """``--as-dmo``: the recorded day played to a live agent, the DMO's machine running its market
     (replay/recorded.py)."""
+    from dmo.operator.day import MarketDay  # noqa: PLC0415  (the DMO's machine loads the feeder's clearing)
+    from dmo.replay.recorded import RecordedMarket, render, replay_config, replay_result  # noqa: PLC0415
+
     try:
         day = recorded_day(rec, args.day)
         rule = recorded_rule(day, Trust(everything=args.trust_rules))  # said now, before anything starts

@@ -40,13 +40,23 @@ def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path, fifo):
         record(roles, "recorder")  # from the start: the reference
         reached = {"bidding": threading.Event(), "noon": threading.Event(), "summary": threading.Event()}
 
+        def hold(event: str) -> None:
+            """The agents wait, frozen, until the late recorders of ``event`` record (an hour takes ms, a recorder
+            seconds to start)."""
+            if not reached[event].is_set():
+                for agent in ("mg1", "mg2"):
+                    roles.roles[agent].process.send_signal(signal.SIGSTOP)
+                reached[event].set()
+
+        def go_on() -> None:
+            for agent in ("mg1", "mg2"):
+                roles.roles[agent].process.send_signal(signal.SIGCONT)
+
         def on_clock(key, msg, at):
             if msg.phase == "bidding":
-                reached["bidding"].set()  # every agent has registered
-            if msg.phase == "realtime" and msg.hour == 12 and not reached["noon"].is_set():
-                for agent in ("mg1", "mg2"):  # the afternoon waits until the late recorders record (an hour takes ms)
-                    roles.roles[agent].process.send_signal(signal.SIGSTOP)
-                reached["noon"].set()
+                hold("bidding")  # every agent has registered
+            if msg.phase == "realtime" and msg.hour == 12:
+                hold("noon")
             if msg.phase == "settlement":
                 reached["summary"].set()
 
@@ -58,7 +68,11 @@ def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path, fifo):
                                           "--auth-dir", str(auth), "--lease", "120", *TINY),
                             log=tmp_path / f"{agent}.log", env=ENV)
             assert reached["bidding"].wait(300), (tmp_path / "dmo.log").read_text()[-3000:]
-            record(roles, "bidding")
+            try:
+                record(roles, "bidding", "--ready-file", str(fifo.path))
+                assert fifo.line(roles.roles["bidding"].process.pid, 120) == str(recordings["bidding"])
+            finally:
+                go_on()
             assert reached["noon"].wait(600), (tmp_path / "dmo.log").read_text()[-3000:]
             try:
                 record(roles, "noon", "--ready-file", str(fifo.path))
@@ -67,8 +81,7 @@ def test_recorders_that_join_late_record_a_day_that_re_settles(tmp_path, fifo):
                 ready = {fifo.line(roles.roles[name].process.pid, 120) for name in ("noon", "blind")}
                 assert ready == {str(recordings["noon"]), str(recordings["blind"])}
             finally:
-                for agent in ("mg1", "mg2"):
-                    roles.roles[agent].process.send_signal(signal.SIGCONT)
+                go_on()
             assert reached["summary"].wait(300)
         assert roles.roles["dmo"].process.wait(timeout=120) == 0, (tmp_path / "dmo.log").read_text()[-3000:]
         for name in recordings:
