@@ -47,6 +47,10 @@ log = logging.getLogger("dmosim.dmo")
 Phase = Generator[Request, Event, None]
 
 
+class NobodyRegistered(RuntimeError):
+    """Registration closed, at its deadline on the wall clock, with no agent registered: the run cannot go on."""
+
+
 class DmoMachine:
     """The market days of one run, of ``market`` (markets.py; by default the one ``config`` describes, clearing the
     bids it accepts). ``run_token`` is the run's token, drawn by the driver (a DMO resumed on its journal, whose
@@ -167,7 +171,7 @@ class DmoMachine:
         if len(s.registered) < c.agents:
             self._incident(None, f"only {len(s.registered)} of {c.agents} agents registered by the deadline")
         if not s.registered:
-            raise RuntimeError("no agent registered before the registration deadline")
+            raise NobodyRegistered("no agent registered before the registration deadline")
 
     def _bidding(self) -> Phase:
         s, c = self.state, self.config

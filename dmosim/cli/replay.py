@@ -122,6 +122,7 @@ def _as_dmo(args, rec: Recording, run_id: str) -> int:
     """``--as-dmo``: the recorded day played to a live agent, the DMO's machine running its market
     (replay/recorded.py)."""
     from dmo.operator.day import MarketDay  # noqa: PLC0415  (the DMO's machine loads the feeder's clearing)
+    from dmo.operator.machine import NobodyRegistered  # noqa: PLC0415
     from dmo.replay.recorded import RecordedMarket, render, replay_config, replay_result  # noqa: PLC0415
 
     try:
@@ -166,10 +167,8 @@ def _as_dmo(args, rec: Recording, run_id: str) -> int:
                 recorder_thread.start()
             try:
                 run = MarketDay(bus, replay_config(day, args.timeout), market=market).run()
-            except RuntimeError as exc:
-                if "no agent registered" in str(exc):
-                    raise RuntimeError(f"agent {agent} did not register within {args.timeout:g} s") from None
-                raise
+            except NobodyRegistered:
+                raise RuntimeError(f"agent {agent} did not register within {args.timeout:g} s") from None
             result = replay_result(run, market, run_id)
     finally:
         recorder_stop.set()

@@ -39,10 +39,10 @@ from messages.stamping import Sender
 from microgrid_agent.agent.delivery import RefusedPayload
 from microgrid_agent.agent.machine import (AgentMachine, AskStatement, AwaitReceipts, Handled, NoStatement, Send, Solve,
                                            Solved)
-from scenarios.fleet import member_case
+from scenarios.fleet import FleetMember, member_case
 
 from ..experiment.spec import Experiment
-from .roles import agent_config, day_config, fleet_of, strategy_of
+from .roles import agent_config, day_config, strategy_of
 from .solves import Solves
 
 log = logging.getLogger("dmosim")
@@ -88,7 +88,6 @@ class _Agent:
     inbox: collections.deque = field(default_factory=collections.deque)
     joined: bool = False
     left: bool = False
-    published: int = 0
     received: int = 0
     pending: dict[str, tuple[str, int]] = field(default_factory=dict)  # sha256 -> (kind, seq), until receipted
     solving: _Handling | None = None  # the message whose handling waits for its solve
@@ -267,16 +266,16 @@ class InProcessMarket:
             self.writer.tick()
 
 
-def run_in_process(e: Experiment, run_id: str, record: Path | None, recording: tuple[dict, list[str]],
-                   log_file: Path, on_clock: Callable[[Clock], None]) -> dict:
-    """The (resolved) experiment run in this process (``agents.hosting = "in-process"``): the DMO's result as its
-    process writes it (``RunResult.report``), with what the launcher adds of a run; ``record`` is where the
-    recording goes (None: none), ``recording`` its metadata and the files it attaches, ``log_file`` where the
-    roles' logs go."""
+def run_in_process(e: Experiment, fleet: list[FleetMember], run_id: str, record: Path | None,
+                   recording: tuple[dict, list[str]], log_file: Path, on_clock: Callable[[Clock], None]) -> dict:
+    """The (resolved) experiment, whose agents are ``fleet``, run in this process (``agents.hosting =
+    "in-process"``): the DMO's result as its process writes it (``RunResult.report``), with what the launcher adds of
+    a run; ``record`` is where the recording goes (None: none), ``recording`` its metadata and the files it attaches,
+    ``log_file`` where the roles' logs go."""
     from microgrid_agent.agent.strategies import choose_strategy  # noqa: PLC0415  (the solver stack)
 
     agents = {}
-    for member in fleet_of(e):
+    for member in fleet:
         case = member_case(member)
         config = agent_config(e, member)
         agents[member.id] = AgentMachine(member.id, case, config, e.market_day,

@@ -137,19 +137,18 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         say(f"run {run_id}: DMO and {len(fleet)} agents in this process, {e.days} day(s) from {e.market_day}; "
             f"writing to {rundir.root}" + ("" if record else "; not recording"))
         tick = tick or (lambda done, total, text: say(text))
-        result = run_in_process(e, run_id, record, recording_inputs(e, fleet, rundir), rundir.logs / IN_PROCESS_LOG,
-                                lambda clock: tick(*progress_of(clock)))
+        result = run_in_process(e, fleet, run_id, record, recording_inputs(e, fleet, rundir),
+                                rundir.logs / IN_PROCESS_LOG, lambda clock: tick(*progress_of(clock)))
         result.update(wall_s=round(time.monotonic() - began, 3), run_dir=str(rundir.root.resolve()),
                       logs=str(rundir.logs.resolve()), recording=str(record.resolve()) if record else None)
-        return concluded(result, e, run_id, rundir, record, repeat_of=repeat_of, say=say)
-    return _as_processes(e, run_id, rundir, record, tls, repeat_of, say, tick, cluster, began)
+        return concluded(result, e, fleet, run_id, rundir, record, repeat_of=repeat_of, say=say)
+    return _as_processes(e, fleet, run_id, rundir, record, tls, repeat_of, say, tick, cluster, began)
 
 
-def _as_processes(e: Experiment, run_id: str, rundir: RunDir, record: Path | None, tls: bool,
-                  repeat_of: str | Path | None, say: Callable[[str], None],
+def _as_processes(e: Experiment, fleet: list[FleetMember], run_id: str, rundir: RunDir, record: Path | None,
+                  tls: bool, repeat_of: str | Path | None, say: Callable[[str], None],
                   tick: Callable[[int, int, str], None] | None, cluster: Cluster | None, began: float) -> dict:
     """The run as processes over Zenoh (``run_locally``)."""
-    fleet = fleet_of(e)
     parsed = [parse_fault(f) for f in e.faults]
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
     starting_s = STARTING_S[e.deadlines.clock]
@@ -239,16 +238,15 @@ def _as_processes(e: Experiment, run_id: str, rundir: RunDir, record: Path | Non
             **{m.id: names[router_of[m.id]] for m in fleet}}}
     if remote is not None:
         result["cluster"] = {"scheduler": cluster.address, "dmo": reach, "agents": remote.placed}
-    return concluded(result, e, run_id, rundir, record, recorder, repeat_of, say)
+    return concluded(result, e, fleet, run_id, rundir, record, recorder, repeat_of, say)
 
 
-def concluded(result: dict, e: Experiment, run_id: str, rundir: RunDir, record: Path | None,
-              recorder: str | None = None, repeat_of: str | Path | None = None,
+def concluded(result: dict, e: Experiment, fleet: list[FleetMember], run_id: str, rundir: RunDir,
+              record: Path | None, recorder: str | None = None, repeat_of: str | Path | None = None,
               say: Callable[[str], None] = lambda text: None) -> dict:
     """The run's ``result`` (the DMO's, with what the launcher adds) concluded: what the recording holds, its
     tables and figure, its re-settlement, the comparison with the run it repeats, and the verdict, written to the
     run directory. ``recorder``: how the recorder failed (None: it did not)."""
-    fleet = fleet_of(e)
     # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.
     rec, complete = None, False
     if record:
