@@ -132,9 +132,12 @@ def listener():
 
 # Module fixtures that run a real market day (file, fixture): the tests that share one go to one xdist worker
 # together (the README's --dist loadgroup), so that the day runs once, not once on each worker that has one of them.
-SHARED_DAYS = {("test_determinism.py", "base"), ("test_recording.py", "day"), ("test_untrusted_runs.py", "killed")}
+# tests/project/test_groups.py checks that the grouping takes effect.
+SHARED_DAYS = {("test_determinism.py", "base"), ("test_recording.py", "day"), ("test_untrusted_runs.py", "killed"),
+               ("test_groups.py", "shared")}
 
 
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's own hook, which reads the groups
 def pytest_collection_modifyitems(items):
     for item in items:
         for fixture in getattr(item, "fixturenames", ()):

@@ -18,7 +18,7 @@ pytestmark = pytest.mark.slow
 
 MARKET = ["--agents", "2", "--days", "2", "--feeder", "feeder5", "--scenarios", "1", "--subperiods", "1", "--gap",
           "0.05", "--seed", "11", "--market-day", "2026-07-01"]
-EXPERIMENT = [*MARKET, "--fault", "drop:agent/*/meter:0.3", "--fault", "duplicate:dmo/grid:1",
+EXPERIMENT = [*MARKET, "--fault", "drop:agent/*/meter:0.1", "--fault", "duplicate:dmo/grid:1",
               "--fault", "delay:agent/mg2/bid:0.5"]
 # what the market said and was told; an agent's own account of its day (its computation's seconds) is not here
 KINDS = ("registration", "call_for_bids", "bid", "award", "schedule", "network_hour", "grid_state", "meter_report",

@@ -1,6 +1,7 @@
-"""``dmosim sweep`` end to end: two variants of a tiny experiment run side by side as real ``dmosim run``s, and
-the sweep's table holds each agent's bill exactly as each run's own result says; one of them run again from its
-recording (``dmosim run --from``) settles to the cent as before, and the other variant is told apart."""
+"""``dmosim sweep`` end to end: two variants of a tiny experiment run side by side as real ``dmosim run``s (each
+market in its run's one process: what is tested is the sweep, not the market's processes), and the sweep's table
+holds each agent's bill exactly as each run's own result says; one of them run again from its recording (``dmosim
+run --from``) settles to the cent as before, and the other variant is told apart."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ EXPERIMENT = """name = "tiny"
 market_day = "2026-07-01"
 [agents]
 count = 1
+hosting = "in-process"
 [market]
 subperiods = 1
 [schedule]
