@@ -21,6 +21,7 @@ HiGHS is deterministic on a given LP, and the awards are summed per agent with `
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from scenarios import exact
 from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
+from .branchflow import BranchFlow, OperatingPoint
 from .clearing import (FLAT, BidCurve, Book, IsoCurve, Segments, accepted_fractions, clear_on_curve, hour_book,
                        market_inputs, per_agent, segments)
 
@@ -55,6 +57,16 @@ LIMITS_PER_ROUND = 40
 # A step is at its bus's price when the LP leaves it strictly part-accepted, or when the bus price from the duals
 # lies within this of its bid price ($/MWh): floating-point duals then stand for the bid's own price.
 PRICE_TOLERANCE = 1e-9
+# The AC-faithful clearing's iterations end when the AC flow of the plan keeps every bus within this of its voltage
+# limits (p.u.) and every line within this share of its rating, or after MAX_AC_ITERATIONS linearised clearings.
+AC_VOLTAGE_TOLERANCE = 1e-6
+AC_LOADING_TOLERANCE = 1e-6
+MAX_AC_ITERATIONS = 20
+AC_CYCLE_TOLERANCE = 1e-9  # MW: a plan this close to the one two clearings before repeats it
+# MW, Mvar: a plan this close to the operating point its LP was linearised at is that point (its loss factors and
+# sensitivities are the plan's own to well within a cent per MWh)
+AC_PLAN_TOLERANCE = 1e-6
+CLEARING_METHODS = ("lindistflow", "ac")
 
 
 @dataclass(frozen=True, eq=False)  # arrays inside: compare fields, not results
@@ -71,6 +83,13 @@ class NetworkClearing:
     the indices of the lines and buses whose limit the hour's LP holds at its bound (none in an hour the copper plate
     clears). ``exchange_mw``: the substation's import from the ISO (fixed load + awards - shed). ``welfare`` ($ per
     hour): the accepted purchases' bid value less the sales' and the ISO's energy and the shed load at ``voll``.
+
+    ``method``: "lindistflow" (the state above is LinDistFlow's, ``loss`` is 0) or "ac" (cleared on LinDistFlow
+    corrected at the AC flow of its own plan: ``loss``, 24 x buses, is each bus price's loss component, and the
+    state is the AC flow's, flows at each line's substation end). ``iterations``: per hour, the corrected clearings
+    it took (0 for "lindistflow"). Per hour, what the AC flow of the plan breaks (0 where it holds, NaN where it has
+    no AC solution): ``ac_voltage_excess_pu``, the largest distance of a bus's AC voltage outside its limits (p.u.),
+    and ``ac_overload``, the largest share of a rating by which a line's apparent power at its sending end exceeds it.
     """
 
     price: tuple[float, ...]
@@ -89,6 +108,11 @@ class NetworkClearing:
     shed_mw: np.ndarray
     exchange_mw: tuple[float, ...]
     welfare: tuple[float, ...]
+    method: str
+    loss: np.ndarray
+    iterations: tuple[int, ...]
+    ac_voltage_excess_pu: tuple[float, ...]
+    ac_overload: tuple[float, ...]
 
     def net_import(self, hour: int) -> float:
         """The microgrids' net import in one hour: the sum of the awards (MW), as ``ClearingResult.net_import``."""
@@ -104,7 +128,9 @@ class HourProgram:
     curve (``clearing.segments``; one for the flat curve). ``x`` is the solution; the duals follow
     scipy's convention (d objective / d right-hand side): ``eq_dual`` (the energy price), ``ub_dual`` (<= 0; zero
     for a row the solution holds without it in the LP), ``lower_dual`` (>= 0), ``upper_dual`` (<= 0). ``objective``
-    is minus the welfare."""
+    is minus the welfare (on an AC operating point, with its losses linearised there). ``exchange_eq`` (buses) and
+    ``exchange_ub`` (rows x buses): the column a microgrid's MW at each bus has in the balance and in each limit
+    (with its tan(phi) Mvar), as each step's column at its bus."""
 
     c: np.ndarray
     A_eq: np.ndarray
@@ -121,6 +147,23 @@ class HourProgram:
     lower_dual: np.ndarray
     upper_dual: np.ndarray
     objective: float
+    exchange_eq: np.ndarray
+    exchange_ub: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Linearised:
+    """The feeder's AC flow linearised at an operating point (``Feeder.linearised``): ``values`` (one per limit,
+    in ``Feeder.rows`` order), each limit's left side in the AC flow there; ``child_end`` (8 x lines), which end
+    of its line each facet reads; ``lf_p``, ``lf_q`` (per bus) the losses' marginal factors. Each limit's
+    sensitivities there come from ``branchflow.BranchFlow.sensitivities``: the LP's limits are then the AC flow's
+    to first order, exactly at the point."""
+
+    point: OperatingPoint
+    values: np.ndarray
+    child_end: np.ndarray
+    lf_p: np.ndarray
+    lf_q: np.ndarray
 
 
 # --- the feeder as sparse sensitivities ---------------------------------------------------------------------------
@@ -152,6 +195,24 @@ class Feeder:
         self.bounds = np.concatenate([np.repeat(self.s_max, 8),
                                       np.column_stack([self.u0 - self.u_min[j], self.u_max[j] - self.u0]).ravel()])
         self.scale = np.concatenate([np.repeat(self.s_max, 8), np.column_stack([self.u_min[j], self.u_max[j]]).ravel()])
+        self.ac = BranchFlow(network)
+
+    def linearised(self, point: OperatingPoint) -> Linearised:
+        """The feeder's limits and losses linearised at the AC operating point ``point`` (``Linearised``)."""
+        values, child_end = self.ac_left_sides(point)
+        return Linearised(point, values, child_end, *self.ac.loss_factors(point))
+
+    def ac_left_sides(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray]:
+        """Every limit's left side (as ``left_sides``) in the AC flow ``point``, and per line facet (8 x lines)
+        whether it is taken at the line's child end: a line's facet n reads the flow at whichever end n P + n Q is
+        larger (the end power enters, where the AC check reads a line's loading; the child end's flow is the parent
+        end's less the line's losses, r l and x l)."""
+        parent = FACETS[:, :1] * point.flow_p + FACETS[:, 1:] * point.flow_q  # 8 x lines
+        lost = FACETS[:, :1] * (self.ac.r * point.current2) + FACETS[:, 1:] * (self.ac.x * point.current2)
+        child_end = lost < 0
+        drop = self.u0 - point.u[self.feeder_buses]
+        facets = np.where(child_end, parent - lost, parent)
+        return np.concatenate([facets.T.ravel(), np.column_stack([drop, -drop]).ravel()]), child_end
 
     def state(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Flows P, Q (lines) and U = V^2 (buses) for loads p, q (buses)."""
@@ -171,10 +232,17 @@ class Feeder:
         facets = FACETS[:, :1] * flow_p + FACETS[:, 1:] * flow_q  # 8 x lines
         return np.concatenate([facets.T.ravel(), np.column_stack([drop, -drop]).ravel()])
 
-    def violated(self, p: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def violated(self, p: np.ndarray, q: np.ndarray,
+                 near: OperatingPoint | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The ids of the limits the loads p, q break by more than LIMIT_TOLERANCE, sorted, and by how much as a
-        share of the limit (of s_max for a line facet, of U_min or U_max for a bus)."""
-        excess = self.left_sides(p, q) - self.bounds
+        share of the limit (of s_max for a line facet, of U_min or U_max for a bus): in LinDistFlow, or, given an
+        AC operating point ``near`` them, in the AC flow (every limit, if it has none)."""
+        if near is not None:
+            point = self.ac.solve(p, q, near)
+            left = self.bounds + 1.0 if point is None else self.ac_left_sides(point)[0]
+        else:
+            left = self.left_sides(p, q)
+        excess = left - self.bounds
         broken = excess > LIMIT_TOLERANCE
         return self.rows[broken], excess[broken] / self.scale[broken]
 
@@ -239,6 +307,7 @@ class _Hour:
     fixed_q: np.ndarray
     curve: Segments
     voll: float
+    at: Linearised | None = None  # the AC operating point the hour's LP is corrected at (None: LinDistFlow alone)
 
     @property
     def shed_buses(self) -> np.ndarray:
@@ -253,6 +322,55 @@ class _Hour:
         ratio = np.divide(self.fixed_q, self.fixed_p, out=np.zeros(n), where=self.fixed_p > 0)
         return (self.fixed_p + inject - shed, self.fixed_q + self.feeder.tan_phi * inject - ratio * shed)
 
+    @property
+    def shed_ratio(self) -> np.ndarray:
+        """Per bus, the Q shed with each MW of its fixed load (its ratio Q/P; 0 where it consumes no P)."""
+        n = len(self.fixed_p)
+        return np.divide(self.fixed_q, self.fixed_p, out=np.zeros(n), where=self.fixed_p > 0)
+
+    def limits(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``Feeder.limits``; at an AC operating point, the limits of the AC flow linearised there instead: left
+        sides G_P p + G_Q q with G the AC flow's sensitivities, right sides b - y(point) + G_P p* + G_Q q* for each
+        limit's AC left side y at the point's loads p*, q*, less the fixed loads' G_P p_f + G_Q q_f, which
+        ``program`` takes off LinDistFlow's right sides (here in one sum with the point's loads: p* - p_f is
+        nonzero only where microgrids or shed loads are)."""
+        feeder = self.feeder
+        if self.at is None:
+            return feeder.limits(rows)
+        net, at = feeder.network, self.at
+        base = 8 * net.n_lines
+        grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # as Feeder.limits: lines' rows first
+        line, facet = divmod(grouped[grouped < base], 8)
+        bus, upper = divmod(grouped[grouped >= base] - base, 2)
+        gradient = {g: np.zeros((net.n_lines, len(grouped))) for g in ("g_p", "g_q", "g_l", "g_u")}
+        facets = np.arange(len(line))
+        n_p, n_q = FACETS[facet, 0], FACETS[facet, 1]
+        gradient["g_p"][line, facets], gradient["g_q"][line, facets] = n_p, n_q
+        gradient["g_l"][line, facets] = -np.where(at.child_end[facet, line], n_p * feeder.ac.r[line]
+                                                  + n_q * feeder.ac.x[line], 0.0)
+        gradient["g_u"][net.line_to[bus], len(line) + np.arange(len(bus))] = np.where(upper == 1, 1.0, -1.0)
+        g_p, g_q = feeder.ac.sensitivities(at.point, **gradient)
+        where = np.searchsorted(feeder.rows, grouped)
+        b = (feeder.bounds[where] - at.values[where] + exact.matvec(g_p, at.point.p - self.fixed_p)
+             + exact.matvec(g_q, at.point.q - self.fixed_q))
+        return g_p, g_q, b
+
+    def gain(self, q_per_p: np.ndarray | float, buses: np.ndarray) -> np.ndarray:
+        """What a MW more load at each of ``buses`` (with ``q_per_p`` Mvar) draws at the substation: 1, plus its
+        marginal losses at the hour's operating point (LinDistFlow alone: 1)."""
+        if self.at is None:
+            return np.ones(len(buses))
+        return 1.0 + self.at.lf_p[buses] + q_per_p * self.at.lf_q[buses]
+
+    def balance(self) -> float:
+        """The substation's balance's right side: the fixed load, and at an operating point the losses there less
+        what the loss factors already count of the fixed load's distance from it."""
+        if self.at is None:
+            return math.fsum(self.fixed_p)
+        point, at = self.at.point, self.at
+        return math.fsum(np.concatenate([self.fixed_p, [point.losses], at.lf_p * (self.fixed_p - point.p),
+                                         at.lf_q * (self.fixed_q - point.q)]))
+
     def program(self, g_p: np.ndarray, g_q: np.ndarray, b: np.ndarray, shed_at: np.ndarray) -> tuple[np.ndarray, ...]:
         """The LP over the steps, the shed loads at ``shed_at`` and P0's segments, with the limits G_P p + G_Q q <= b:
         c, A_eq, b_eq, A_ub, b_ub, lower, upper (dense)."""
@@ -261,12 +379,14 @@ class _Hour:
         # A step's MW raises its bus's P by 1 and Q by tan(phi); a shed MW lowers P by 1 and Q by the load's ratio.
         a_ub = np.hstack([(g_p + self.feeder.tan_phi * g_q)[:, self.bus], -self.shed_columns(g_p, g_q, shed_at),
                           np.zeros((len(b), n))])
-        b_ub = b - exact.matvec(g_p, self.fixed_p) - exact.matvec(g_q, self.fixed_q)
-        s, k = len(book.quantity), len(shed_at)
-        # The substation's balance: P0 = fixed load + net import of the steps - shed (LinDistFlow is lossless), P0
-        # the sum of its segments' columns, each from 0 outwards (its prices rise with P0: the LP fills them in order)
-        a_eq = np.concatenate([-np.ones(s), np.ones(k), np.ones(n)])[None, :]
-        b_eq = np.array([math.fsum(self.fixed_p)])
+        b_ub = b if self.at is not None else b - exact.matvec(g_p, self.fixed_p) - exact.matvec(g_q, self.fixed_q)
+        k = len(shed_at)
+        # The substation's balance: P0 = fixed load + net import of the steps - shed (LinDistFlow is lossless; at an
+        # AC operating point, each MW with its marginal losses, and the losses there), P0 the sum of its segments'
+        # columns, each from 0 outwards (its prices rise with P0: the LP fills them in order)
+        a_eq = np.concatenate([-self.gain(self.feeder.tan_phi, self.bus), self.gain(self.shed_ratio[shed_at], shed_at),
+                               np.ones(n)])[None, :]
+        b_eq = np.array([self.balance()])
         c = np.concatenate([-book.price, np.full(k, self.voll), curve.price])
         lower = np.concatenate([np.minimum(book.quantity, 0.0), np.zeros(k),
                                 np.minimum(curve.low, 0.0) - np.minimum(curve.high, 0.0)])
@@ -276,14 +396,14 @@ class _Hour:
 
     def shed_columns(self, g_p: np.ndarray, g_q: np.ndarray, shed_at: np.ndarray) -> np.ndarray:
         """The limits' left sides for a MW of fixed load at each bus of ``shed_at``, its Q in proportion."""
-        return g_p[:, shed_at] + g_q[:, shed_at] * (self.fixed_q[shed_at] / self.fixed_p[shed_at])
+        return g_p[:, shed_at] + g_q[:, shed_at] * self.shed_ratio[shed_at]
 
     def solve(self, rows: np.ndarray) -> _Solution:
         """Solve with the limits ``rows`` and no shedding; add the limits the solution breaks (the worst, ``worst``)
         and the sheddable loads whose bus price exceeds VOLL (their columns' reduced costs are negative), again
         until neither is left: then the solution is that of the LP with every limit and every shed load."""
         rows = np.asarray(rows, int)
-        g_p, g_q, b = self.feeder.limits(rows)
+        g_p, g_q, b = self.limits(rows)
         shed_at, every = np.zeros(0, int), self.shed_buses
         while True:
             lp = self.program(g_p, g_q, b, shed_at)
@@ -302,12 +422,13 @@ class _Hour:
             if dear.size:
                 shed_at = np.union1d(shed_at, dear)
                 continue
-            ids, share = self.feeder.violated(*self.loads(solution.step_mw, solution.shed(len(self.fixed_p))))
+            ids, share = self.feeder.violated(*self.loads(solution.step_mw, solution.shed(len(self.fixed_p))),
+                                              None if self.at is None else self.at.point)
             new = ~np.isin(ids, rows)
             if not new.any():
                 return solution
             added = self.feeder.worst(ids[new], share[new], LIMITS_PER_ROUND)
-            more = self.feeder.limits(added)
+            more = self.limits(added)
             rows = np.concatenate([rows, added])
             g_p, g_q, b = np.vstack([g_p, more[0]]), np.vstack([g_q, more[1]]), np.concatenate([b, more[2]])
 
@@ -316,7 +437,8 @@ class _Hour:
         the limits' duals times its sensitivities. Above VOLL, shedding it gains welfare."""
         relief = -solution.ub_dual
         columns = self.shed_columns(solution.g_p, solution.g_q, buses)
-        return solution.res.eqlin.marginals[0] + exact.matvec(columns.T, relief)
+        energy = solution.res.eqlin.marginals[0] * self.gain(self.shed_ratio[buses], buses)
+        return energy + exact.matvec(columns.T, relief)
 
 
 @dataclass(frozen=True)
@@ -366,18 +488,21 @@ class _Cleared:
     step_mw: np.ndarray
     shed: np.ndarray
     bus_price: np.ndarray
+    loss: np.ndarray
     congestion: np.ndarray
     voltage: np.ndarray
     lines: tuple[int, ...]
     buses: tuple[int, ...]
+    rows: np.ndarray  # the limits its LP held (none on the copper plate)
 
 
 def _copper_plate(hour: _Hour) -> tuple[_Cleared | None, np.ndarray]:
     """The copper plate's clearing when it is this hour's answer (None otherwise), and the limits its awards
     break. It applies while the substation's limits leave room for the fixed load and its price is within VOLL
-    (above it, shedding fixed load for the bids would gain welfare)."""
+    (above it, shedding fixed load for the bids would gain welfare), and never at an AC operating point (its
+    losses are priced)."""
     fixed = math.fsum(hour.fixed_p)
-    if not hour.curve.bottom <= fixed <= hour.curve.top:
+    if hour.at is not None or not hour.curve.bottom <= fixed <= hour.curve.top:
         return None, np.zeros(0, int)
     price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
     if price > hour.voll:
@@ -387,12 +512,14 @@ def _copper_plate(hour: _Hour) -> tuple[_Cleared | None, np.ndarray]:
     if ids.size:
         return None, hour.feeder.worst(ids, share, LIMITS_PER_ROUND)
     uniform = np.full(n, price)
-    return _Cleared(price, congested, step_mw, np.zeros(n), uniform, np.zeros(n), np.zeros(n), (), ()), ids
+    return (_Cleared(price, congested, step_mw, np.zeros(n), uniform, np.zeros(n), np.zeros(n), np.zeros(n), (), (),
+                     np.zeros(0, int)), ids)
 
 
-def _prices(hour: _Hour, sol: _Solution) -> tuple[float, np.ndarray, np.ndarray]:
-    """The energy price and each bus's congestion and voltage components from the duals: each limit's dual times
-    the sensitivity of its left side to a microgrid's MW at the bus (P, with tan(phi) Mvar)."""
+def _prices(hour: _Hour, sol: _Solution) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """The energy price and each bus's loss, congestion and voltage components from the duals: the energy price
+    times the marginal losses of a microgrid's MW at the bus (P, with tan(phi) Mvar; 0 without an AC operating
+    point), and each limit's dual times the sensitivity of its left side to that MW."""
     energy = sol.res.eqlin.marginals[0] + 0.0
     curve, x = hour.curve, sol.p0_segments
     *_, lower, upper = sol.lp
@@ -407,7 +534,10 @@ def _prices(hour: _Hour, sol: _Solution) -> tuple[float, np.ndarray, np.ndarray]
     relief = -sol.ub_dual  # >= 0: the welfare one unit of relief of the limit is worth
     g_mg = sol.g_p + hour.feeder.tan_phi * sol.g_q
     is_line = sol.rows < 8 * hour.feeder.network.n_lines
-    return energy, exact.matvec(g_mg[is_line].T, relief[is_line]), exact.matvec(g_mg[~is_line].T, relief[~is_line])
+    every = np.arange(len(hour.fixed_p))
+    loss = energy * (hour.gain(hour.feeder.tan_phi, every) - 1.0)
+    return (energy, loss, exact.matvec(g_mg[is_line].T, relief[is_line]),
+            exact.matvec(g_mg[~is_line].T, relief[~is_line]))
 
 
 def _snap(hour: _Hour, step_mw: np.ndarray, bus_price: np.ndarray) -> np.ndarray:
@@ -442,14 +572,15 @@ def _awards_at_bus_prices(hour: _Hour, lp_mw: np.ndarray, bus_price: np.ndarray)
     return out
 
 
-def _on_feeder(hour: _Hour) -> _Cleared:
-    """Clear one hour: the copper plate where it holds, else the LP and prices per bus."""
+def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
+    """Clear one hour: the copper plate where it holds, else the LP and prices per bus, its limits found from
+    ``rows`` on (those of a clearing of the same hour at another operating point: most hold again)."""
     cleared, broken = _copper_plate(hour)
     if cleared is not None:
         return cleared
-    sol = hour.solve(broken)
-    energy, congestion, voltage = _prices(hour, sol)
-    bus_price = _snap(hour, sol.step_mw, energy + congestion + voltage)
+    sol = hour.solve(np.union1d(broken, rows))
+    energy, loss, congestion, voltage = _prices(hour, sol)
+    bus_price = _snap(hour, sol.step_mw, energy + loss + congestion + voltage)
     step_mw = _awards_at_bus_prices(hour, sol.step_mw, bus_price)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
     held = sol.rows[b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))]
@@ -462,8 +593,57 @@ def _on_feeder(hour: _Hour) -> _Cleared:
         congested = "export"
     else:
         congested = "line" if lines else "voltage" if buses else "none"
-    return _Cleared(energy, congested, step_mw, sol.shed(len(hour.fixed_p)), bus_price, congestion, voltage, lines,
-                    buses)
+    return _Cleared(energy, congested, step_mw, sol.shed(len(hour.fixed_p)), bus_price, loss, congestion, voltage,
+                    lines, buses, sol.rows)
+
+
+def _start(hour: _Hour) -> _Cleared:
+    """Where the AC-faithful clearing starts: the copper plate's plan, with the LinDistFlow limits it breaks to
+    start from, or LinDistFlow's clearing where the copper plate does not apply."""
+    fixed = math.fsum(hour.fixed_p)
+    if not hour.curve.bottom <= fixed <= hour.curve.top:
+        return _on_feeder(hour)
+    price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
+    n = len(hour.fixed_p)
+    ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
+    rows = hour.feeder.worst(ids, share, LIMITS_PER_ROUND) if ids.size else np.zeros(0, int)
+    zero = np.zeros(n)
+    return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, (), (), rows)
+
+
+def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
+    """Clear one hour on the AC flow linearised at its own plan (docs/market.md, "AC-faithful clearing"): clear on
+    LinDistFlow, solve the branch-flow equations at the plan, clear again on the AC flow linearised at that
+    operating point (its limits' sensitivities and marginal losses there), until the AC flow of the plan keeps
+    every voltage within AC_VOLTAGE_TOLERANCE p.u. and every line within AC_LOADING_TOLERANCE of its rating, at most
+    MAX_AC_ITERATIONS linearised clearings, or until a plan has no AC solution.
+
+    Plans can alternate: a step whose own losses move its bus's price across its bid is in at one operating point
+    and out at the other, and each plan's AC flow is a little off the other's linearisation. Once a plan repeats
+    the one two clearings before, the clearing keeps the one of the two whose AC flow breaks the limits least: its
+    prices and awards are those of its own LP, and what its AC flow breaks is reported. The hour as linearised for
+    the plan kept, its clearing, and how many linearised clearings were made."""
+    done = _start(hour)
+    point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+    tried: list[tuple[float, _Hour, _Cleared]] = []  # each linearised clearing, and how far its plan's AC flow breaks
+    for iteration in range(1, MAX_AC_ITERATIONS + 1):
+        if point is None:
+            return hour, done, iteration - 1
+        hour = dataclasses.replace(hour, at=hour.feeder.linearised(point))
+        done = _on_feeder(hour, done.rows)
+        loads = hour.loads(done.step_mw, done.shed)
+        moved = max(np.abs(loads[0] - hour.at.point.p).max(), np.abs(loads[1] - hour.at.point.q).max())
+        point = hour.feeder.ac.solve(*loads, hour.at.point)
+        broken = math.inf if point is None else max(
+            _voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
+            _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
+        if broken <= 1.0 and moved <= AC_PLAN_TOLERANCE:
+            break
+        tried.append((broken, hour, done))
+        if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max() <= AC_CYCLE_TOLERANCE:
+            _, hour, done = min(tried[-2:], key=lambda t: t[0])
+            break
+    return hour, done, iteration
 
 
 # --- the day ------------------------------------------------------------------------------------------------------
@@ -479,7 +659,9 @@ def agent_buses(network: Network, buses: Mapping[str, object], names: Sequence[s
     return np.array([network.bus_of(buses[a], f"bus of agent {a}") for a in names], dtype=int)
 
 
-def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin, curve):
+def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin, curve, method):
+    if method not in CLEARING_METHODS:
+        raise ValueError(f"method must be one of {', '.join(CLEARING_METHODS)}, got {method!r}")
     if not isinstance(network, Network):
         raise ValueError(f"network must be a scenarios.network.Network, got {type(network).__name__}")
     if not isinstance(curve, IsoCurve):
@@ -504,18 +686,22 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
 def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object], hour: int,
                  iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                  export_limit: float | Sequence[float], agents: Iterable[str] = (), voll: float = VOLL,
-                 margin: float = 0.0, curve: IsoCurve = FLAT) -> HourProgram:
+                 margin: float = 0.0, curve: IsoCurve = FLAT, method: str = "lindistflow") -> HourProgram:
     """The LP of hour index ``hour`` as ``clear_network`` solves it when the copper plate does not hold (here always
     solved, whether or not it does), written out whole: every line facet and voltage limit, those left out of the
-    solve with a zero dual. For checking the prices (KKT conditions, sensitivities)."""
+    solve with a zero dual; with ``method`` "ac", the LP of the last corrected clearing. For checking the prices
+    (KKT conditions, sensitivities)."""
     if isinstance(hour, bool) or not isinstance(hour, int) or not 0 <= hour < HOURS:
         raise ValueError(f"hour must be an hour index 0..{HOURS - 1}, got {hour!r}")
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
-                                     margin, curve)
+                                     margin, curve, method)
     h = make(hour)
+    if method == "ac":
+        h = _ac_faithful(h)[0]
     sol = h.solve(_copper_plate(h)[1])
     every, shed_every = feeder.rows, h.shed_buses
-    c, a_eq, b_eq, a_ub, b_ub, lower, upper = h.program(*feeder.limits(every), shed_every)
+    g_p, g_q, b = h.limits(every)
+    c, a_eq, b_eq, a_ub, b_ub, lower, upper = h.program(g_p, g_q, b, shed_every)
     s, k = len(h.book.quantity), len(shed_every)
     solved = np.concatenate([np.arange(s), s + np.searchsorted(shed_every, sol.shed_at), s + k + np.arange(sol.segments)])
     x = np.zeros(len(c))
@@ -526,14 +712,17 @@ def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str,
     lower_dual[solved], upper_dual[solved] = sol.res.lower.marginals, sol.res.upper.marginals
     left_out = np.setdiff1d(np.arange(s, s + k), solved)  # shed loads at 0: their reduced cost VOLL - value >= 0
     lower_dual[left_out] = h.voll - h.shed_value(sol, shed_every[left_out - s])
+    buses_all = np.arange(network.n_buses)
     return HourProgram(c, a_eq, b_eq, a_ub, b_ub, lower, upper, feeder.row_names(every), shed_every, x,
-                       sol.res.eqlin.marginals, ub_dual, lower_dual, upper_dual, float(sol.res.fun))
+                       sol.res.eqlin.marginals, ub_dual, lower_dual, upper_dual, float(sol.res.fun),
+                       -h.gain(feeder.tan_phi, buses_all), g_p + feeder.tan_phi * g_q)
 
 
 def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object],
                   iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                   export_limit: float | Sequence[float], agents: Iterable[str] = (),
-                  voll: float = VOLL, margin: float = 0.0, curve: IsoCurve = FLAT) -> NetworkClearing:
+                  voll: float = VOLL, margin: float = 0.0, curve: IsoCurve = FLAT,
+                  method: str = "lindistflow") -> NetworkClearing:
     """Clear one market day on ``network``: per hour the bus prices, the awards and the feeder's state.
 
     ``buses`` maps every bidder and every name in ``agents`` to its bus (a name or index of ``network.buses``, not
@@ -541,25 +730,34 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
     exchange with the ISO, fixed load included) are a scalar or 24 hourly values, as in ``clearing.clear``.
     ``voll``: the value of lost load, $/MWh. ``margin`` (p.u., >= 0): LinDistFlow's voltages are held within
     v_min + margin and v_max - margin, room for its error against AC (docs/network.md, "The AC check"). ``curve``:
-    the ISO's blocks around its price, which price the substation's exchange (``clearing.IsoCurve``). Raises
-    ValueError (a ``NetworkError`` for a bus) with a one-line reason.
+    the ISO's blocks around its price, which price the substation's exchange (``clearing.IsoCurve``). ``method``:
+    "lindistflow" clears on LinDistFlow alone; "ac" on LinDistFlow corrected at the AC flow of its own plan, until
+    the plan is its own operating point (docs/market.md, "AC-faithful clearing"). Raises ValueError (a
+    ``NetworkError`` for a bus) with a one-line reason.
     """
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
-                                     margin, curve)
-    out, columns = [], []
+                                     margin, curve, method)
+    out, columns, iterations = [], [], []
     for h in range(HOURS):
-        hour = make(h)
-        done = _on_feeder(hour)
+        hour, done, k = _ac_faithful(make(h)) if method == "ac" else (make(h), _on_feeder(make(h)), 0)
         out.append((hour, done))
+        iterations.append(k)
         columns.append(per_agent(hour.book, done.step_mw, len(names)))
-    flows_p, flows_q, volts, exchange, welfare = [], [], [], [], []
+    flows_p, flows_q, volts, exchange, welfare, excess, overload = [], [], [], [], [], [], []
     for hour, done in out:
         p, q = hour.loads(done.step_mw, done.shed)
-        fp, fq, u = feeder.state(p, q)
+        point = feeder.ac.solve(p, q)
+        excess.append(math.nan if point is None else _voltage_excess(network, point.v))
+        overload.append(math.nan if point is None else _overload(feeder, point))
+        if method == "ac" and point is not None:
+            fp, fq, u = point.flow_p, point.flow_q, point.u
+            p0 = math.fsum(np.append(p, point.losses))
+        else:
+            fp, fq, u = feeder.state(p, q)
+            p0 = math.fsum(np.concatenate([hour.fixed_p, done.step_mw, -done.shed]))
         flows_p.append(fp)
         flows_q.append(fq)
         volts.append(np.sqrt(np.maximum(u, 0.0)))
-        p0 = math.fsum(np.concatenate([hour.fixed_p, done.step_mw, -done.shed]))
         exchange.append(p0 + 0.0)
         welfare.append(math.fsum(np.concatenate([hour.book.price * done.step_mw, [-hour.curve.cost(p0)],
                                                  -hour.voll * done.shed])) + 0.0)
@@ -579,4 +777,19 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
         congestion=frozen([done.congestion for _, done in out]), voltage=frozen([done.voltage for _, done in out]),
         lines_binding=tuple(done.lines for _, done in out), buses_binding=tuple(done.buses for _, done in out),
         flow_p=frozen(flows_p), flow_q=frozen(flows_q), voltage_pu=frozen(volts),
-        shed_mw=frozen([done.shed for _, done in out]), exchange_mw=tuple(exchange), welfare=tuple(welfare))
+        shed_mw=frozen([done.shed for _, done in out]), exchange_mw=tuple(exchange), welfare=tuple(welfare),
+        method=method, loss=frozen([done.loss for _, done in out]), iterations=tuple(iterations),
+        ac_voltage_excess_pu=tuple(excess), ac_overload=tuple(overload))
+
+
+def _voltage_excess(network: Network, v: np.ndarray) -> float:
+    """How far the most distant bus voltage lies outside its limits (p.u.; 0 if none does)."""
+    return float(max(0.0, np.max(network.v_min - v), np.max(v - network.v_max)))
+
+
+def _overload(feeder: Feeder, point: OperatingPoint) -> float:
+    """The largest share of a line's rating by which its apparent power at its sending end (the larger) exceeds it,
+    0 if none does."""
+    lost_p, lost_q = feeder.ac.r * point.current2, feeder.ac.x * point.current2
+    sending = np.maximum(np.hypot(point.flow_p, point.flow_q), np.hypot(point.flow_p - lost_p, point.flow_q - lost_q))
+    return float(max(0.0, np.max(sending / feeder.s_max - 1.0)))

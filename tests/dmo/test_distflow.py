@@ -1,5 +1,6 @@
 """Clearing on a feeder: hand cases of docs/market.md ("Clearing on a feeder"), the copper plate as its special case,
-prices checked against the LP's KKT conditions and against finite differences of the welfare, order invariance."""
+prices checked against the LP's KKT conditions and against finite differences of the welfare, order invariance; the
+AC-faithful clearing's plan against pandapower's AC flow, and its last LP's KKT conditions and prices."""
 
 from __future__ import annotations
 
@@ -150,6 +151,7 @@ def test_the_congestion_labels_are_the_messages_literal():
     (lambda net: clear_network([], "feeder5", {}, 40, 1, 1), "Network"),
     (lambda net: clear_network([], net, {}, 40, -1, 1), ">= 0"),
     (lambda net: clear_network([one_hour("a", []), one_hour("a", [])], net, {"a": "1"}, 40, 1, 1), "more than one"),
+    (lambda net: clear_network([], net, {}, 40, 1, 1, method="acopf"), "method must be one of lindistflow, ac"),
 ])
 def test_invalid_input_is_rejected_with_a_one_line_reason(call, reason):
     with pytest.raises(ValueError, match=reason) as e:
@@ -349,3 +351,88 @@ def test_a_bid_above_voll_behind_a_full_line_sheds_the_fixed_load_for_it():
     assert r.welfare[0] == pytest.approx(150 * 3 - 40 * 3 - 100 * 2, abs=1e-6)
     assert r.shed_mw[1, 1] == 0.0  # without the bid, serving the load is worth it
     kkt(hour_program([one_hour("mg", [(150, 5)])], net, {"mg": "1"}, 0, 40, WIDE, WIDE, voll=100.0))
+
+
+# --- AC-faithful -----------------------------------------------------------------------------------------------
+
+def microgrids(net, r: NetworkClearing, where) -> np.ndarray:
+    """(24 x buses) the awards summed at their buses."""
+    out = np.zeros((HOURS, net.n_buses))
+    for agent, award in r.awards.items():
+        out[:, net.index[where[agent]]] += award
+    return out
+
+
+@pytest.mark.slow  # pandapower
+def test_the_ac_faithful_plan_keeps_every_limit_in_pandapowers_ac_flow_where_lindistflows_breaks_them():
+    from dmo.market.acflow import check_hours
+
+    net = load_network("ieee33", power_factor=0.95)
+    bids, where = random_book(net, np.random.default_rng(7), 40, 0.15)
+    broken = {}
+    for method in ("lindistflow", "ac"):
+        r = clear_network(bids, net, where, 40.0, 6.0, 6.0, method=method)
+        assert not r.shed_mw.any()
+        checks = check_hours(net, microgrids(net, r, where))
+        v = np.array([c.v_pu for c in checks])
+        excess = np.maximum(0.0, np.maximum(net.v_min - v, v - net.v_max).max(axis=1))
+        broken[method] = int((excess > 1e-4).sum())
+        assert max(c.max_loading for c in checks) <= 1.005
+        # what the clearing says its plan breaks in AC is what pandapower finds
+        assert np.abs(np.array(r.ac_voltage_excess_pu) - excess).max() <= 1e-8
+    assert broken["lindistflow"] >= 12 and broken["ac"] == 0
+    assert r.method == "ac" and all(1 <= k < 20 for k in r.iterations)
+    assert max(r.ac_voltage_excess_pu) <= 1e-6 and max(r.ac_overload) <= 1e-6
+
+
+@pytest.mark.parametrize("name, agents, scale, limit", [("feeder5", 8, 2.0, 20.0), ("ieee33", 40, 0.15, 6.0)])
+def test_the_ac_faithful_clearings_last_lp_meets_the_kkt_conditions_and_its_four_components_add_up(
+        name, agents, scale, limit):
+    net = load_network(name, power_factor=0.95)
+    bids, where = random_book(net, np.random.default_rng(11), agents, scale)
+    r = clear_network(bids, net, where, 40.0, limit, limit, method="ac")
+    # the plan's AC flow keeps every limit within the iterations' tolerance, or, in an hour whose plans alternated
+    # (here 1 and 3 of them), within 1e-4 p.u. and 0.5% of a rating
+    kept = (np.array(r.ac_voltage_excess_pu) <= 1e-6) & (np.array(r.ac_overload) <= 1e-6)
+    assert kept.sum() >= 20 and max(r.ac_voltage_excess_pu) <= 1e-4 and max(r.ac_overload) <= 0.005
+    awards_follow_prices(bids, r)
+    parts = r.energy[:, None] + r.loss + r.congestion + r.voltage
+    assert (np.abs(parts - r.bus_price) <= 1e-9 * np.maximum(1.0, np.abs(r.bus_price))).all()
+    assert (r.loss[:, 1:] > 0).all() and (r.loss[:, net.root] == 0).all()  # every MW downstream adds losses
+    lines = buses = 0
+    for h in range(0, HOURS, 5):
+        prog = hour_program(bids, net, where, h, 40.0, limit, limit, method="ac")
+        kkt(prog)
+        lines += bool(r.lines_binding[h])
+        buses += bool(r.buses_binding[h])
+    assert lines + buses  # a limit binds in some hour checked
+    # the substation buys the loads and the plan's AC losses
+    assert r.exchange_mw[0] > math.fsum(net.fixed_p[0] + microgrids(net, r, where)[0])
+    shuffled = [BidCurve(b.agent, tuple(tuple(reversed(steps)) for steps in b.hours)) for b in reversed(bids)]
+    assert fingerprint(clear_network(shuffled, net, dict(reversed(where.items())), 40.0, limit, limit,
+                                     method="ac")) == fingerprint(r)
+
+
+def lp_objective(prog, b_eq, b_ub) -> float:
+    from scipy.optimize import linprog
+
+    res = linprog(prog.c, A_ub=prog.A_ub, b_ub=b_ub, A_eq=prog.A_eq, b_eq=b_eq,
+                  bounds=np.column_stack([prog.lower, prog.upper]), method="highs")
+    assert res.status == 0, res.message
+    return float(res.fun)
+
+
+@pytest.mark.parametrize("name, agents, scale, limit, seed", [("feeder5", 8, 2.0, 20.0, 1), ("ieee33", 40, 0.15, 6.0, 3)])
+def test_each_ac_bus_price_is_the_welfare_its_last_lp_loses_per_mw_of_a_microgrids_load_there(
+        name, agents, scale, limit, seed):
+    net = load_network(name, power_factor=0.95)
+    h, eps = 19, 1e-5
+    bids, where = random_book(net, np.random.default_rng(seed), agents, scale, hours={h})
+    r = clear_network(bids, net, where, 40.0, limit, limit, method="ac")
+    assert r.lines_binding[h] or r.buses_binding[h]
+    prog = hour_program(bids, net, where, h, 40.0, limit, limit, method="ac")
+    base = lp_objective(prog, prog.b_eq, prog.b_ub)
+    assert base == pytest.approx(prog.objective, rel=1e-9, abs=1e-9)
+    for b in range(net.n_buses):  # eps MW of a microgrid's import at b, fixed: its column moves to the right side
+        more = lp_objective(prog, prog.b_eq - eps * prog.exchange_eq[b], prog.b_ub - eps * prog.exchange_ub[:, b])
+        assert (more - base) / eps == pytest.approx(r.bus_price[h, b], rel=1e-5, abs=1e-5), net.buses[b]

@@ -258,6 +258,11 @@ def test_clearing_runs_end_to_end(capsys):
         assert 0 < row["min_s"] <= row["median_s"] <= row["max_s"]
         assert sum(row[f"hours_{label}"] for label in ("none", "import", "export", "line", "voltage")) == 24
     assert out["rows"][0]["over_copper_plate"] == 1.0
+    assert [row["case"] for row in out["ac_faithful"]] == ["ieee33", "synthetic60"]
+    for row in out["ac_faithful"]:
+        assert row["over_one_shot"] == pytest.approx(row["median_s"] / row["one_shot_median_s"])
+        assert 1 <= row["iterations_mean"] <= row["iterations_max"] <= 20
+        assert row["ac_hours_broken"] <= row["one_shot_hours_broken"] and row["loss_price_mean"] > 0
     assert out["goal"] == {}  # the goals are for 100 agents
 
 
