@@ -68,7 +68,9 @@ ADDED = ((2, "clock", None, {"day": 1, "days": 1}),
          (7, "award", None, {"bus": None, "energy_price_per_mwh": None, "congestion_price_per_mwh": None,
                              "voltage_price_per_mwh": None}),
          (8, "grid_state", None, {"buses": [], "room_mw": []}),
-         (9, "agent_day", "compute", {"started_at": None, "turn_s": 0.0}))
+         (9, "agent_day", "compute", {"started_at": None, "turn_s": 0.0}),
+         (10, "award", None, {"loss_price_per_mwh": None}),
+         (10, "network_hour", None, {"clearing": None, "loss_price_per_mwh": None}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -80,8 +82,9 @@ def _upgrade(payload: bytes) -> bytes | None:
     registration names no bidding strategy (null). Version 6 -> 7: a registration and an award name no bus and
     the award no price components (null): the copper plate. Version 7 -> 8: a grid state carries no operating
     envelope (no buses, no rooms), as on the copper plate. Version 8 -> 9: the messages an agent_day says its
-    agent handled say neither when each was taken up (null) nor a wait for a turn (0). An older message that
-    already has a field of a later version is left as it is, for validation to refuse."""
+    agent handled say neither when each was taken up (null) nor a wait for a turn (0). Version 9 -> 10: an award
+    and a network_hour carry no loss component, and a network_hour names no clearing method (null). An older
+    message that already has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):

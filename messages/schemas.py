@@ -28,7 +28,7 @@ from scenarios.network import MAX_BUSES, MAX_NAME_LENGTH
 # their price's components, and ``network_hour`` publishes the feeder's hours; 8: on a feeder, a grid state carries
 # the hour's operating envelope (``buses``, ``room_mw``); 9: each message an agent_day says the agent handled carries
 # when it was taken up and how long the agent waited for its turn (``started_at``, ``turn_s``)
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -253,12 +253,15 @@ class Award(_FromDmo):
         "24 hourly awards P_sch, MW, hour 1 first; positive imports, negative exports"))]
     clearing_price_per_mwh: Annotated[Hourly, Field(description=(
         "24 hourly clearing prices, $/MWh: the agent's energy is settled at them. On a feeder, its own bus's prices "
-        "(the DLMP: energy + congestion + voltage, docs/market.md)"))]
+        "(the DLMP: energy + loss + congestion + voltage, docs/market.md)"))]
     bus: Annotated[BusName | None, Field(description=(
         "on a feeder, the bus the agent is awarded at; null on the copper plate (and before version 7)"))] = None
     energy_price_per_mwh: Annotated[Hourly | None, Field(description=(
         "on a feeder, the energy component of the agent's prices: the substation's price, the same at every bus; "
         "null on the copper plate"))] = None
+    loss_price_per_mwh: Annotated[Hourly | None, Field(description=(
+        "on a feeder, the loss component at the agent's bus (what the losses its MW adds cost at the energy price; "
+        "0 on a feeder cleared on LinDistFlow); null on the copper plate (and before version 10)"))] = None
     congestion_price_per_mwh: Annotated[Hourly | None, Field(description=(
         "on a feeder, the congestion component at the agent's bus (what binding line limits add); null on the "
         "copper plate"))] = None
@@ -350,8 +353,13 @@ class NetworkHour(_FromDmo):
         "each line's apparent power by LinDistFlow over its limit, lines in the feeder's order"))]
     energy_price_per_mwh: Annotated[Float | None, Field(description=(
         "the substation's price, $/MWh (plan only; null when realised)"))] = None
+    clearing: Annotated[Literal["lindistflow", "ac"] | None, Field(description=(
+        "how the hour was cleared: on LinDistFlow or on the AC flow linearised at its own plan (docs/market.md, "
+        "\"AC-faithful clearing\"); plan only (null when realised, and before version 10)"))] = None
     bus_price_per_mwh: Annotated[PerBus | None, Field(description=(
-        "each bus's price (DLMP), $/MWh: energy + congestion + voltage (plan only)"))] = None
+        "each bus's price (DLMP), $/MWh: energy + loss + congestion + voltage (plan only)"))] = None
+    loss_price_per_mwh: Annotated[PerBus | None, Field(description=(
+        "each bus's loss component, $/MWh: 0 on LinDistFlow (plan only; null before version 10)"))] = None
     congestion_price_per_mwh: Annotated[PerBus | None, Field(description=(
         "each bus's congestion component, $/MWh (plan only)"))] = None
     voltage_price_per_mwh: Annotated[PerBus | None, Field(description=(
@@ -366,8 +374,8 @@ class NetworkHour(_FromDmo):
         n = len(self.buses)
         if self.substation not in self.buses:
             raise ValueError(f"substation {self.substation!r} is not one of the buses")
-        for name in ("injection_mw", "voltage_pu", "bus_price_per_mwh", "congestion_price_per_mwh",
-                     "voltage_price_per_mwh", "shed_mw"):
+        for name in ("injection_mw", "voltage_pu", "bus_price_per_mwh", "loss_price_per_mwh",
+                     "congestion_price_per_mwh", "voltage_price_per_mwh", "shed_mw"):
             values = getattr(self, name)
             if values is not None and len(values) != n:
                 raise ValueError(f"{name} has {len(values)} values for {n} buses")

@@ -19,6 +19,9 @@ from scenarios.horizon import HOURS
 from scenarios.network import Network, quiet_pandapower
 
 NOT_CONVERGED = "no AC solution"  # the one violation of an hour whose Newton-Raphson does not converge
+# A limit is broken when the AC flow passes it by more than this (p.u. of voltage, share of a rating): a clearing
+# that holds a limit exactly (the AC-faithful one, to its LP's tolerances) meets it to about 1e-7
+VIOLATION_TOLERANCE = 1e-6
 # pandapower reuses the admittance matrix between hours and updates only the loads (runpp's ``recycle``)
 _RECYCLE = {"bus_pq": True, "trafo": False, "gen": False}
 _ARRAYS = ("v_pu", "loading")  # per-bus and per-line fields, left out of as_dict (profile gives them)
@@ -201,10 +204,10 @@ def _hour_check(network: Network, hour: int, ac, ldf_p: np.ndarray, ldf_v: np.nd
 
 
 def _violations(network: Network, v: np.ndarray, loading: np.ndarray) -> tuple[str, ...]:
-    """Every limit broken, in the network's bus order then line order: "undervoltage 17 0.9491<0.95",
-    "overvoltage 4 1.0512>1.05", "overload 2-3 104.2%"."""
-    names = network.buses
-    out = [f"undervoltage {names[b]} {v[b]:.4f}<{network.v_min[b]:g}" for b in np.flatnonzero(v < network.v_min)]
-    out += [f"overvoltage {names[b]} {v[b]:.4f}>{network.v_max[b]:g}" for b in np.flatnonzero(v > network.v_max)]
-    out += [f"overload {network.line_names[l]} {100 * loading[l]:.1f}%" for l in np.flatnonzero(loading > 1)]
+    """Every limit broken by more than VIOLATION_TOLERANCE, in the network's bus order then line order:
+    "undervoltage 17 0.9491<0.95", "overvoltage 4 1.0512>1.05", "overload 2-3 104.2%"."""
+    names, tol = network.buses, VIOLATION_TOLERANCE
+    out = [f"undervoltage {names[b]} {v[b]:.4f}<{network.v_min[b]:g}" for b in np.flatnonzero(v < network.v_min - tol)]
+    out += [f"overvoltage {names[b]} {v[b]:.4f}>{network.v_max[b]:g}" for b in np.flatnonzero(v > network.v_max + tol)]
+    out += [f"overload {network.line_names[l]} {100 * loading[l]:.1f}%" for l in np.flatnonzero(loading > 1 + tol)]
     return tuple(out)

@@ -20,6 +20,10 @@ import numpy as np
 
 from scenarios.horizon import HOURS, finite, hourly
 
+# How a feeder clears (``distflow.clear_network``'s ``method``): on LinDistFlow alone, or on the AC flow linearised at
+# its own plan (docs/market.md, "AC-faithful clearing"). Here, so that naming one loads no LP.
+CLEARING_METHODS = ("lindistflow", "ac")
+
 
 def _agent_id(agent: object) -> str:
     if not isinstance(agent, str) or not agent.strip():

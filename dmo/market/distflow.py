@@ -36,8 +36,8 @@ from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
 from .branchflow import BranchFlow, OperatingPoint
-from .clearing import (FLAT, BidCurve, Book, IsoCurve, Segments, accepted_fractions, clear_on_curve, hour_book,
-                       market_inputs, per_agent, segments)
+from .clearing import (CLEARING_METHODS, FLAT, BidCurve, Book, IsoCurve, Segments, accepted_fractions,
+                       clear_on_curve, hour_book, market_inputs, per_agent, segments)
 
 # The value of lost load ($/MWh): what shedding a MW of fixed load costs the welfare. It is the bid cap, so no bid
 # the DMO accepts outbids serving the fixed load.
@@ -66,7 +66,6 @@ AC_CYCLE_TOLERANCE = 1e-9  # MW: a plan this close to the one two clearings befo
 # MW, Mvar: a plan this close to the operating point its LP was linearised at is that point (its loss factors and
 # sensitivities are the plan's own to well within a cent per MWh)
 AC_PLAN_TOLERANCE = 1e-6
-CLEARING_METHODS = ("lindistflow", "ac")
 
 
 @dataclass(frozen=True, eq=False)  # arrays inside: compare fields, not results
@@ -616,7 +615,8 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     LinDistFlow, solve the branch-flow equations at the plan, clear again on the AC flow linearised at that
     operating point (its limits' sensitivities and marginal losses there), until the AC flow of the plan keeps
     every voltage within AC_VOLTAGE_TOLERANCE p.u. and every line within AC_LOADING_TOLERANCE of its rating, at most
-    MAX_AC_ITERATIONS linearised clearings, or until a plan has no AC solution.
+    MAX_AC_ITERATIONS linearised clearings. Where the first plan has no AC solution (the copper plate's, then
+    LinDistFlow's), the hour is LinDistFlow's clearing; where a later one has none, the last plan that had one.
 
     Plans can alternate: a step whose own losses move its bus's price across its bid is in at one operating point
     and out at the other, and each plan's AC flow is a little off the other's linearisation. Once a plan repeats
@@ -625,22 +625,27 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     the plan kept, its clearing, and how many linearised clearings were made."""
     done = _start(hour)
     point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+    if point is None:  # the copper plate's plan has no AC solution: LinDistFlow's, which keeps its limits, may
+        done = _on_feeder(hour)
+        point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+        if point is None:
+            return hour, done, 0
     tried: list[tuple[float, _Hour, _Cleared]] = []  # each linearised clearing, and how far its plan's AC flow breaks
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
-        if point is None:
-            return hour, done, iteration - 1
-        hour = dataclasses.replace(hour, at=hour.feeder.linearised(point))
-        done = _on_feeder(hour, done.rows)
-        loads = hour.loads(done.step_mw, done.shed)
-        moved = max(np.abs(loads[0] - hour.at.point.p).max(), np.abs(loads[1] - hour.at.point.q).max())
-        point = hour.feeder.ac.solve(*loads, hour.at.point)
-        broken = math.inf if point is None else max(
-            _voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
-            _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
+        linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point))
+        cleared = _on_feeder(linearised, done.rows)
+        loads = linearised.loads(cleared.step_mw, cleared.shed)
+        moved = max(np.abs(loads[0] - point.p).max(), np.abs(loads[1] - point.q).max())
+        point = hour.feeder.ac.solve(*loads, point)
+        if point is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
+            return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
+        hour, done = linearised, cleared
+        broken = max(_voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
+                     _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
         if broken <= 1.0 and moved <= AC_PLAN_TOLERANCE:
             break
         tried.append((broken, hour, done))
-        if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max() <= AC_CYCLE_TOLERANCE:
+        if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max(initial=0.0) <= AC_CYCLE_TOLERANCE:
             _, hour, done = min(tried[-2:], key=lambda t: t[0])
             break
     return hour, done, iteration

@@ -37,10 +37,11 @@ def per_bus(network: Network, at: Mapping[str, str], mw: Mapping[str, object]) -
 
 
 def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed: np.ndarray | None = None,
-           **prices) -> list[NetworkHour]:
+           clearing: str | None = None, **prices) -> list[NetworkHour]:
     """The 24 network_hour messages of one stage: LinDistFlow's voltages and loadings of the fixed loads (less what
     was ``shed``, its Q in proportion) plus the microgrids' ``injection`` (24 x buses, MW imported, Q = tan(phi) P),
-    and the AC check of each hour. ``prices`` name per-hour (24) or per-hour-per-bus (24 x buses) arrays."""
+    and the AC check of each hour; ``clearing``, the method the plan was cleared by. ``prices`` name per-hour (24)
+    or per-hour-per-bus (24 x buses) arrays."""
     net = config.network
     kept = 1.0 if shed is None else 1.0 - np.divide(shed, net.fixed_p, out=np.zeros_like(shed), where=net.fixed_p > 0)
     p, q = net.fixed_p * kept + injection, net.fixed_q * kept + injection * net.tan_phi
@@ -52,17 +53,18 @@ def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed:
                         network=net.name, buses=net.buses, substation=net.substation, lines=net.line_names,
                         substation_mw=float(p[h].sum()),
                         injection_mw=tuple(injection[h].tolist()), voltage_pu=tuple(v[h].tolist()),
-                        line_loading=tuple(loading[h].tolist()), ac=ACCheck(**checks[h]),
+                        line_loading=tuple(loading[h].tolist()), ac=ACCheck(**checks[h]), clearing=clearing,
                         **{k: float(a[h]) if np.ndim(a) == 1 else tuple(a[h].tolist()) for k, a in prices.items()})
             for h in range(HOURS)]
 
 
 def planned(config: DayConfig, day: int, clearing: NetworkClearing, at: Mapping[str, str]) -> list[NetworkHour]:
-    """The day as cleared: each hour's awards at their buses, the bus prices and their components, shed load."""
+    """The day as cleared: each hour's awards at their buses, how they were cleared, the bus prices and their
+    components, shed load."""
     injection = per_bus(config.network, at, clearing.awards)
-    return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw),
+    return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw), clearing.method,
                   energy_price_per_mwh=np.asarray(clearing.price), bus_price_per_mwh=np.asarray(clearing.bus_price),
-                  congestion_price_per_mwh=np.asarray(clearing.congestion),
+                  loss_price_per_mwh=np.asarray(clearing.loss), congestion_price_per_mwh=np.asarray(clearing.congestion),
                   voltage_price_per_mwh=np.asarray(clearing.voltage), shed_mw=np.asarray(clearing.shed_mw))
 
 

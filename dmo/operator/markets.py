@@ -79,7 +79,8 @@ class LiveMarket:
         bids = [bid_curve(state.bids[a]) for a in sorted(state.bids)]
         if c.network is not None:
             return clear_network(bids, c.network, feeder.sites(c, state), c.iso_price, c.import_limit,
-                                 c.export_limit, agents=agents, margin=c.voltage_margin, curve=c.iso_curve)
+                                 c.export_limit, agents=agents, margin=c.voltage_margin, curve=c.iso_curve,
+                                 method=c.clearing)
         return clear(bids, c.iso_price, c.import_limit, c.export_limit, agents=agents, curve=c.iso_curve)
 
     def award(self, state: DayState, clearing: Clearing, agent: str) -> Award:

@@ -46,6 +46,7 @@ def award(config: DayConfig, day: int, clearing: ClearingResult | NetworkClearin
     if bus is not None:
         b = c.network.index[bus]
         feeder = dict(bus=bus, energy_price_per_mwh=tuple(clearing.energy.tolist()),
+                      loss_price_per_mwh=tuple(clearing.loss[:, b].tolist()),
                       congestion_price_per_mwh=tuple(clearing.congestion[:, b].tolist()),
                       voltage_price_per_mwh=tuple(clearing.voltage[:, b].tolist()))
     return Award(sender=DMO, market_day=c.market_day_of(day), agent=agent, p_sch_mw=clearing.awards[agent],

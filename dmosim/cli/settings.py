@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 from typing import Iterable
 
+from dmo.market.clearing import CLEARING_METHODS
 from dmo.market.rules import MAX_MW, MAX_RATE
 from dmo.operator.config import CLOCKS
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
@@ -123,6 +124,10 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
         "network.voltage_margin": ("--voltage-margin", dict(type=number(0, MAX_VOLTAGE_MARGIN), metavar="PU", help=(
             "p.u. the clearing keeps inside every bus's voltage limits, for what LinDistFlow neglects "
             f"(default: {default.network.voltage_margin:g})"))),
+        "network.clearing": ("--clearing", dict(choices=CLEARING_METHODS, help=(
+            "on a feeder, clear on the AC flow linearised at its own plan, priced with its losses (ac), or on "
+            f"LinDistFlow alone (lindistflow; docs/market.md, \"AC-faithful clearing\"; default: "
+            f"{default.network.clearing})"))),
     }
     flags["deadlines.clock"] = ("--clock", dict(choices=CLOCKS, help=(
         "how a phase ends: logical, when every live agent has answered, however long that takes, so a busy machine "

@@ -16,7 +16,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
-from dmo.market.clearing import MAX_BLOCKS, IsoCurve
+from dmo.market.clearing import CLEARING_METHODS, MAX_BLOCKS, IsoCurve
 from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 from dmo.operator.config import CLOCKS, LOGICAL
 from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
@@ -193,11 +193,13 @@ class Deadlines(_Section):
 class NetworkSettings(_Section):
     """The feeder the market clears on (docs/network.md): none (the default) is the copper plate. ``feeder`` is a
     built-in network or a network file (TOML or pandapower JSON, relative to the experiment file); ``buses`` places
-    the agents, in the fleet's order, where a fleet file gives no bus (else they are spread over the feeder)."""
+    the agents, in the fleet's order, where a fleet file gives no bus (else they are spread over the feeder);
+    ``clearing`` clears on the AC flow ("ac", the default) or on LinDistFlow alone (docs/market.md)."""
 
     feeder: PathText | None = None
     load_scale: Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)] = 1.0
     voltage_margin: Annotated[float, Field(ge=0, le=MAX_VOLTAGE_MARGIN, allow_inf_nan=False)] = 0.0
+    clearing: Literal[CLEARING_METHODS] = "ac"  # type: ignore[valid-type]
     buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=MAX_NAME_LENGTH)]],
                      Field(max_length=MAX_AGENTS)] = []
 
@@ -285,7 +287,7 @@ FLAGS = {
     "deadlines.clock": "clock", "deadlines.registration": "registration_timeout", "deadlines.bid": "bid_timeout",
     "deadlines.schedule": "schedule_timeout", "deadlines.hour": "hour_timeout",
     "network.feeder": "feeder", "network.load_scale": "network_load_scale",
-    "network.voltage_margin": "voltage_margin",
+    "network.voltage_margin": "voltage_margin", "network.clearing": "clearing",
 }
 
 

@@ -224,7 +224,7 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
         registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, clock=d.clock,
         journal=journal,
         settlement=rule, network=network, placement=placement_of(e, network),
-        voltage_margin=e.network.voltage_margin, iso_curve=m.iso_curve,
+        voltage_margin=e.network.voltage_margin, clearing=e.network.clearing, iso_curve=m.iso_curve,
         restarting=frozenset(f.agent for f in map(parse_fault, e.faults) if isinstance(f, Fault) and f.kind == "restart"
                              and f.agent != DMO))
 

@@ -33,7 +33,8 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
               "p_sch_mw": "float64", "import_mwh": "float64", "deviation_mwh": "float64",
               "under_import_mwh": "float64", **_MONEY, "missing_subperiods": "int64", "islanded": "bool",
               "congestion": "string", "bus": "string", "energy_price_per_mwh": "Float64",
-              "congestion_price_per_mwh": "Float64", "voltage_price_per_mwh": "Float64"},
+              "loss_price_per_mwh": "Float64", "congestion_price_per_mwh": "Float64",
+              "voltage_price_per_mwh": "Float64"},
     "days": {**_WHEN, "agent": "string", **_MONEY, "missing_subperiods": "int64",
              "import_mwh": "float64", "deviation_mwh": "float64", "under_import_mwh": "float64",
              "award_mwh": "float64"},
@@ -48,7 +49,8 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
                    "curtailment": "float64", "penalty": "float64", "total": "float64", "curtailment_mwh": "float64",
                    "deviation_mwh": "float64", "stored_mwh": "Float64", "wall_s": "float64", "cpu_s": "float64",
                    "sent_again": "int64", "asked": "int64"},
-    "network": {**_WHEN, "hour": "int64", "stage": "string", "network": "string", "substation_mw": "float64",
+    "network": {**_WHEN, "hour": "int64", "stage": "string", "network": "string", "clearing": "string",
+                "substation_mw": "float64",
                 "energy_price_per_mwh": "Float64", "shed_mw": "Float64", "v_min_pu": "float64",
                 "max_loading": "float64", "ac_converged": "bool", "ac_v_min_pu": "float64", "ac_v_min_bus": "string",
                 "ac_v_max_pu": "float64", "ac_v_max_bus": "string", "ac_max_loading": "float64",
@@ -56,12 +58,12 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
                 "ac_losses_mw": "float64", "ac_substation_mw": "float64", "ac_violations": "string",
                 "ac_margin": "float64"},
     "buses": {**_WHEN, "hour": "int64", "stage": "string", "bus": "string", "injection_mw": "float64",
-              "voltage_pu": "float64", "bus_price_per_mwh": "Float64", "congestion_price_per_mwh": "Float64",
-              "voltage_price_per_mwh": "Float64", "shed_mw": "Float64"},
+              "voltage_pu": "float64", "bus_price_per_mwh": "Float64", "loss_price_per_mwh": "Float64",
+              "congestion_price_per_mwh": "Float64", "voltage_price_per_mwh": "Float64", "shed_mw": "Float64"},
     "lines": {**_WHEN, "hour": "int64", "stage": "string", "line": "string", "loading": "float64"},
 }
-_PER_BUS = ("injection_mw", "voltage_pu", "bus_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh",
-            "shed_mw")
+_PER_BUS = ("injection_mw", "voltage_pu", "bus_price_per_mwh", "loss_price_per_mwh", "congestion_price_per_mwh",
+            "voltage_price_per_mwh", "shed_mw")
 
 
 def open_recording(path: str | os.PathLike) -> dict[str, pd.DataFrame]:
@@ -153,7 +155,7 @@ def _statements(rec: Recording) -> list[dict]:
     return list(first.values())
 
 
-_COMPONENTS = ["energy_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh"]
+_COMPONENTS = ["energy_price_per_mwh", "loss_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh"]
 
 
 def _congestion(rec: Recording) -> pd.DataFrame:
@@ -257,12 +259,12 @@ def _network_hours(rec: Recording) -> list[dict]:
 
 
 def _network(hours: list[dict]) -> pd.DataFrame:
-    """One row per day, hour and stage: the DMO's position, LinDistFlow's lowest voltage and highest loading, shed
-    load, and the AC check (its violations joined by "; ")."""
+    """One row per day, hour and stage: how the plan was cleared, the DMO's position, LinDistFlow's lowest voltage
+    and highest loading, shed load, and the AC check (its violations joined by "; ")."""
     if not hours:
         return _typed("network", None)
     rows = [{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "network": m["network"],
-             "substation_mw": m["substation_mw"], "energy_price_per_mwh": m["energy_price_per_mwh"],
+             "clearing": m["clearing"], "substation_mw": m["substation_mw"], "energy_price_per_mwh": m["energy_price_per_mwh"],
              "shed_mw": None if m["shed_mw"] is None else sum(m["shed_mw"]),
              "v_min_pu": min(v for b, v in zip(m["buses"], m["voltage_pu"]) if b != m["substation"]),
              "max_loading": max(m["line_loading"]),

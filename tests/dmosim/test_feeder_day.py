@@ -32,16 +32,19 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     rec = read_recording(result["recording"])
     awards = {msg.agent: msg for _, msg in rec.decoded("award")}
     assert (awards["near"].bus, awards["far"].bus) == ("1", "3")
-    for award in awards.values():  # each price is its components' sum
+    for award in awards.values():  # each price is its components' sum, the losses' among them (the AC clearing)
+        assert any(award.loss_price_per_mwh)
         for h in range(24):
-            parts = award.energy_price_per_mwh[h] + award.congestion_price_per_mwh[h] + award.voltage_price_per_mwh[h]
+            parts = (award.energy_price_per_mwh[h] + award.loss_price_per_mwh[h] + award.congestion_price_per_mwh[h]
+                     + award.voltage_price_per_mwh[h])
             assert abs(parts - award.clearing_price_per_mwh[h]) < 1e-6
     far, near = (awards[a] for a in ("far", "near"))
     line = [h for h in range(24) if result["congestion"][h] == "line"]
     assert any(far.clearing_price_per_mwh[h] != near.clearing_price_per_mwh[h] for h in line), "prices never separated"
     for h in range(24):  # the energy price is the substation's, the same for both: only the local parts differ
         assert far.energy_price_per_mwh[h] == near.energy_price_per_mwh[h]
-        local = [a.congestion_price_per_mwh[h] + a.voltage_price_per_mwh[h] for a in (far, near)]
+        local = [a.loss_price_per_mwh[h] + a.congestion_price_per_mwh[h] + a.voltage_price_per_mwh[h]
+                 for a in (far, near)]
         assert abs(far.clearing_price_per_mwh[h] - near.clearing_price_per_mwh[h] - (local[0] - local[1])) < 1e-6
     hours = pd.read_csv(out / "tables" / "hours.csv", dtype={"bus": str})
     settled_far = hours[hours["agent"] == "far"].set_index("hour")

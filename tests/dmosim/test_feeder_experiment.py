@@ -98,3 +98,16 @@ def test_the_feeder_example_checks(capsys):
     assert main(["run", str(example), "--check"]) == 0
     out = capsys.readouterr().out
     assert "10 agents" in out and "on feeder ieee33 at buses 1, 2, 18, 13, 14, 16, 17, 29, 30, 32" in out
+
+
+def test_a_feeder_clears_on_the_ac_flow_unless_the_experiment_or_a_flag_says_lindistflow(cli, tmp_path):
+    from dmosim.launch.roles import day_config
+
+    assert day_config(_experiment(feeder="feeder5")).clearing == "ac"
+    assert day_config(_experiment(feeder="feeder5", clearing="lindistflow")).clearing == "lindistflow"
+    with pytest.raises(ExperimentError, match="network.clearing") as err:
+        _experiment(feeder="feeder5", clearing="acopf")
+    assert "\n" not in str(err.value)
+    out = cli("run", "--feeder", "feeder5", "--clearing", "acopf", "--out", str(tmp_path / "run"))
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and "--clearing" in out.stderr, out.stderr
+    assert not (tmp_path / "run").exists()

@@ -74,7 +74,8 @@ SAMPLES = {
     "network_hour": NetworkHour(sender="dmo", market_day=DAY, hour=19, stage="plan", network="feeder5",
                                 buses=["0", "1", "2"], substation="0", lines=["0-1", "1-2"], substation_mw=1.2, injection_mw=[0.0, 0.5, -0.1],
                                 voltage_pu=[1.0, 0.99, 0.985], line_loading=[0.4, 1.0], energy_price_per_mwh=40.0,
-                                bus_price_per_mwh=[40.0, 40.0, 55.5], congestion_price_per_mwh=[0.0, 0.0, 15.5],
+                                clearing="ac", bus_price_per_mwh=[40.0, 41.0, 57.0],
+                                loss_price_per_mwh=[0.0, 1.0, 1.5], congestion_price_per_mwh=[0.0, 0.0, 15.5],
                                 voltage_price_per_mwh=[0.0, 0.0, 0.0], shed_mw=[0.0, 0.0, 0.0],
                                 ac=ACCheck(converged=True, v_min_pu=0.984, v_min_bus="2", v_max_pu=0.99,
                                            v_max_bus="1", max_loading=1.01, max_loading_line="1-2",
@@ -166,22 +167,24 @@ BOUND = ("run", "incarnation")  # version 4's envelope fields
 
 
 FEEDER = ("bus", "energy_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh")  # since version 7
+LOSS = ("loss_price_per_mwh",)  # since version 10
 
 
 def test_older_messages_read_as_they_were_meant():
     """A version-1 clock is day 1 of 1; a version-2 award or statement names no rule: the paper's at its rates; a
     version-3 message is bound to no run and no process; a version-4 award states no congestion; a version-6 award
     or registration names no bus (the copper plate); a version-7 grid state carries no operating envelope; a version-8
-    agent_day says neither when the messages it handled were taken up nor a wait for a turn."""
+    agent_day says neither when the messages it handled were taken up nor a wait for a turn; a version-9 award or
+    network_hour carries no loss component, and the network_hour names no clearing method."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
-    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER))
+    award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER, *LOSS))
     assert award.settlement_rule is None and award.deviation_cost is None
     assert award.p_sch_mw == SAMPLES["award"].p_sch_mw
     assert decode(_older("settlement_statement", 2, "settlement_rule", *BOUND)).settlement_rule is None
-    award = decode(_older("award", 4, "congestion", *FEEDER))
+    award = decode(_older("award", 4, "congestion", *FEEDER, *LOSS))
     assert award.congestion is None and award.settlement_rule == SAMPLES["award"].settlement_rule
-    award = decode(_older("award", 6, *FEEDER))
+    award = decode(_older("award", 6, *FEEDER, *LOSS))
     assert award.bus is None and award.energy_price_per_mwh is None and award.congestion == SAMPLES["award"].congestion
     assert decode(_older("registration", 6, "bus")).bus is None
     grid = decode(_older("grid_state", 7, "buses", "room_mw"))
@@ -190,6 +193,9 @@ def test_older_messages_read_as_they_were_meant():
     assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
     day = decode(_older_within("agent_day", 8, "compute", "started_at", "turn_s"))
     assert [(h.started_at, h.turn_s) for h in day.compute] == [(None, 0.0), (None, 0.0)]
+    assert decode(_older("award", 9, *LOSS)).loss_price_per_mwh is None
+    hour = decode(_older("network_hour", 9, "clearing", *LOSS))
+    assert (hour.clearing, hour.loss_price_per_mwh) == (None, None) and hour.bus_price_per_mwh == (40.0, 41.0, 57.0)
     assert [h.wall_s for h in day.compute] == [h.wall_s for h in SAMPLES["agent_day"].compute]
     # a message of an older version that has a later version's field is not upgraded, and a current one that
     # leaves a field out is refused
