@@ -70,7 +70,7 @@ ADDED = ((2, "clock", None, {"day": 1, "days": 1}),
          (8, "grid_state", None, {"buses": [], "room_mw": []}),
          (9, "agent_day", "compute", {"started_at": None, "turn_s": 0.0}),
          (10, "award", None, {"loss_price_per_mwh": None}),
-         (10, "network_hour", None, {"clearing": None, "loss_price_per_mwh": None}))
+         (10, "network_hour", None, {"clearing": None, "loss_price_per_mwh": None, "spilled_mw": None}))
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -83,7 +83,8 @@ def _upgrade(payload: bytes) -> bytes | None:
     the award no price components (null): the copper plate. Version 7 -> 8: a grid state carries no operating
     envelope (no buses, no rooms), as on the copper plate. Version 8 -> 9: the messages an agent_day says its
     agent handled say neither when each was taken up (null) nor a wait for a turn (0). Version 9 -> 10: an award
-    and a network_hour carry no loss component, and a network_hour names no clearing method (null). An older
+    and a network_hour carry no loss component, and a network_hour names no clearing method and no spilled
+    generation (null). An older
     message that already has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)

@@ -367,6 +367,9 @@ class NetworkHour(_FromDmo):
     shed_mw: Annotated[PerBus | None, Field(description=(
         "fixed load the clearing shed at each bus to stay within the limits, MW, at the value of lost load "
         "(docs/market.md; plan only)"))] = None
+    spilled_mw: Annotated[PerBus | None, Field(description=(
+        "fixed generation the clearing spilled at each bus to stay within the limits, MW, at the spill price "
+        "(docs/market.md; plan only; null before version 10)"))] = None
     ac: Annotated[ACCheck, Field(description="the hour's AC power flow")]
 
     @model_validator(mode="after")
@@ -375,7 +378,7 @@ class NetworkHour(_FromDmo):
         if self.substation not in self.buses:
             raise ValueError(f"substation {self.substation!r} is not one of the buses")
         for name in ("injection_mw", "voltage_pu", "bus_price_per_mwh", "loss_price_per_mwh",
-                     "congestion_price_per_mwh", "voltage_price_per_mwh", "shed_mw"):
+                     "congestion_price_per_mwh", "voltage_price_per_mwh", "shed_mw", "spilled_mw"):
             values = getattr(self, name)
             if values is not None and len(values) != n:
                 raise ValueError(f"{name} has {len(values)} values for {n} buses")

@@ -77,11 +77,13 @@ class NetworkClearing:
 
     Per hour and bus (arrays 24 x buses, in ``network.buses`` order, read-only): ``bus_price`` = ``energy`` (24,
     broadcast) + ``congestion`` + ``voltage``, the price of a microgrid's exchange at the bus ($/MWh; at a power
-    factor below 1, of its P with the Q it draws); ``voltage_pu``, ``shed_mw``. Per hour and line (24 x lines):
+    factor below 1, of its P with the Q it draws); ``voltage_pu``, ``shed_mw`` (fixed load shed) and ``spill_mw``
+    (fixed generation spilled). Per hour and line (24 x lines):
     ``flow_p`` (MW) and ``flow_q`` (Mvar) away from the substation. ``lines_binding``, ``buses_binding``: per hour,
     the indices of the lines and buses whose limit the hour's LP holds at its bound (none in an hour the copper plate
-    clears). ``exchange_mw``: the substation's import from the ISO (fixed load + awards - shed). ``welfare`` ($ per
-    hour): the accepted purchases' bid value less the sales' and the ISO's energy and the shed load at ``voll``.
+    clears). ``exchange_mw``: the substation's import from the ISO (fixed load + awards - shed + spilled).
+    ``welfare`` ($ per hour): the accepted purchases' bid value less the sales' and the ISO's energy, the shed load
+    at ``voll`` and the spilled generation at the spill price.
 
     ``method``: "lindistflow" (the state above is LinDistFlow's, ``loss`` is 0) or "ac" (cleared on LinDistFlow
     corrected at the AC flow of its own plan: ``loss``, 24 x buses, is each bus price's loss component, and the
@@ -105,6 +107,7 @@ class NetworkClearing:
     flow_q: np.ndarray
     voltage_pu: np.ndarray
     shed_mw: np.ndarray
+    spill_mw: np.ndarray
     exchange_mw: tuple[float, ...]
     welfare: tuple[float, ...]
     method: str
@@ -306,24 +309,39 @@ class _Hour:
     fixed_q: np.ndarray
     curve: Segments
     voll: float
+    spill_price: float = 0.0  # $/MWh: what spilling a MW of fixed generation costs the welfare
     at: Linearised | None = None  # the AC operating point the hour's LP is corrected at (None: LinDistFlow alone)
 
     @property
     def shed_buses(self) -> np.ndarray:
-        """Buses whose fixed load can be shed: those consuming P (their Q goes in proportion)."""
+        """Buses whose fixed injection can be curtailed: those consuming P (their load shed, its Q in proportion)
+        and those producing it (their generation spilled, P alone)."""
         j = self.feeder.feeder_buses
-        return j[self.fixed_p[j] > 0]
+        return j[self.fixed_p[j] != 0]
+
+    @property
+    def shed_sign(self) -> np.ndarray:
+        """Per bus, how a MW curtailed there moves its net load: -1 where load is shed, +1 where generation is
+        spilled."""
+        return np.where(self.fixed_p > 0, -1.0, 1.0)
+
+    def shed_cost(self, buses: np.ndarray) -> np.ndarray:
+        """What a MW curtailed at each of ``buses`` costs the welfare: VOLL for load, the spill price for
+        generation."""
+        return np.where(self.fixed_p[buses] > 0, self.voll, self.spill_price)
 
     def loads(self, step_mw: np.ndarray, shed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per bus, P and Q consumed: fixed load + the steps' net import (Q = tan(phi) P) - shed (Q in proportion)."""
+        """Per bus, P and Q consumed: fixed load + the steps' net import (Q = tan(phi) P), less the load shed and
+        plus the generation spilled (``shed``, MW curtailed per bus; Q in proportion)."""
         n = len(self.fixed_p)
         inject = np.bincount(self.bus, step_mw, minlength=n)
-        ratio = np.divide(self.fixed_q, self.fixed_p, out=np.zeros(n), where=self.fixed_p > 0)
-        return (self.fixed_p + inject - shed, self.fixed_q + self.feeder.tan_phi * inject - ratio * shed)
+        moved = self.shed_sign * shed
+        return (self.fixed_p + inject + moved, self.fixed_q + self.feeder.tan_phi * inject + self.shed_ratio * moved)
 
     @property
     def shed_ratio(self) -> np.ndarray:
-        """Per bus, the Q shed with each MW of its fixed load (its ratio Q/P; 0 where it consumes no P)."""
+        """Per bus, the Q shed with each MW of its fixed load (its ratio Q/P; 0 where it consumes no P: a spilled
+        generation gives up its P alone, its Q stays)."""
         n = len(self.fixed_p)
         return np.divide(self.fixed_q, self.fixed_p, out=np.zeros(n), where=self.fixed_p > 0)
 
@@ -375,32 +393,37 @@ class _Hour:
         c, A_eq, b_eq, A_ub, b_ub, lower, upper (dense)."""
         book, curve = self.book, self.curve
         n = len(curve.price)
-        # A step's MW raises its bus's P by 1 and Q by tan(phi); a shed MW lowers P by 1 and Q by the load's ratio.
-        a_ub = np.hstack([(g_p + self.feeder.tan_phi * g_q)[:, self.bus], -self.shed_columns(g_p, g_q, shed_at),
+        # A step's MW raises its bus's P by 1 and Q by tan(phi); a shed MW of load lowers P by 1 and Q by the
+        # load's ratio, a spilled MW of generation raises them so.
+        sign = self.shed_sign[shed_at]
+        a_ub = np.hstack([(g_p + self.feeder.tan_phi * g_q)[:, self.bus], sign * self.shed_columns(g_p, g_q, shed_at),
                           np.zeros((len(b), n))])
         b_ub = b if self.at is not None else b - exact.matvec(g_p, self.fixed_p) - exact.matvec(g_q, self.fixed_q)
         k = len(shed_at)
         # The substation's balance: P0 = fixed load + net import of the steps - shed (LinDistFlow is lossless; at an
         # AC operating point, each MW with its marginal losses, and the losses there), P0 the sum of its segments'
         # columns, each from 0 outwards (its prices rise with P0: the LP fills them in order)
-        a_eq = np.concatenate([-self.gain(self.feeder.tan_phi, self.bus), self.gain(self.shed_ratio[shed_at], shed_at),
-                               np.ones(n)])[None, :]
+        a_eq = np.concatenate([-self.gain(self.feeder.tan_phi, self.bus),
+                               -sign * self.gain(self.shed_ratio[shed_at], shed_at), np.ones(n)])[None, :]
         b_eq = np.array([self.balance()])
-        c = np.concatenate([-book.price, np.full(k, self.voll), curve.price])
+        c = np.concatenate([-book.price, self.shed_cost(shed_at), curve.price])
         lower = np.concatenate([np.minimum(book.quantity, 0.0), np.zeros(k),
                                 np.minimum(curve.low, 0.0) - np.minimum(curve.high, 0.0)])
-        upper = np.concatenate([np.maximum(book.quantity, 0.0), self.fixed_p[shed_at],
+        upper = np.concatenate([np.maximum(book.quantity, 0.0), np.abs(self.fixed_p[shed_at]),
                                 np.maximum(curve.high, 0.0) - np.maximum(curve.low, 0.0)])
         return c, a_eq, b_eq, a_ub, b_ub, lower, upper
 
     def shed_columns(self, g_p: np.ndarray, g_q: np.ndarray, shed_at: np.ndarray) -> np.ndarray:
-        """The limits' left sides for a MW of fixed load at each bus of ``shed_at``, its Q in proportion."""
+        """The limits' left sides for a MW more of load at each bus of ``shed_at``, with Q in its fixed load's or
+        generation's proportion."""
         return g_p[:, shed_at] + g_q[:, shed_at] * self.shed_ratio[shed_at]
 
     def solve(self, rows: np.ndarray) -> _Solution:
-        """Solve with the limits ``rows`` and no shedding; add the limits the solution breaks (the worst, ``worst``)
-        and the sheddable loads whose bus price exceeds VOLL (their columns' reduced costs are negative), again
-        until neither is left: then the solution is that of the LP with every limit and every shed load."""
+        """Solve with the limits ``rows`` and no curtailment; add the limits the solution breaks (the worst,
+        ``worst``) and the fixed loads and generation whose curtailment gains welfare at the solution's prices (a
+        load whose bus price exceeds VOLL, a generation whose bus price is below minus the spill price: their
+        columns' reduced costs are negative), again until neither is left: then the solution is that of the LP with
+        every limit and every curtailment."""
         rows = np.asarray(rows, int)
         g_p, g_q, b = self.limits(rows)
         shed_at, every = np.zeros(0, int), self.shed_buses
@@ -409,15 +432,16 @@ class _Hour:
             c, a_eq, b_eq, a_ub, b_ub, lower, upper = lp
             res = linprog(c, A_ub=a_ub if len(b) else None, b_ub=b_ub if len(b) else None, A_eq=a_eq, b_eq=b_eq,
                           bounds=np.column_stack([lower, upper]), method="highs", options={"presolve": False})
-            if res.status == 2 and len(shed_at) < len(every):  # infeasible without shedding: offer every load
+            if res.status == 2 and len(shed_at) < len(every):  # infeasible without curtailing: offer every one
                 shed_at = every
                 continue
             if res.status != 0:  # only if a limit excludes even the unloaded feeder (e.g. v_min above v_substation)
                 message = " ".join(str(res.message).split())
                 raise ValueError(f"network {self.feeder.network.name}: the hour cannot clear even with every fixed "
-                                 f"load shed ({message})")
+                                 f"load shed and every generation spilled ({message})")
             solution = _Solution(rows, g_p, g_q, b, shed_at, len(self.curve.price), lp, res)
-            dear = np.setdiff1d(every[self.shed_value(solution, every) > self.voll + PRICE_TOLERANCE], shed_at)
+            reduced = self.shed_cost(every) + self.shed_sign[every] * self.shed_value(solution, every)
+            dear = np.setdiff1d(every[reduced < -PRICE_TOLERANCE], shed_at)
             if dear.size:
                 shed_at = np.union1d(shed_at, dear)
                 continue
@@ -432,8 +456,9 @@ class _Hour:
             g_p, g_q, b = np.vstack([g_p, more[0]]), np.vstack([g_q, more[1]]), np.concatenate([b, more[2]])
 
     def shed_value(self, solution: _Solution, buses: np.ndarray) -> np.ndarray:
-        """What a MW of fixed load shed at each of ``buses`` is worth at the solution's duals: the energy price plus
-        the limits' duals times its sensitivities. Above VOLL, shedding it gains welfare."""
+        """What a MW more of load at each of ``buses`` (with its fixed injection's Q) costs at the solution's duals:
+        the energy price plus the limits' duals times its sensitivities. A load shed there saves it; a generation
+        spilled there pays it."""
         relief = -solution.ub_dual
         columns = self.shed_columns(solution.g_p, solution.g_q, buses)
         energy = solution.res.eqlin.marginals[0] * self.gain(self.shed_ratio[buses], buses)
@@ -498,13 +523,14 @@ class _Cleared:
 def _copper_plate(hour: _Hour) -> tuple[_Cleared | None, np.ndarray]:
     """The copper plate's clearing when it is this hour's answer (None otherwise), and the limits its awards
     break. It applies while the substation's limits leave room for the fixed load and its price is within VOLL
-    (above it, shedding fixed load for the bids would gain welfare), and never at an AC operating point (its
-    losses are priced)."""
+    (above it, shedding fixed load for the bids would gain welfare) and, on a feeder with fixed generation, at least
+    minus the spill price (below it, spilling generation would), and never at an AC operating point (its losses are
+    priced)."""
     fixed = math.fsum(hour.fixed_p)
     if hour.at is not None or not hour.curve.bottom <= fixed <= hour.curve.top:
         return None, np.zeros(0, int)
     price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
-    if price > hour.voll:
+    if price > hour.voll or (price < -hour.spill_price and (hour.fixed_p < 0).any()):
         return None, np.zeros(0, int)
     n = len(hour.fixed_p)
     ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
@@ -664,7 +690,8 @@ def agent_buses(network: Network, buses: Mapping[str, object], names: Sequence[s
     return np.array([network.bus_of(buses[a], f"bus of agent {a}") for a in names], dtype=int)
 
 
-def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin, curve, method):
+def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll, margin, curve, method,
+           spill_price):
     if method not in CLEARING_METHODS:
         raise ValueError(f"method must be one of {', '.join(CLEARING_METHODS)}, got {method!r}")
     if not isinstance(network, Network):
@@ -675,6 +702,9 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
     voll = finite(voll, "voll")
     if voll <= 0:
         raise ValueError(f"voll must be > 0, got {voll}")
+    spill_price = finite(spill_price, "spill_price")
+    if not 0 <= spill_price <= voll:
+        raise ValueError(f"spill_price must be between 0 and voll ({voll:g}), got {spill_price:g}")
     feeder = Feeder(network, margin)  # a margin that leaves a bus no band is refused here
     at = agent_buses(network, buses, names)
 
@@ -683,7 +713,7 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
         order = np.lexsort((book.owner, book.quantity, book.price, at[book.owner]))
         canonical = Book(book.owner[order], book.price[order], book.quantity[order])
         return _Hour(feeder, canonical, at[canonical.owner], network.fixed_p[h], network.fixed_q[h],
-                     segments(curve, iso[h], imp[h], exp[h]), voll)
+                     segments(curve, iso[h], imp[h], exp[h]), voll, spill_price)
 
     return names, at, feeder, hour
 
@@ -691,7 +721,8 @@ def _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, 
 def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str, object], hour: int,
                  iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                  export_limit: float | Sequence[float], agents: Iterable[str] = (), voll: float = VOLL,
-                 margin: float = 0.0, curve: IsoCurve = FLAT, method: str = "lindistflow") -> HourProgram:
+                 margin: float = 0.0, curve: IsoCurve = FLAT, method: str = "lindistflow",
+                 spill_price: float = 0.0) -> HourProgram:
     """The LP of hour index ``hour`` as ``clear_network`` solves it when the copper plate does not hold (here always
     solved, whether or not it does), written out whole: every line facet and voltage limit, those left out of the
     solve with a zero dual; with ``method`` "ac", the LP of the last corrected clearing. For checking the prices
@@ -699,7 +730,7 @@ def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str,
     if isinstance(hour, bool) or not isinstance(hour, int) or not 0 <= hour < HOURS:
         raise ValueError(f"hour must be an hour index 0..{HOURS - 1}, got {hour!r}")
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
-                                     margin, curve, method)
+                                     margin, curve, method, spill_price)
     h = make(hour)
     if method == "ac":
         h = _ac_faithful(h)[0]
@@ -715,8 +746,10 @@ def hour_program(bids: Iterable[BidCurve], network: Network, buses: Mapping[str,
     ub_dual[np.searchsorted(every, sol.rows)] = sol.ub_dual
     lower_dual, upper_dual = np.zeros(len(c)), np.zeros(len(c))
     lower_dual[solved], upper_dual[solved] = sol.res.lower.marginals, sol.res.upper.marginals
-    left_out = np.setdiff1d(np.arange(s, s + k), solved)  # shed loads at 0: their reduced cost VOLL - value >= 0
-    lower_dual[left_out] = h.voll - h.shed_value(sol, shed_every[left_out - s])
+    # curtailments left at 0: their reduced cost, VOLL - value for a load, spill price + value for a generation, >= 0
+    left_out = np.setdiff1d(np.arange(s, s + k), solved)
+    buses_out = shed_every[left_out - s]
+    lower_dual[left_out] = h.shed_cost(buses_out) + h.shed_sign[buses_out] * h.shed_value(sol, buses_out)
     buses_all = np.arange(network.n_buses)
     return HourProgram(c, a_eq, b_eq, a_ub, b_ub, lower, upper, feeder.row_names(every), shed_every, x,
                        sol.res.eqlin.marginals, ub_dual, lower_dual, upper_dual, float(sol.res.fun),
@@ -727,7 +760,7 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
                   iso_price: float | Sequence[float], import_limit: float | Sequence[float],
                   export_limit: float | Sequence[float], agents: Iterable[str] = (),
                   voll: float = VOLL, margin: float = 0.0, curve: IsoCurve = FLAT,
-                  method: str = "lindistflow") -> NetworkClearing:
+                  method: str = "lindistflow", spill_price: float = 0.0) -> NetworkClearing:
     """Clear one market day on ``network``: per hour the bus prices, the awards and the feeder's state.
 
     ``buses`` maps every bidder and every name in ``agents`` to its bus (a name or index of ``network.buses``, not
@@ -737,11 +770,12 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
     v_min + margin and v_max - margin, room for its error against AC (docs/network.md, "The AC check"). ``curve``:
     the ISO's blocks around its price, which price the substation's exchange (``clearing.IsoCurve``). ``method``:
     "lindistflow" clears on LinDistFlow alone; "ac" on LinDistFlow corrected at the AC flow of its own plan, until
-    the plan is its own operating point (docs/market.md, "AC-faithful clearing"). Raises ValueError (a
-    ``NetworkError`` for a bus) with a one-line reason.
+    the plan is its own operating point (docs/market.md, "AC-faithful clearing"). ``spill_price`` ($/MWh, 0 to
+    ``voll``): what spilling a MW of the feeder's fixed generation (a bus's negative fixed load) costs the welfare,
+    as ``voll`` prices shedding load. Raises ValueError (a ``NetworkError`` for a bus) with a one-line reason.
     """
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
-                                     margin, curve, method)
+                                     margin, curve, method, spill_price)
     out, columns, iterations = [], [], []
     for h in range(HOURS):
         hour, done, k = _ac_faithful(make(h)) if method == "ac" else (make(h), _on_feeder(make(h)), 0)
@@ -759,13 +793,13 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
             p0 = math.fsum(np.append(p, point.losses))
         else:
             fp, fq, u = feeder.state(p, q)
-            p0 = math.fsum(np.concatenate([hour.fixed_p, done.step_mw, -done.shed]))
+            p0 = math.fsum(np.concatenate([hour.fixed_p, done.step_mw, hour.shed_sign * done.shed]))
         flows_p.append(fp)
         flows_q.append(fq)
         volts.append(np.sqrt(np.maximum(u, 0.0)))
         exchange.append(p0 + 0.0)
         welfare.append(math.fsum(np.concatenate([hour.book.price * done.step_mw, [-hour.curve.cost(p0)],
-                                                 -hour.voll * done.shed])) + 0.0)
+                                                 -hour.shed_cost(np.arange(len(done.shed))) * done.shed])) + 0.0)
     bus_price = np.array([done.bus_price for _, done in out])
     awards = {a: tuple(columns[h][i] for h in range(HOURS)) for i, a in enumerate(names)}
     agent_price = {a: tuple(float(bus_price[h, at[i]]) for h in range(HOURS)) for i, a in enumerate(names)}
@@ -782,7 +816,9 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
         congestion=frozen([done.congestion for _, done in out]), voltage=frozen([done.voltage for _, done in out]),
         lines_binding=tuple(done.lines for _, done in out), buses_binding=tuple(done.buses for _, done in out),
         flow_p=frozen(flows_p), flow_q=frozen(flows_q), voltage_pu=frozen(volts),
-        shed_mw=frozen([done.shed for _, done in out]), exchange_mw=tuple(exchange), welfare=tuple(welfare),
+        shed_mw=frozen([np.where(hour.fixed_p > 0, done.shed, 0.0) for hour, done in out]),
+        spill_mw=frozen([np.where(hour.fixed_p < 0, done.shed, 0.0) for hour, done in out]),
+        exchange_mw=tuple(exchange), welfare=tuple(welfare),
         method=method, loss=frozen([done.loss for _, done in out]), iterations=tuple(iterations),
         ac_voltage_excess_pu=tuple(excess), ac_overload=tuple(overload))
 

@@ -59,6 +59,7 @@ class DayConfig:
     placement: Mapping[str, str] = field(default_factory=dict)  # agent -> its bus on the feeder
     voltage_margin: float = 0.0  # p.u. the clearing keeps inside every bus's voltage limits (docs/network.md)
     clearing: str = "ac"  # on a feeder, one of distflow.CLEARING_METHODS (docs/market.md, "AC-faithful clearing")
+    spill_price: float = 0.0  # $/MWh a feeder's spilled fixed generation costs the welfare (docs/market.md)
     iso_curve: IsoCurve = FLAT  # the ISO's blocks around its price at the substation (docs/market.md)
     budget: tuple[int, int] = (BUDGET_MESSAGES, BUDGET_BYTES)  # what one agent may send in a phase or hour
     # agents the run restarts (its restart faults): one that vanishes is waited for until a new process of it is

@@ -38,12 +38,14 @@ def per_bus(network: Network, at: Mapping[str, str], mw: Mapping[str, object]) -
 
 def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed: np.ndarray | None = None,
            clearing: str | None = None, **prices) -> list[NetworkHour]:
-    """The 24 network_hour messages of one stage: LinDistFlow's voltages and loadings of the fixed loads (less what
-    was ``shed``, its Q in proportion) plus the microgrids' ``injection`` (24 x buses, MW imported, Q = tan(phi) P),
+    """The 24 network_hour messages of one stage: LinDistFlow's voltages and loadings of the fixed loads and
+    generation (less what was ``shed`` of either, MW per bus, its Q in proportion) plus the microgrids' ``injection``
+    (24 x buses, MW imported, Q = tan(phi) P),
     and the AC check of each hour; ``clearing``, the method the plan was cleared by. ``prices`` name per-hour (24)
     or per-hour-per-bus (24 x buses) arrays."""
     net = config.network
-    kept = 1.0 if shed is None else 1.0 - np.divide(shed, net.fixed_p, out=np.zeros_like(shed), where=net.fixed_p > 0)
+    kept = 1.0 if shed is None else 1.0 - np.divide(shed, np.abs(net.fixed_p), out=np.zeros_like(shed),
+                                                    where=net.fixed_p != 0)
     p, q = net.fixed_p * kept + injection, net.fixed_q * kept + injection * net.tan_phi
     flow_p, flow_q, v = net.lindistflow(p, q)
     loading = np.hypot(flow_p, flow_q) / net.s_max_mva
@@ -60,12 +62,14 @@ def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed:
 
 def planned(config: DayConfig, day: int, clearing: NetworkClearing, at: Mapping[str, str]) -> list[NetworkHour]:
     """The day as cleared: each hour's awards at their buses, how they were cleared, the bus prices and their
-    components, shed load."""
+    components, shed load and spilled generation."""
     injection = per_bus(config.network, at, clearing.awards)
-    return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw), clearing.method,
+    return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw) + np.asarray(clearing.spill_mw),
+                  clearing.method,
                   energy_price_per_mwh=np.asarray(clearing.price), bus_price_per_mwh=np.asarray(clearing.bus_price),
                   loss_price_per_mwh=np.asarray(clearing.loss), congestion_price_per_mwh=np.asarray(clearing.congestion),
-                  voltage_price_per_mwh=np.asarray(clearing.voltage), shed_mw=np.asarray(clearing.shed_mw))
+                  voltage_price_per_mwh=np.asarray(clearing.voltage), shed_mw=np.asarray(clearing.shed_mw),
+                  spilled_mw=np.asarray(clearing.spill_mw))
 
 
 def realised(config: DayConfig, day: int, state: DayState, at: Mapping[str, str]) -> list[NetworkHour]:

@@ -80,7 +80,7 @@ class LiveMarket:
         if c.network is not None:
             return clear_network(bids, c.network, feeder.sites(c, state), c.iso_price, c.import_limit,
                                  c.export_limit, agents=agents, margin=c.voltage_margin, curve=c.iso_curve,
-                                 method=c.clearing)
+                                 method=c.clearing, spill_price=c.spill_price)
         return clear(bids, c.iso_price, c.import_limit, c.export_limit, agents=agents, curve=c.iso_curve)
 
     def award(self, state: DayState, clearing: Clearing, agent: str) -> Award:

@@ -11,7 +11,7 @@ from typing import Iterable
 from dmo.market.clearing import CLEARING_METHODS
 from dmo.market.rules import MAX_MW, MAX_RATE
 from dmo.operator.config import CLOCKS
-from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS, PRICE_CAP
 from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.solvers.routes import METHODS, auto_rule
 from scenarios.days import MAX_SEED
@@ -128,6 +128,9 @@ def _flags(default: Experiment) -> dict[str, tuple[str, dict]]:
             "on a feeder, clear on the AC flow linearised at its own plan, priced with its losses (ac), or on "
             f"LinDistFlow alone (lindistflow; docs/market.md, \"AC-faithful clearing\"; default: "
             f"{default.network.clearing})"))),
+        "network.spill_price": ("--spill-price", dict(type=number(0, PRICE_CAP), metavar="USD", help=(
+            "on a feeder, $/MWh that spilling a MW of its fixed generation costs, when no line can carry it "
+            f"(docs/market.md; default: {default.network.spill_price:g})"))),
     }
     flags["deadlines.clock"] = ("--clock", dict(choices=CLOCKS, help=(
         "how a phase ends: logical, when every live agent has answered, however long that takes, so a busy machine "

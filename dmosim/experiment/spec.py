@@ -19,7 +19,7 @@ from dmo.market.choice import ChosenRule, choose, paper_rule, rule_name
 from dmo.market.clearing import CLEARING_METHODS, MAX_BLOCKS, IsoCurve
 from dmo.market.rules import BUILT_IN, MAX_MW, MAX_RATE, market_parameters
 from dmo.operator.config import CLOCKS, LOGICAL
-from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS
+from messages.schemas import MAX_AGENTS, MAX_DAYS, MAX_SUBPERIODS, PRICE_CAP
 from messages.transport.credentials import MAX_HOSTS
 from microgrid_agent.agent.strategies import DEFAULT_STRATEGY, StrategyError, strategy_name
 from microgrid_agent.solvers.routes import METHODS, check_available
@@ -194,12 +194,14 @@ class NetworkSettings(_Section):
     """The feeder the market clears on (docs/network.md): none (the default) is the copper plate. ``feeder`` is a
     built-in network or a network file (TOML or pandapower JSON, relative to the experiment file); ``buses`` places
     the agents, in the fleet's order, where a fleet file gives no bus (else they are spread over the feeder);
-    ``clearing`` clears on the AC flow ("ac", the default) or on LinDistFlow alone (docs/market.md)."""
+    ``clearing`` clears on the AC flow ("ac", the default) or on LinDistFlow alone; ``spill_price`` ($/MWh) is what
+    spilling a MW of the feeder's fixed generation costs (docs/market.md)."""
 
     feeder: PathText | None = None
     load_scale: Annotated[float, Field(gt=0, le=MAX_SCALE, allow_inf_nan=False)] = 1.0
     voltage_margin: Annotated[float, Field(ge=0, le=MAX_VOLTAGE_MARGIN, allow_inf_nan=False)] = 0.0
     clearing: Literal[CLEARING_METHODS] = "ac"  # type: ignore[valid-type]
+    spill_price: Annotated[float, Field(ge=0, le=PRICE_CAP, allow_inf_nan=False)] = 0.0
     buses: Annotated[list[Annotated[str, Field(min_length=1, max_length=MAX_NAME_LENGTH)]],
                      Field(max_length=MAX_AGENTS)] = []
 
@@ -287,7 +289,7 @@ FLAGS = {
     "deadlines.clock": "clock", "deadlines.registration": "registration_timeout", "deadlines.bid": "bid_timeout",
     "deadlines.schedule": "schedule_timeout", "deadlines.hour": "hour_timeout",
     "network.feeder": "feeder", "network.load_scale": "network_load_scale",
-    "network.voltage_margin": "voltage_margin", "network.clearing": "clearing",
+    "network.voltage_margin": "voltage_margin", "network.clearing": "clearing", "network.spill_price": "spill_price",
 }
 
 

@@ -93,8 +93,8 @@ def _feeder(source: str, load_scale: float, margin: float, iso_price: tuple[floa
             export_limit: float, curve: IsoCurve) -> Network:
     """The feeder loaded and cleared once with no bids on the DMO's own terms (its ISO prices, the substation's
     limits, the ISO's curve, the voltage margin): what no clearing of the run can serve, even shedding all its fixed
-    load, fails here and not in the DMO (a bus's v_min above the substation's voltage; generation the feeder cannot
-    send out within the export limit, which no shedding of load helps). Bids only add what may also be 0."""
+    load and spilling all its fixed generation, fails here and not in the DMO (a bus's v_min above the substation's
+    voltage). Bids only add what may also be 0."""
     from dmo.market.distflow import clear_network  # noqa: PLC0415  (scipy's LP: 40 MiB no copper-plate role needs)
 
     try:
@@ -224,7 +224,8 @@ def day_config(experiment: Experiment, *, journal: str | None = None) -> DayConf
         registration_s=d.registration, bids_s=d.bid, schedule_s=d.schedule, hour_s=d.hour, clock=d.clock,
         journal=journal,
         settlement=rule, network=network, placement=placement_of(e, network),
-        voltage_margin=e.network.voltage_margin, clearing=e.network.clearing, iso_curve=m.iso_curve,
+        voltage_margin=e.network.voltage_margin, clearing=e.network.clearing, spill_price=e.network.spill_price,
+        iso_curve=m.iso_curve,
         restarting=frozenset(f.agent for f in map(parse_fault, e.faults) if isinstance(f, Fault) and f.kind == "restart"
                              and f.agent != DMO))
 

@@ -51,7 +51,7 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
                    "sent_again": "int64", "asked": "int64"},
     "network": {**_WHEN, "hour": "int64", "stage": "string", "network": "string", "clearing": "string",
                 "substation_mw": "float64",
-                "energy_price_per_mwh": "Float64", "shed_mw": "Float64", "v_min_pu": "float64",
+                "energy_price_per_mwh": "Float64", "shed_mw": "Float64", "spilled_mw": "Float64", "v_min_pu": "float64",
                 "max_loading": "float64", "ac_converged": "bool", "ac_v_min_pu": "float64", "ac_v_min_bus": "string",
                 "ac_v_max_pu": "float64", "ac_v_max_bus": "string", "ac_max_loading": "float64",
                 "ac_max_loading_line": "string", "ac_voltage_error_pu": "float64", "ac_flow_error_mw": "float64",
@@ -59,11 +59,12 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
                 "ac_margin": "float64"},
     "buses": {**_WHEN, "hour": "int64", "stage": "string", "bus": "string", "injection_mw": "float64",
               "voltage_pu": "float64", "bus_price_per_mwh": "Float64", "loss_price_per_mwh": "Float64",
-              "congestion_price_per_mwh": "Float64", "voltage_price_per_mwh": "Float64", "shed_mw": "Float64"},
+              "congestion_price_per_mwh": "Float64", "voltage_price_per_mwh": "Float64", "shed_mw": "Float64",
+              "spilled_mw": "Float64"},
     "lines": {**_WHEN, "hour": "int64", "stage": "string", "line": "string", "loading": "float64"},
 }
 _PER_BUS = ("injection_mw", "voltage_pu", "bus_price_per_mwh", "loss_price_per_mwh", "congestion_price_per_mwh",
-            "voltage_price_per_mwh", "shed_mw")
+            "voltage_price_per_mwh", "shed_mw", "spilled_mw")
 
 
 def open_recording(path: str | os.PathLike) -> dict[str, pd.DataFrame]:
@@ -266,6 +267,7 @@ def _network(hours: list[dict]) -> pd.DataFrame:
     rows = [{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "network": m["network"],
              "clearing": m["clearing"], "substation_mw": m["substation_mw"], "energy_price_per_mwh": m["energy_price_per_mwh"],
              "shed_mw": None if m["shed_mw"] is None else sum(m["shed_mw"]),
+             "spilled_mw": None if m["spilled_mw"] is None else sum(m["spilled_mw"]),
              "v_min_pu": min(v for b, v in zip(m["buses"], m["voltage_pu"]) if b != m["substation"]),
              "max_loading": max(m["line_loading"]),
              **{f"ac_{k}": ("; ".join(v) if k == "violations" else v) for k, v in m["ac"].items()}}

@@ -436,3 +436,37 @@ def test_each_ac_bus_price_is_the_welfare_its_last_lp_loses_per_mw_of_a_microgri
     for b in range(net.n_buses):  # eps MW of a microgrid's import at b, fixed: its column moves to the right side
         more = lp_objective(prog, prog.b_eq - eps * prog.exchange_eq[b], prog.b_ub - eps * prog.exchange_ub[:, b])
         assert (more - base) / eps == pytest.approx(r.bus_price[h, b], rel=1e-5, abs=1e-5), net.buses[b]
+
+
+# --- curtailment ------------------------------------------------------------------------------------------------
+
+def generating(s_max: float, generation: float):
+    """0-1-2, bus 2 producing ``generation`` MW of fixed generation (a negative fixed load) behind line 1-2."""
+    buses = [{"name": "0"}, {"name": "1", "p_mw": 0.5}, {"name": "2", "p_mw": -generation}]
+    lines = [{"from": "0", "to": "1", "r_ohm": 0.01, "x_ohm": 0.01, "s_max_mva": 100.0},
+             {"from": "1", "to": "2", "r_ohm": 0.01, "x_ohm": 0.01, "s_max_mva": s_max}]
+    return build("gen3", 10.0, buses, lines, "0", v_min=0.5, v_max=1.5, load_profile=(1.0,) * HOURS)
+
+
+@pytest.mark.parametrize("method", ["lindistflow", "ac"])
+def test_generation_no_line_can_carry_is_spilled_at_the_spill_price_and_reported(method):
+    net = generating(3.0, 5.0)
+    r = clear_network([], net, {}, 40.0, WIDE, WIDE, method=method)  # raised before: nothing but generation to shed
+    assert r.spill_mw[0, 2] == pytest.approx(2.0, abs=1e-3) and not r.shed_mw.any()
+    assert r.flow_p[0, 1] == pytest.approx(-3.0, abs=1e-3)  # line 1-2 carries what it can, back to the substation
+    assert r.bus_price[0, 2] == pytest.approx(0.0, abs=1e-6)  # a MW more load there would save a MW of spill
+    priced = clear_network([], net, {}, 40.0, WIDE, WIDE, method=method, spill_price=12.5)
+    assert priced.bus_price[0, 2] == pytest.approx(-12.5, abs=1e-6)
+    assert priced.welfare[0] == pytest.approx(r.welfare[0] - 12.5 * float(r.spill_mw[0, 2]), abs=1e-6)
+    # a buyer behind the line takes some of the surplus at its bus's price: less is spilled
+    buyer = clear_network([one_hour("mg", [(30.0, 1.0)])], net, {"mg": "2"}, 40.0, WIDE, WIDE, method=method)
+    assert at(buyer)["mg"] == pytest.approx(1.0) and buyer.spill_mw[0, 2] == pytest.approx(1.0, abs=1e-3)
+    prog = hour_program([], net, {}, 0, 40.0, WIDE, WIDE, method=method, spill_price=12.5)
+    kkt(prog)
+
+
+def test_a_spill_price_outside_zero_to_voll_is_refused_in_one_line():
+    for price in (-1.0, VOLL * 2, math.nan):
+        with pytest.raises(ValueError, match="spill_price") as e:
+            clear_network([], generating(3.0, 5.0), {}, 40.0, WIDE, WIDE, spill_price=price)
+        assert "\n" not in str(e.value)

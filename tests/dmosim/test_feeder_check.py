@@ -181,10 +181,6 @@ LONG_BUS = "b" * MAX_NAME_LENGTH
     ("f", {'"4"': f'"{LONG_BUS}"'}, None),
     ("f", {'"4"': f'"{LONG_BUS}b"'}, "bus 5's name 'bbb"),
     ("f", {"p_mw = 0.25": "p_mw = 1e308"}, r"bus 4 p_mw must be >= -10,000 and <= 10,000, got 1e\+308"),
-    # fixed generation the lines carry but the export limit (5 MW per agent) does not, which no load shed helps: the
-    # check's clearing used no substation limits, and the DMO's then failed
-    ("f", {"p_mw = 0.4\nq_mvar = 0.15": "p_mw = -11.0\nq_mvar = 0.0"},
-     "within the substation's import limit 16 MW and export limit 10 MW"),
 ])
 def test_what_the_run_would_fail_on_the_check_refuses_and_what_it_passes_clears(tmp_path, stem, change, refused):
     """The feeders of the bug report: a file name or a bus name over 64 characters passed --check and then stopped the
@@ -206,3 +202,18 @@ def test_what_the_run_would_fail_on_the_check_refuses_and_what_it_passes_clears(
     sent = the_dmos_day(experiment, 0)
     names = {name for m in sent if m.kind == "network_hour" for name in (m.network, *m.buses)}
     assert max(map(len, names)) == MAX_NAME_LENGTH  # carried by every network_hour
+
+
+def test_generation_the_export_limit_cannot_carry_passes_the_check_and_the_dmo_spills_it(tmp_path):
+    """20 MW of fixed generation at bus 1 (times the load profile) against an export limit of 10 MW (5 per agent):
+    the check once refused such a feeder (no load shed helps); now the DMO's day spills what the limit and the lines
+    cannot carry, and never exports beyond the limit."""
+    path = tmp_path / "f.toml"
+    path.write_text(FEEDER5.replace("p_mw = 0.4\nq_mvar = 0.15", "p_mw = -20.0\nq_mvar = 0.0"))
+    experiment = resolved(parse_experiment({"market_day": DAY, "agents": {"count": 2},
+                                            "network": {"feeder": str(path)}}))
+    check_inputs(experiment)
+    hours = [m for m in the_dmos_day(experiment, 0) if m.kind == "network_hour" and m.stage == "plan"]
+    spilling = [m for m in hours if max(m.spilled_mw) > 0]
+    assert len(hours) == HOURS and spilling and not any(any(m.shed_mw) for m in hours)
+    assert all(m.ac.substation_mw >= -10.0 - 1e-6 for m in hours)

@@ -111,3 +111,15 @@ def test_a_feeder_clears_on_the_ac_flow_unless_the_experiment_or_a_flag_says_lin
     out = cli("run", "--feeder", "feeder5", "--clearing", "acopf", "--out", str(tmp_path / "run"))
     assert out.returncode == 2 and out.stderr.count("\n") == 1 and "--clearing" in out.stderr, out.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_the_spill_price_reaches_the_dmo_and_a_bad_one_is_one_line(cli, tmp_path):
+    from dmosim.launch.roles import day_config
+
+    assert day_config(_experiment(feeder="feeder5")).spill_price == 0.0
+    assert day_config(_experiment(feeder="feeder5", spill_price=25.0)).spill_price == 25.0
+    with pytest.raises(ExperimentError, match="network.spill_price") as err:
+        _experiment(feeder="feeder5", spill_price=-1.0)
+    assert "\n" not in str(err.value)
+    out = cli("run", "--feeder", "feeder5", "--spill-price", "-5", "--out", str(tmp_path / "run"))
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and "--spill-price" in out.stderr, out.stderr

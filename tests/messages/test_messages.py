@@ -77,6 +77,7 @@ SAMPLES = {
                                 clearing="ac", bus_price_per_mwh=[40.0, 41.0, 57.0],
                                 loss_price_per_mwh=[0.0, 1.0, 1.5], congestion_price_per_mwh=[0.0, 0.0, 15.5],
                                 voltage_price_per_mwh=[0.0, 0.0, 0.0], shed_mw=[0.0, 0.0, 0.0],
+                                spilled_mw=[0.0, 0.0, 0.0],
                                 ac=ACCheck(converged=True, v_min_pu=0.984, v_min_bus="2", v_max_pu=0.99,
                                            v_max_bus="1", max_loading=1.01, max_loading_line="1-2",
                                            voltage_error_pu=0.001, flow_error_mw=0.01, losses_mw=0.012,
@@ -175,7 +176,7 @@ def test_older_messages_read_as_they_were_meant():
     version-3 message is bound to no run and no process; a version-4 award states no congestion; a version-6 award
     or registration names no bus (the copper plate); a version-7 grid state carries no operating envelope; a version-8
     agent_day says neither when the messages it handled were taken up nor a wait for a turn; a version-9 award or
-    network_hour carries no loss component, and the network_hour names no clearing method."""
+    network_hour carries no loss component, and the network_hour names no clearing method and no spilled generation."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
     award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER, *LOSS))
@@ -194,8 +195,9 @@ def test_older_messages_read_as_they_were_meant():
     day = decode(_older_within("agent_day", 8, "compute", "started_at", "turn_s"))
     assert [(h.started_at, h.turn_s) for h in day.compute] == [(None, 0.0), (None, 0.0)]
     assert decode(_older("award", 9, *LOSS)).loss_price_per_mwh is None
-    hour = decode(_older("network_hour", 9, "clearing", *LOSS))
-    assert (hour.clearing, hour.loss_price_per_mwh) == (None, None) and hour.bus_price_per_mwh == (40.0, 41.0, 57.0)
+    hour = decode(_older("network_hour", 9, "clearing", "spilled_mw", *LOSS))
+    assert (hour.clearing, hour.loss_price_per_mwh, hour.spilled_mw) == (None, None, None)
+    assert hour.bus_price_per_mwh == (40.0, 41.0, 57.0)
     assert [h.wall_s for h in day.compute] == [h.wall_s for h in SAMPLES["agent_day"].compute]
     # a message of an older version that has a later version's field is not upgraded, and a current one that
     # leaves a field out is refused
