@@ -504,7 +504,8 @@ def ieee33(**options) -> Network:
     return from_pandapower(case, "ieee33", **options)
 
 
-NETWORKS = {"ieee33": ieee33, "feeder5": lambda **options: _toml(DATA_DIR / "feeder5.toml", options)}
+NETWORKS = {"ieee33": ieee33, "ieee69": lambda **options: _toml(DATA_DIR / "ieee69.toml", options),
+            "feeder5": lambda **options: _toml(DATA_DIR / "feeder5.toml", options)}
 
 
 def load_network(source: str | Path, **options) -> Network:

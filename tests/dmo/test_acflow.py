@@ -50,6 +50,20 @@ def test_ieee33_base_case_is_baran_and_wus():
     assert check.v_max_bus == "0" and check.v_max_pu == 1.0
 
 
+def test_ieee69_base_case_is_baran_and_wus():
+    # the 69-bus feeder's published base case: 3.8021 MW and 2.6947 Mvar of load, the lowest voltage 0.9092 p.u. at
+    # bus 65 and 225.0 kW of losses (to the digits printed), by pandapower and by the branch flow alike
+    from dmo.market.branchflow import BranchFlow
+
+    net = load_network("ieee69")
+    (check,) = check_hours(net, np.zeros((1, 69)), hours=[PEAK])
+    assert net.fixed_p[PEAK].sum() == pytest.approx(3.8021) and net.fixed_q[PEAK].sum() == pytest.approx(2.6947)
+    assert check.v_min_bus == "65" and check.v_min_pu == pytest.approx(0.9092, abs=5e-5)
+    assert check.losses_mw == pytest.approx(0.2250, abs=5e-5) and check.violations == ()
+    point = BranchFlow(net).solve(net.fixed_p[PEAK], net.fixed_q[PEAK])
+    assert point.v.min() == pytest.approx(check.v_min_pu, abs=1e-9) and point.losses == pytest.approx(check.losses_mw)
+
+
 def _independent_ac(hours, p_mw):
     """pandapower's own case33bw, its loads scaled to each hour and the microgrids added as loads, each hour
     from a flat start: per hour the bus voltages, each line's (P, S) at the end power enters, losses, import."""
