@@ -642,7 +642,9 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     operating point (its limits' sensitivities and marginal losses there), until the AC flow of the plan keeps
     every voltage within AC_VOLTAGE_TOLERANCE p.u. and every line within AC_LOADING_TOLERANCE of its rating, at most
     MAX_AC_ITERATIONS linearised clearings. Where the first plan has no AC solution (the copper plate's, then
-    LinDistFlow's), the hour is LinDistFlow's clearing; where a later one has none, the last plan that had one.
+    LinDistFlow's), or no plan meets the first linearisation's limits even curtailing every fixed injection (a
+    reactive load that cannot be shed, its line full in AC), the hour is LinDistFlow's clearing, and what its AC
+    flow breaks is reported; where a later one fails so, the last plan that did not.
 
     Plans can alternate: a step whose own losses move its bus's price across its bid is in at one operating point
     and out at the other, and each plan's AC flow is a little off the other's linearisation. Once a plan repeats
@@ -659,7 +661,10 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     tried: list[tuple[float, _Hour, _Cleared]] = []  # each linearised clearing, and how far its plan's AC flow breaks
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
         linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point))
-        cleared = _on_feeder(linearised, done.rows)
+        try:
+            cleared = _on_feeder(linearised, done.rows)
+        except ValueError:  # no plan meets the limits linearised there: the last one that did, or LinDistFlow's
+            return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
         loads = linearised.loads(cleared.step_mw, cleared.shed)
         moved = max(np.abs(loads[0] - point.p).max(), np.abs(loads[1] - point.q).max())
         point = hour.feeder.ac.solve(*loads, point)

@@ -85,14 +85,15 @@ def network_of(experiment: Experiment) -> Network | None:
     if n.feeder is None:
         return None
     iso_price = tuple(load_case(m.case).grid.iso_price)
-    return _feeder(n.feeder, n.load_scale, n.voltage_margin, iso_price, *substation_limits(experiment), m.iso_curve)
+    return _feeder(n.feeder, n.load_scale, n.voltage_margin, iso_price, *substation_limits(experiment), m.iso_curve,
+                   n.clearing, n.spill_price)
 
 
 @functools.lru_cache(maxsize=4)  # a run resolves, checks and configures its DMO from one feeder: load it once
 def _feeder(source: str, load_scale: float, margin: float, iso_price: tuple[float, ...], import_limit: float,
-            export_limit: float, curve: IsoCurve) -> Network:
+            export_limit: float, curve: IsoCurve, method: str, spill_price: float) -> Network:
     """The feeder loaded and cleared once with no bids on the DMO's own terms (its ISO prices, the substation's
-    limits, the ISO's curve, the voltage margin): what no clearing of the run can serve, even shedding all its fixed
+    limits, the ISO's curve, the voltage margin, its clearing method and spill price): what no clearing of the run can serve, even shedding all its fixed
     load and spilling all its fixed generation, fails here and not in the DMO (a bus's v_min above the substation's
     voltage). Bids only add what may also be 0."""
     from dmo.market.distflow import clear_network  # noqa: PLC0415  (scipy's LP: 40 MiB no copper-plate role needs)
@@ -103,7 +104,8 @@ def _feeder(source: str, load_scale: float, margin: float, iso_price: tuple[floa
     except NetworkError as exc:
         raise ExperimentError(f"network.feeder: {exc}") from None
     try:
-        clear_network([], network, {}, iso_price, import_limit, export_limit, margin=margin, curve=curve)
+        clear_network([], network, {}, iso_price, import_limit, export_limit, margin=margin, curve=curve,
+                      method=method, spill_price=spill_price)
     except ValueError as exc:
         raise ExperimentError(f"network.feeder: {exc}, within the substation's import limit {import_limit:g} MW and "
                               f"export limit {export_limit:g} MW (market.import_limit, market.export_limit)") from None

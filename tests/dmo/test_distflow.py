@@ -470,3 +470,13 @@ def test_a_spill_price_outside_zero_to_voll_is_refused_in_one_line():
         with pytest.raises(ValueError, match="spill_price") as e:
             clear_network([], generating(3.0, 5.0), {}, 40.0, WIDE, WIDE, spill_price=price)
         assert "\n" not in str(e.value)
+
+
+def test_a_reactive_load_no_clearing_can_shed_whose_line_is_full_in_ac_is_cleared_and_its_overload_reported():
+    # 0.5 Mvar and no P at bus 1, its line rated by the rule at exactly 0.5 MVA: full on LinDistFlow, 3.4% over in AC
+    # (the line's own reactive losses), and a load with no P cannot be shed; found by tests/dmosim/test_feeder_check.py
+    net = build("q", 4.0, [{"name": "0"}, {"name": "1", "q_mvar": 0.5}],
+                [{"from": "0", "to": "1", "r_ohm": 1.0, "x_ohm": 1.0}], "0", rating_margin=1.0,
+                load_profile=(1.0,) * HOURS)
+    r = clear_network([], net, {}, 40.0, WIDE, WIDE, method="ac")
+    assert all(0.03 < x < 0.04 for x in r.ac_overload) and not r.shed_mw.any()
