@@ -72,22 +72,23 @@ class BranchFlow:
         the currents of ``near``, a solution at loads close by (fewer sweeps, the same solution)."""
         p, q = np.asarray(p, float), np.asarray(q, float)
         base_p, base_q = self.D @ p, self.D @ q
-        current2 = np.zeros(self.network.n_lines) if near is None else near.current2
-        for sweep in range(1, MAX_SWEEPS + 1):
+
+        def state(current2):  # the flows and voltages the currents give: the backward and forward sweep
             flow_p = base_p + self.below @ (self.r * current2)
             flow_q = base_q + self.below @ (self.x * current2)
-            u = self.u0 - self.DT @ (2 * (self.r * flow_p + self.x * flow_q) - self.z2 * current2)
+            return flow_p, flow_q, self.u0 - self.DT @ (2 * (self.r * flow_p + self.x * flow_q) - self.z2 * current2)
+
+        current2 = np.zeros(self.network.n_lines) if near is None else near.current2
+        for sweep in range(1, MAX_SWEEPS + 1):
+            flow_p, flow_q, u = state(current2)
             if not np.isfinite(u).all() or u.min() <= 0:
                 return None
             new = (flow_p ** 2 + flow_q ** 2) / self._sending(u)
             moved = np.abs(new - current2).max(initial=0.0)
             current2 = new
             if moved <= SWEEP_TOLERANCE * max(1.0, current2.max(initial=0.0)):
-                flow_p = base_p + self.below @ (self.r * current2)
-                flow_q = base_q + self.below @ (self.x * current2)
-                u = self.u0 - self.DT @ (2 * (self.r * flow_p + self.x * flow_q) - self.z2 * current2)
-                losses = math.fsum(self.r * current2)
-                return OperatingPoint(p, q, flow_p, flow_q, current2, u, losses, sweep)
+                flow_p, flow_q, u = state(current2)
+                return OperatingPoint(p, q, flow_p, flow_q, current2, u, math.fsum(self.r * current2), sweep)
         return None
 
     def _sending(self, u: np.ndarray) -> np.ndarray:
@@ -118,18 +119,20 @@ class BranchFlow:
         flow_p, flow_q, current2 = point.flow_p[:, None], point.flow_q[:, None], point.current2[:, None]
         r, x, z2 = self.r[:, None], self.x[:, None], self.z2[:, None]
         d_fixed = self.below @ g_u
+
+        def flows(c, d):  # the flows' multipliers a, b, summed down each line's path
+            return self.path @ (g_p + 2 * flow_p * c - 2 * r * d), self.path @ (g_q + 2 * flow_q * c - 2 * x * d)
+
         c, d = zero, d_fixed
         for _ in range(MAX_SWEEPS):
-            a = self.path @ (g_p + 2 * flow_p * c - 2 * r * d)
-            b = self.path @ (g_q + 2 * flow_q * c - 2 * x * d)
+            a, b = flows(c, d)
             new_c = (g_l + r * a + x * b + z2 * d) / sending
             new_d = d_fixed - self.strictly_below @ (current2 * new_c)
             moved = max(np.abs(new_c - c).max(initial=0.0), np.abs(new_d - d).max(initial=0.0))
             c, d = new_c, new_d
             if moved <= SWEEP_TOLERANCE * max(1.0, np.abs(c).max(initial=0.0), np.abs(d).max(initial=0.0)):
                 break
-        a = self.path @ (g_p + 2 * flow_p * c - 2 * r * d)
-        b = self.path @ (g_q + 2 * flow_q * c - 2 * x * d)
+        a, b = flows(c, d)
         line = self.network.line_to
         fed = line >= 0
         dp, dq = np.zeros((k, self.network.n_buses)), np.zeros((k, self.network.n_buses))

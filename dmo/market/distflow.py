@@ -520,25 +520,33 @@ class _Cleared:
     rows: np.ndarray  # the limits its LP held (none on the copper plate)
 
 
+def _plate(hour: _Hour) -> _Cleared | None:
+    """The copper plate's clearing of the hour as a plan on the feeder (one price everywhere, nothing curtailed),
+    with ``rows`` the worst of the LinDistFlow limits its awards break (none if they break none); None where the
+    substation's limits leave the fixed load no room."""
+    fixed = math.fsum(hour.fixed_p)
+    if not hour.curve.bottom <= fixed <= hour.curve.top:
+        return None
+    price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
+    n = len(hour.fixed_p)
+    ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
+    rows = hour.feeder.worst(ids, share, LIMITS_PER_ROUND) if ids.size else np.zeros(0, int)
+    zero = np.zeros(n)
+    return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, (), (), rows)
+
+
 def _copper_plate(hour: _Hour) -> tuple[_Cleared | None, np.ndarray]:
     """The copper plate's clearing when it is this hour's answer (None otherwise), and the limits its awards
     break. It applies while the substation's limits leave room for the fixed load and its price is within VOLL
     (above it, shedding fixed load for the bids would gain welfare) and, on a feeder with fixed generation, at least
     minus the spill price (below it, spilling generation would), and never at an AC operating point (its losses are
     priced)."""
-    fixed = math.fsum(hour.fixed_p)
-    if hour.at is not None or not hour.curve.bottom <= fixed <= hour.curve.top:
+    plate = None if hour.at is not None else _plate(hour)
+    if plate is None or plate.energy > hour.voll or (plate.energy < -hour.spill_price and (hour.fixed_p < 0).any()):
         return None, np.zeros(0, int)
-    price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
-    if price > hour.voll or (price < -hour.spill_price and (hour.fixed_p < 0).any()):
-        return None, np.zeros(0, int)
-    n = len(hour.fixed_p)
-    ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
-    if ids.size:
-        return None, hour.feeder.worst(ids, share, LIMITS_PER_ROUND)
-    uniform = np.full(n, price)
-    return (_Cleared(price, congested, step_mw, np.zeros(n), uniform, np.zeros(n), np.zeros(n), np.zeros(n), (), (),
-                     np.zeros(0, int)), ids)
+    if plate.rows.size:
+        return None, plate.rows
+    return dataclasses.replace(plate, rows=np.zeros(0, int)), plate.rows
 
 
 def _prices(hour: _Hour, sol: _Solution) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
@@ -622,20 +630,6 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
                     lines, buses, sol.rows)
 
 
-def _start(hour: _Hour) -> _Cleared:
-    """Where the AC-faithful clearing starts: the copper plate's plan, with the LinDistFlow limits it breaks to
-    start from, or LinDistFlow's clearing where the copper plate does not apply."""
-    fixed = math.fsum(hour.fixed_p)
-    if not hour.curve.bottom <= fixed <= hour.curve.top:
-        return _on_feeder(hour)
-    price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
-    n = len(hour.fixed_p)
-    ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
-    rows = hour.feeder.worst(ids, share, LIMITS_PER_ROUND) if ids.size else np.zeros(0, int)
-    zero = np.zeros(n)
-    return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, (), (), rows)
-
-
 def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     """Clear one hour on the AC flow linearised at its own plan (docs/market.md, "AC-faithful clearing"): clear on
     LinDistFlow, solve the branch-flow equations at the plan, clear again on the AC flow linearised at that
@@ -651,7 +645,7 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     the one two clearings before, the clearing keeps the one of the two whose AC flow breaks the limits least: its
     prices and awards are those of its own LP, and what its AC flow breaks is reported. The hour as linearised for
     the plan kept, its clearing, and how many linearised clearings were made."""
-    done = _start(hour)
+    done = _plate(hour) or _on_feeder(hour)  # the copper plate's plan, with the limits it breaks to start from
     point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
     if point is None:  # the copper plate's plan has no AC solution: LinDistFlow's, which keeps its limits, may
         done = _on_feeder(hour)
@@ -783,7 +777,8 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
                                      margin, curve, method, spill_price)
     out, columns, iterations = [], [], []
     for h in range(HOURS):
-        hour, done, k = _ac_faithful(make(h)) if method == "ac" else (make(h), _on_feeder(make(h)), 0)
+        hour = make(h)
+        hour, done, k = _ac_faithful(hour) if method == "ac" else (hour, _on_feeder(hour), 0)
         out.append((hour, done))
         iterations.append(k)
         columns.append(per_agent(hour.book, done.step_mw, len(names)))
