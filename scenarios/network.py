@@ -505,6 +505,7 @@ def ieee33(**options) -> Network:
 
 
 NETWORKS = {"ieee33": ieee33, "ieee69": lambda **options: _toml(DATA_DIR / "ieee69.toml", options),
+            "mantovani136": lambda **options: _toml(DATA_DIR / "mantovani136.toml", options),
             "feeder5": lambda **options: _toml(DATA_DIR / "feeder5.toml", options)}
 
 

@@ -1,5 +1,6 @@
-"""The AC check of a feeder's hours: a hand-solved two-bus line, Baran and Wu's base case, the figures against
-pandapower run independently, the violations, an hour with no AC solution, bad input, and a quiet stdout/stderr."""
+"""The AC check of a feeder's hours: a hand-solved two-bus line, the built-in feeders' published base cases, the figures
+against pandapower run independently, the violations, an hour with no AC solution, bad input, and a quiet
+stdout/stderr."""
 
 import dataclasses
 import json
@@ -61,6 +62,23 @@ def test_ieee69_base_case_is_baran_and_wus():
     assert check.v_min_bus == "65" and check.v_min_pu == pytest.approx(0.9092, abs=5e-5)
     assert check.losses_mw == pytest.approx(0.2250, abs=5e-5) and check.violations == ()
     point = BranchFlow(net).solve(net.fixed_p[PEAK], net.fixed_q[PEAK])
+    assert point.v.min() == pytest.approx(check.v_min_pu, abs=1e-9) and point.losses == pytest.approx(check.losses_mw)
+
+
+def test_mantovani136_base_case_is_the_published_one():
+    # the 136-bus feeder's published base case: 18.3138 MW and 7.9326 Mvar of load, the lowest voltage 0.9307 p.u.
+    # at bus 117 and 320.36 kW of losses (to the digits printed), by pandapower and by the branch flow alike. Bus
+    # 118, an unloaded end behind bus 117, is at the same voltage to the bit: the lowest is the first in bus order
+    from dmo.market.branchflow import BranchFlow
+
+    net = load_network("mantovani136")
+    (check,) = check_hours(net, np.zeros((1, 136)), hours=[PEAK])
+    assert net.fixed_p[PEAK].sum() == pytest.approx(18.3138, abs=5e-5)
+    assert net.fixed_q[PEAK].sum() == pytest.approx(7.9326, abs=5e-5)
+    assert check.v_min_bus == "117" and check.v_min_pu == pytest.approx(0.9307, abs=5e-5)
+    assert check.losses_mw == pytest.approx(0.32036, abs=5e-6) and check.violations == ()
+    point = BranchFlow(net).solve(net.fixed_p[PEAK], net.fixed_q[PEAK])
+    assert net.buses[int(np.argmin(point.v))] == "117"
     assert point.v.min() == pytest.approx(check.v_min_pu, abs=1e-9) and point.losses == pytest.approx(check.losses_mw)
 
 
