@@ -1,6 +1,6 @@
-"""The AC check of a feeder's hours: a hand-solved two-bus line, the built-in feeders' published base cases, the figures
-against pandapower run independently, the violations, an hour with no AC solution, bad input, and a quiet
-stdout/stderr."""
+"""The AC check of a feeder's hours: a hand-solved two-bus line, the built-in feeders' published base cases (and a
+day cleared on the largest), the figures against pandapower run independently, the violations, an hour with no AC
+solution, bad input, and a quiet stdout/stderr."""
 
 import dataclasses
 import json
@@ -80,6 +80,28 @@ def test_mantovani136_base_case_is_the_published_one():
     point = BranchFlow(net).solve(net.fixed_p[PEAK], net.fixed_q[PEAK])
     assert net.buses[int(np.argmin(point.v))] == "117"
     assert point.v.min() == pytest.approx(check.v_min_pu, abs=1e-9) and point.losses == pytest.approx(check.losses_mw)
+
+
+def test_a_day_on_mantovani136_clears_on_the_ac_flow_within_every_limit():
+    # a buyer at the far bus 117 and a seller near the substation, every hour: the day clears on the AC flow with
+    # no hour's plan breaking a limit in it and no load shed; a line on bus 117's path (109-110 or 108-109, rated by
+    # the rule) holds the buyer below its 1 MW, so its price is its bid, and the seller's bus price is the energy
+    # price and the losses its sale saves
+    from dmo.market.clearing import BidCurve, Step
+    from dmo.market.distflow import clear_network
+
+    def every_hour(agent, price, mw):
+        return BidCurve(agent, ((Step(price, mw),),) * 24)
+
+    net = load_network("mantovani136")
+    r = clear_network([every_hour("far", 90.0, 1.0), every_hour("near", 30.0, -0.5)], net,
+                      {"far": "117", "near": "2"}, 40.0, 1e6, 1e6, method="ac")
+    assert r.ac_voltage_excess_pu == (0.0,) * 24 and r.ac_overload == (0.0,) * 24 and r.shed_mw.sum() == 0.0
+    assert all(0.0 < mw < 1.0 for mw in r.awards["far"]) and r.awards["near"] == (-0.5,) * 24
+    assert r.agent_price["far"] == (90.0,) * 24 and r.congested == ("line",) * 24
+    path = set(np.flatnonzero(net.downstream[:, net.index["117"]]).tolist())  # the lines from the substation to 117
+    assert all(lines and set(lines) <= path for lines in r.lines_binding)
+    assert all(p > 40.0 for p in r.agent_price["near"]) and r.price == (40.0,) * 24
 
 
 def _independent_ac(hours, p_mw):
