@@ -70,7 +70,12 @@ ADDED = ((2, "clock", None, {"day": 1, "days": 1}),
          (8, "grid_state", None, {"buses": [], "room_mw": []}),
          (9, "agent_day", "compute", {"started_at": None, "turn_s": 0.0}),
          (10, "award", None, {"loss_price_per_mwh": None}),
-         (10, "network_hour", None, {"clearing": None, "loss_price_per_mwh": None, "spilled_mw": None}))
+         (10, "network_hour", None, {"clearing": None, "loss_price_per_mwh": None, "spilled_mw": None}),
+         (11, "network_hour", None, {"limit_loading": None, "binding_facet": None, "line_shadow_price_per_mwh": None,
+                                     "binding_voltage": None, "voltage_shadow_price_per_pu": None}))
+# What each version split from one field of a kind into others, each taking its value; applied after ADDED (a field
+# it split may be one ADDED supplies).
+SPLIT = ((11, "grid_state", "room_mw", ("import_room_mw", "export_room_mw")),)
 
 
 def _upgrade(payload: bytes) -> bytes | None:
@@ -84,8 +89,9 @@ def _upgrade(payload: bytes) -> bytes | None:
     envelope (no buses, no rooms), as on the copper plate. Version 8 -> 9: the messages an agent_day says its
     agent handled say neither when each was taken up (null) nor a wait for a turn (0). Version 9 -> 10: an award
     and a network_hour carry no loss component, and a network_hour names no clearing method and no spilled
-    generation (null). An older
-    message that already has a field of a later version is left as it is, for validation to refuse."""
+    generation (null). Version 10 -> 11: a grid state's one room either way (``room_mw``) is its room above
+    the awards and below them alike, and a network_hour says nothing of what binds (null). An older message that already has a field of a later version is left as it is,
+    for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):
@@ -108,6 +114,13 @@ def _upgrade(payload: bytes) -> bytes | None:
             if any(not isinstance(item, dict) or any(name in item for name in fields) for item in items):
                 return None
             upgraded[within] = [{**item, **fields} for item in items]
+    for since, kind, old, new in SPLIT:
+        if kind != data.get("kind") or version >= since or old not in upgraded:
+            continue
+        if any(name in data for name in new):
+            return None
+        value = upgraded.pop(old)
+        upgraded.update({name: value for name in new})
     return json.dumps(upgraded).encode() if upgraded != data else None
 
 

@@ -27,8 +27,12 @@ from scenarios.network import MAX_BUSES, MAX_NAME_LENGTH
 # names the agent's bidding strategy; 7: on a feeder, registrations and awards name the agent's bus, awards carry
 # their price's components, and ``network_hour`` publishes the feeder's hours; 8: on a feeder, a grid state carries
 # the hour's operating envelope (``buses``, ``room_mw``); 9: each message an agent_day says the agent handled carries
-# when it was taken up and how long the agent waited for its turn (``started_at``, ``turn_s``)
-SCHEMA_VERSION = 10
+# when it was taken up and how long the agent waited for its turn (``started_at``, ``turn_s``); 10: awards and
+# network hours carry the loss component, network hours the clearing method and spilled generation; 11: a grid
+# state's envelope is one-sided, a room above each award and one below (``import_room_mw``, ``export_room_mw``),
+# and a network hour's plan says what binds (``limit_loading``, ``binding_facet``, ``line_shadow_price_per_mwh``,
+# ``binding_voltage``, ``voltage_shadow_price_per_pu``)
+SCHEMA_VERSION = 11
 MAX_DAYS = 3660
 MAX_SUBPERIODS = 60
 MAX_BID_STEPS = 16
@@ -76,6 +80,7 @@ MarketDay = Annotated[str, Strict(), Field(pattern=r"^[0-9]{4}-[0-9]{2}-[0-9]{2}
 Piece = tuple[Float, Float]
 BusName = Annotated[str, Strict(), Field(min_length=1, max_length=MAX_NAME_LENGTH)]  # as a feeder may name it
 PerBus = Annotated[tuple[Float, ...], Field(min_length=1, max_length=MAX_BUSES)]
+PerLine = PerBus  # a radial feeder has one line fewer than buses: checked per message
 RuleName = Annotated[str, Strict(), Field(min_length=1, max_length=500)]
 # The run's token: 32 hex digits the DMO draws when a run starts (empty in messages older than version 4).
 RUN_TOKEN_PATTERN = r"^([0-9a-f]{32})?$"
@@ -370,6 +375,24 @@ class NetworkHour(_FromDmo):
     spilled_mw: Annotated[PerBus | None, Field(description=(
         "fixed generation the clearing spilled at each bus to stay within the limits, MW, at the spill price "
         "(docs/market.md; plan only; null before version 10)"))] = None
+    limit_loading: Annotated[PerLine | None, Field(description=(
+        "each line's loading as the clearing limits it: its largest facet n_P P + n_Q Q over its rating, 1 where a "
+        "facet binds (line_loading, |S| over the rating, is 0.92 to 1 there: docs/market.md), in the clearing's "
+        "flow (the AC flow's for \"ac\"); plan only (null when realised, and before version 11)"))] = None
+    binding_facet: Annotated[Annotated[tuple[Annotated[int, Strict(), Field(ge=0, le=7)] | None, ...],
+                                       Field(min_length=1, max_length=MAX_BUSES)] | None, Field(description=(
+        "per line, the facet (0..7) of its limit the clearing holds at its bound, null where none (docs/market.md, "
+        "\"What binds\"); plan only (null when realised, and before version 11)"))] = None
+    line_shadow_price_per_mwh: Annotated[PerLine | None, Field(description=(
+        "per line, what a MW more of its rating would add to the hour's welfare, $/h per MW: the dual of its binding "
+        "facets, 0 where none binds; plan only (null when realised, and before version 11)"))] = None
+    binding_voltage: Annotated[Annotated[tuple[Literal["v_min", "v_max"] | None, ...],
+                                         Field(min_length=1, max_length=MAX_BUSES)] | None, Field(description=(
+        "per bus, the voltage limit the clearing holds it at, null where none; plan only (null when realised, and "
+        "before version 11)"))] = None
+    voltage_shadow_price_per_pu: Annotated[PerBus | None, Field(description=(
+        "per bus, what 1 p.u. more room at its binding voltage limit would add to the hour's welfare, $/h per p.u. "
+        "of voltage, 0 where none binds; plan only (null when realised, and before version 11)"))] = None
     ac: Annotated[ACCheck, Field(description="the hour's AC power flow")]
 
     @model_validator(mode="after")
@@ -378,13 +401,18 @@ class NetworkHour(_FromDmo):
         if self.substation not in self.buses:
             raise ValueError(f"substation {self.substation!r} is not one of the buses")
         for name in ("injection_mw", "voltage_pu", "bus_price_per_mwh", "loss_price_per_mwh",
-                     "congestion_price_per_mwh", "voltage_price_per_mwh", "shed_mw", "spilled_mw"):
+                     "congestion_price_per_mwh", "voltage_price_per_mwh", "shed_mw", "spilled_mw", "binding_voltage",
+                     "voltage_shadow_price_per_pu"):
             values = getattr(self, name)
             if values is not None and len(values) != n:
                 raise ValueError(f"{name} has {len(values)} values for {n} buses")
         if len(self.lines) != n - 1 or len(self.line_loading) != n - 1:
             raise ValueError(f"a radial feeder of {n} buses has {n - 1} lines; lines and line_loading give "
                              f"{len(self.lines)} and {len(self.line_loading)}")
+        for name in ("limit_loading", "binding_facet", "line_shadow_price_per_mwh"):
+            values = getattr(self, name)
+            if values is not None and len(values) != n - 1:
+                raise ValueError(f"{name} has {len(values)} values for {n - 1} lines")
         return self
 
 
@@ -433,7 +461,7 @@ class Clock(_FromDmo):
 
 class GridState(_FromDmo):
     """Phase 5, DMO -> all, once per hour: the grid's realised state; connected False = islanded (U = 0). On a
-    feeder, also the hour's operating envelope: how far each microgrid may stray from its award."""
+    feeder, also the hour's operating envelope: how far each microgrid may stray above and below its award."""
 
     kind: Annotated[Literal["grid_state"], Field(description=KIND)] = "grid_state"
     hour: Annotated[Hour, Field(description="the hour this state holds for, 1..24")]
@@ -441,19 +469,23 @@ class GridState(_FromDmo):
     connected: Annotated[tuple[Bool, ...], Field(min_length=1, max_length=MAX_SUBPERIODS), Field(description=(
         "K booleans, one per sub-period: true grid-connected, false islanded (U = 0: P_M must be 0)"))]
     buses: Annotated[tuple[BusName, ...], Field(max_length=MAX_BUSES), Field(description=(
-        "on a feeder, every bus of the DMO's feeder, in its order, each once: room_mw follows it; empty on the "
-        "copper plate (and before version 8)"))] = ()
-    room_mw: Annotated[tuple[NonNeg, ...], Field(max_length=MAX_BUSES), Field(description=(
-        "the hour's operating envelope, one room per bus of buses (docs/network.md, \"Operating envelopes\"): in "
-        "the hour's grid-connected sub-periods each microgrid at the bus keeps its P_M within its award plus or "
-        "minus this many MW, and the feeder's limits then hold whatever the others do within theirs; 0 at a bus "
-        "without a microgrid. Empty on the copper plate"))] = ()
+        "on a feeder, every bus of the DMO's feeder, in its order, each once: import_room_mw and export_room_mw "
+        "follow it; empty on the copper plate (and before version 8)"))] = ()
+    import_room_mw: Annotated[tuple[NonNeg, ...], Field(max_length=MAX_BUSES), Field(description=(
+        "the hour's operating envelope above the awards, one room per bus of buses (docs/network.md, \"Operating "
+        "envelopes\"): in the hour's grid-connected sub-periods each microgrid at the bus keeps its P_M at most its "
+        "award plus this many MW, and the feeder's limits then hold whatever the others do within theirs; 0 at a "
+        "bus without a microgrid. Empty on the copper plate; before version 11, the one room either way"))] = ()
+    export_room_mw: Annotated[tuple[NonNeg, ...], Field(max_length=MAX_BUSES), Field(description=(
+        "the hour's operating envelope below the awards, as import_room_mw: each microgrid at the bus keeps its P_M "
+        "at least its award less this many MW"))] = ()
 
     @model_validator(mode="after")
     def _lengths(self):
         _check_length(self.connected, self.subperiods, "connected")
-        if len(self.room_mw) != len(self.buses):
-            raise ValueError(f"room_mw has {len(self.room_mw)} values for {len(self.buses)} buses")
+        for name in ("import_room_mw", "export_room_mw"):
+            if len(getattr(self, name)) != len(self.buses):
+                raise ValueError(f"{name} has {len(getattr(self, name))} values for {len(self.buses)} buses")
         if len(set(self.buses)) != len(self.buses):
             raise ValueError("buses names a bus more than once")
         return self

@@ -79,9 +79,18 @@ class NetworkClearing:
     broadcast) + ``congestion`` + ``voltage``, the price of a microgrid's exchange at the bus ($/MWh; at a power
     factor below 1, of its P with the Q it draws); ``voltage_pu``, ``shed_mw`` (fixed load shed) and ``spill_mw``
     (fixed generation spilled). Per hour and line (24 x lines):
-    ``flow_p`` (MW) and ``flow_q`` (Mvar) away from the substation. ``lines_binding``, ``buses_binding``: per hour,
-    the indices of the lines and buses whose limit the hour's LP holds at its bound (none in an hour the copper plate
-    clears). ``exchange_mw``: the substation's import from the ISO (fixed load + awards - shed + spilled).
+    ``flow_p`` (MW) and ``flow_q`` (Mvar) away from the substation, and ``limit_loading``, the loading the clearing
+    limits: the line's largest facet n_P P + n_Q Q over its rating (1 where a facet binds; |S| / rating is 0.92 to 1
+    there, the octagon lying inside the circle).
+
+    What binds, per hour (none in an hour the copper plate clears): ``binding_facet`` (24 x lines, int), the facet
+    (0..7, ``FACETS``) of each line the hour's LP holds at its bound, -1 where none (of two at a vertex, the one with
+    the larger dual), and ``line_shadow_price``, what a MW more of its rating would add to the welfare ($/h per MW,
+    the sum of its facets' duals; 0 where none binds); ``binding_voltage`` (24 x buses, int), -1 where a bus's lower
+    voltage limit binds, +1 its upper one, 0 neither, and ``voltage_shadow_price``, what 1 p.u. more room at that
+    limit would add ($/h per p.u. of V, the dual of its U = V^2 limit times dU/dV = 2 V at the limit; 0 where none
+    binds). ``lines_binding``, ``buses_binding``: per hour, the indices of those lines and buses.
+    ``exchange_mw``: the substation's import from the ISO (fixed load + awards - shed + spilled).
     ``welfare`` ($ per hour): the accepted purchases' bid value less the sales' and the ISO's energy, the shed load
     at ``voll`` and the spilled generation at the spill price.
 
@@ -101,10 +110,13 @@ class NetworkClearing:
     energy: np.ndarray
     congestion: np.ndarray
     voltage: np.ndarray
-    lines_binding: tuple[tuple[int, ...], ...]
-    buses_binding: tuple[tuple[int, ...], ...]
+    binding_facet: np.ndarray
+    line_shadow_price: np.ndarray
+    binding_voltage: np.ndarray
+    voltage_shadow_price: np.ndarray
     flow_p: np.ndarray
     flow_q: np.ndarray
+    limit_loading: np.ndarray
     voltage_pu: np.ndarray
     shed_mw: np.ndarray
     spill_mw: np.ndarray
@@ -119,6 +131,14 @@ class NetworkClearing:
     def net_import(self, hour: int) -> float:
         """The microgrids' net import in one hour: the sum of the awards (MW), as ``ClearingResult.net_import``."""
         return math.fsum(a[hour] for a in self.awards.values())
+
+    @property
+    def lines_binding(self) -> tuple[tuple[int, ...], ...]:
+        return tuple(tuple(np.flatnonzero(row >= 0).tolist()) for row in self.binding_facet)
+
+    @property
+    def buses_binding(self) -> tuple[tuple[int, ...], ...]:
+        return tuple(tuple(np.flatnonzero(row).tolist()) for row in self.binding_voltage)
 
 
 @dataclass(frozen=True)
@@ -288,6 +308,31 @@ class Feeder:
         g_q = np.vstack([FACETS[facet, 1:] * d, sign * (path @ self.D_x).toarray()])
         grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # the lines' rows first, as g_p and g_q
         return g_p, g_q, self.bounds[np.searchsorted(self.rows, grouped)]
+
+    def loading(self, left: np.ndarray) -> np.ndarray:
+        """Per line, its largest facet over its rating, from every limit's left side ``left`` (``left_sides`` or
+        ``ac_left_sides``): the loading the clearing limits, 1 at a binding facet."""
+        return left[:8 * self.network.n_lines].reshape(-1, 8).max(axis=1) / self.s_max
+
+    def binding(self, held: np.ndarray, relief: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The limits ``held`` at their bounds (ids, sorted) with their duals as ``relief`` (>= 0) per line and bus:
+        the facet of each line (-1: none; the one with the larger dual), the sum of its facets' duals, the voltage
+        limit of each bus (-1 lower, +1 upper, 0 none) and its dual per p.u. of V (the U = V^2 dual times 2 V at the
+        limit), as ``NetworkClearing`` has them."""
+        net, base = self.network, 8 * self.network.n_lines
+        facet, line_shadow = np.full(net.n_lines, -1), np.zeros(net.n_lines)
+        on_line = held < base
+        line, k = divmod(held[on_line], 8)
+        np.add.at(line_shadow, line, relief[on_line])
+        first = np.lexsort((k, -relief[on_line], line))
+        first = first[np.unique(line[first], return_index=True)[1]]
+        facet[line[first]] = k[first]
+        bus, upper = divmod(held[~on_line] - base, 2)
+        side, voltage_shadow = np.zeros(net.n_buses, int), np.zeros(net.n_buses)
+        side[bus] = np.where(upper == 1, 1, -1)
+        limit = np.where(upper == 1, self.u_max[bus], self.u_min[bus])
+        voltage_shadow[bus] = relief[~on_line] * 2.0 * np.sqrt(limit)
+        return facet, line_shadow, side, voltage_shadow
 
     def row_names(self, rows: np.ndarray) -> tuple[str, ...]:
         net, base = self.network, 8 * self.network.n_lines
@@ -505,7 +550,7 @@ class _Solution:
 @dataclass(frozen=True)
 class _Cleared:
     """One hour's outcome: the energy price, the label, the steps' awards, the shed load, the bus prices with
-    their components, and the limits held at their bounds."""
+    their components, and the limits its LP held at their bounds (ids) with their duals as relief (>= 0)."""
 
     energy: float
     congested: str
@@ -515,9 +560,9 @@ class _Cleared:
     loss: np.ndarray
     congestion: np.ndarray
     voltage: np.ndarray
-    lines: tuple[int, ...]
-    buses: tuple[int, ...]
-    rows: np.ndarray  # the limits its LP held (none on the copper plate)
+    held: np.ndarray
+    relief: np.ndarray
+    rows: np.ndarray  # the limits its LP had (none on the copper plate)
 
 
 def _plate(hour: _Hour) -> _Cleared | None:
@@ -531,8 +576,8 @@ def _plate(hour: _Hour) -> _Cleared | None:
     n = len(hour.fixed_p)
     ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
     rows = hour.feeder.worst(ids, share, LIMITS_PER_ROUND) if ids.size else np.zeros(0, int)
-    zero = np.zeros(n)
-    return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, (), (), rows)
+    zero, none = np.zeros(n), np.zeros(0, int)
+    return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, none, np.zeros(0), rows)
 
 
 def _copper_plate(hour: _Hour) -> tuple[_Cleared | None, np.ndarray]:
@@ -616,18 +661,18 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
     bus_price = _snap(hour, sol.step_mw, energy + loss + congestion + voltage)
     step_mw = _awards_at_bus_prices(hour, sol.step_mw, bus_price)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
-    held = sol.rows[b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))]
-    base = 8 * hour.feeder.network.n_lines
-    lines = tuple(int(x) for x in np.unique(held[held < base] // 8))
-    buses = tuple(int(x) for x in np.unique((held[held >= base] - base) // 2))
+    at_bound = b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
+    order = np.argsort(sol.rows[at_bound], kind="stable")
+    held, relief = sol.rows[at_bound][order], (-sol.ub_dual[at_bound] + 0.0)[order]
+    lines = held < 8 * hour.feeder.network.n_lines
     if sol.p0 >= hour.curve.top - LIMIT_TOLERANCE:
         congested = "import"
     elif sol.p0 <= hour.curve.bottom + LIMIT_TOLERANCE:
         congested = "export"
     else:
-        congested = "line" if lines else "voltage" if buses else "none"
+        congested = "line" if lines.any() else "voltage" if held.size else "none"
     return _Cleared(energy, congested, step_mw, sol.shed(len(hour.fixed_p)), bus_price, loss, congestion, voltage,
-                    lines, buses, sol.rows)
+                    held, relief, sol.rows)
 
 
 def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
@@ -782,7 +827,7 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
         out.append((hour, done))
         iterations.append(k)
         columns.append(per_agent(hour.book, done.step_mw, len(names)))
-    flows_p, flows_q, volts, exchange, welfare, excess, overload = [], [], [], [], [], [], []
+    flows_p, flows_q, loading, volts, exchange, welfare, excess, overload = [], [], [], [], [], [], [], []
     for hour, done in out:
         p, q = hour.loads(done.step_mw, done.shed)
         point = feeder.ac.solve(p, q)
@@ -791,11 +836,14 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
         if method == "ac" and point is not None:
             fp, fq, u = point.flow_p, point.flow_q, point.u
             p0 = math.fsum(np.append(p, point.losses))
+            left = feeder.ac_left_sides(point)[0]
         else:
             fp, fq, u = feeder.state(p, q)
             p0 = math.fsum(np.concatenate([hour.fixed_p, done.step_mw, hour.shed_sign * done.shed]))
+            left = feeder.left_sides(p, q)
         flows_p.append(fp)
         flows_q.append(fq)
+        loading.append(feeder.loading(left))
         volts.append(np.sqrt(np.maximum(u, 0.0)))
         exchange.append(p0 + 0.0)
         welfare.append(math.fsum(np.concatenate([hour.book.price * done.step_mw, [-hour.curve.cost(p0)],
@@ -804,9 +852,10 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
     awards = {a: tuple(columns[h][i] for h in range(HOURS)) for i, a in enumerate(names)}
     agent_price = {a: tuple(float(bus_price[h, at[i]]) for h in range(HOURS)) for i, a in enumerate(names)}
     energy = np.array([done.energy for _, done in out])
+    facet, line_shadow, side, voltage_shadow = zip(*(feeder.binding(done.held, done.relief) for _, done in out))
 
-    def frozen(rows) -> np.ndarray:
-        a = np.array(rows, dtype=float)
+    def frozen(rows, dtype=float) -> np.ndarray:
+        a = np.array(rows, dtype=dtype)
         a.setflags(write=False)
         return a
 
@@ -814,8 +863,9 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
         price=tuple(float(e) for e in energy), awards=awards, congested=tuple(done.congested for _, done in out),
         agent_price=agent_price, bus_price=frozen(bus_price), energy=frozen(energy),
         congestion=frozen([done.congestion for _, done in out]), voltage=frozen([done.voltage for _, done in out]),
-        lines_binding=tuple(done.lines for _, done in out), buses_binding=tuple(done.buses for _, done in out),
-        flow_p=frozen(flows_p), flow_q=frozen(flows_q), voltage_pu=frozen(volts),
+        binding_facet=frozen(facet, int), line_shadow_price=frozen(line_shadow), binding_voltage=frozen(side, int),
+        voltage_shadow_price=frozen(voltage_shadow), flow_p=frozen(flows_p), flow_q=frozen(flows_q),
+        limit_loading=frozen(loading), voltage_pu=frozen(volts),
         shed_mw=frozen([np.where(hour.fixed_p > 0, done.shed, 0.0) for hour, done in out]),
         spill_mw=frozen([np.where(hour.fixed_p < 0, done.shed, 0.0) for hour, done in out]),
         exchange_mw=tuple(exchange), welfare=tuple(welfare),

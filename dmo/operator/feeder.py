@@ -15,7 +15,7 @@ from scenarios.network import Network
 
 from ..market.acflow import check_hours
 from ..market.distflow import NetworkClearing
-from ..market.envelope import operating_envelope
+from ..market.envelope import Rooms, operating_envelope
 from .config import DayConfig
 from .state import DayState
 
@@ -37,12 +37,12 @@ def per_bus(network: Network, at: Mapping[str, str], mw: Mapping[str, object]) -
 
 
 def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed: np.ndarray | None = None,
-           clearing: str | None = None, **prices) -> list[NetworkHour]:
+           clearing: str | None = None, **fields) -> list[NetworkHour]:
     """The 24 network_hour messages of one stage: LinDistFlow's voltages and loadings of the fixed loads and
     generation (less what was ``shed`` of either, MW per bus, its Q in proportion) plus the microgrids' ``injection``
     (24 x buses, MW imported, Q = tan(phi) P),
-    and the AC check of each hour; ``clearing``, the method the plan was cleared by. ``prices`` name per-hour (24)
-    or per-hour-per-bus (24 x buses) arrays."""
+    and the AC check of each hour; ``clearing``, the method the plan was cleared by. ``fields`` name per-hour (24)
+    arrays of numbers, or per-hour arrays of values per bus or line (24 x buses or lines)."""
     net = config.network
     kept = 1.0 if shed is None else 1.0 - np.divide(shed, np.abs(net.fixed_p), out=np.zeros_like(shed),
                                                     where=net.fixed_p != 0)
@@ -56,20 +56,24 @@ def _hours(config: DayConfig, day: int, stage: str, injection: np.ndarray, shed:
                         substation_mw=float(p[h].sum()),
                         injection_mw=tuple(injection[h].tolist()), voltage_pu=tuple(v[h].tolist()),
                         line_loading=tuple(loading[h].tolist()), ac=ACCheck(**checks[h]), clearing=clearing,
-                        **{k: float(a[h]) if np.ndim(a) == 1 else tuple(a[h].tolist()) for k, a in prices.items()})
+                        **{k: float(a[h]) if np.ndim(a) == 1 else tuple(a[h].tolist()) for k, a in fields.items()})
             for h in range(HOURS)]
 
 
 def planned(config: DayConfig, day: int, clearing: NetworkClearing, at: Mapping[str, str]) -> list[NetworkHour]:
     """The day as cleared: each hour's awards at their buses, how they were cleared, the bus prices and their
-    components, shed load and spilled generation."""
+    components, shed load and spilled generation, and what binds."""
     injection = per_bus(config.network, at, clearing.awards)
+    facet = np.where(clearing.binding_facet >= 0, clearing.binding_facet, None)
+    side = np.array([None, "v_max", "v_min"], dtype=object)[clearing.binding_voltage]  # 0: none, +1: upper, -1: lower
     return _hours(config, day, "plan", injection, np.asarray(clearing.shed_mw) + np.asarray(clearing.spill_mw),
                   clearing.method,
                   energy_price_per_mwh=np.asarray(clearing.price), bus_price_per_mwh=np.asarray(clearing.bus_price),
                   loss_price_per_mwh=np.asarray(clearing.loss), congestion_price_per_mwh=np.asarray(clearing.congestion),
                   voltage_price_per_mwh=np.asarray(clearing.voltage), shed_mw=np.asarray(clearing.shed_mw),
-                  spilled_mw=np.asarray(clearing.spill_mw))
+                  spilled_mw=np.asarray(clearing.spill_mw), limit_loading=np.asarray(clearing.limit_loading),
+                  binding_facet=facet, line_shadow_price_per_mwh=np.asarray(clearing.line_shadow_price),
+                  binding_voltage=side, voltage_shadow_price_per_pu=np.asarray(clearing.voltage_shadow_price))
 
 
 def realised(config: DayConfig, day: int, state: DayState, at: Mapping[str, str]) -> list[NetworkHour]:
@@ -80,8 +84,8 @@ def realised(config: DayConfig, day: int, state: DayState, at: Mapping[str, str]
     return _hours(config, day, "realised", per_bus(config.network, at, mean))
 
 
-def envelope(config: DayConfig, clearing: NetworkClearing, at: Mapping[str, str]) -> np.ndarray:
-    """The day's operating envelope as cleared, (24 x buses): the room each microgrid at a bus may stray from its
-    award, within the run's voltage margin and substation limits (docs/network.md, "Operating envelopes")."""
+def envelope(config: DayConfig, clearing: NetworkClearing, at: Mapping[str, str]) -> Rooms:
+    """The day's operating envelope as cleared: the rooms each microgrid at a bus has above and below its award,
+    within the run's voltage margin and substation limits (docs/network.md, "Operating envelopes")."""
     return operating_envelope(clearing, config.network, at, config.import_limit, config.export_limit,
                               config.voltage_margin)

@@ -93,10 +93,10 @@ class LiveMarket:
 
     def grid_states(self, state: DayState, clearing: Clearing) -> list[GridState]:
         c = self.config
-        room = None  # on a feeder, the day's operating envelope, from its clearing
+        rooms = None  # on a feeder, the day's operating envelope, from its clearing
         if isinstance(clearing, NetworkClearing):
-            room = feeder.envelope(c, clearing, feeder.sites(c, state))
-        return [outbox.grid_state(c, state.day, hour, room) for hour in range(1, HOURS + 1)]
+            rooms = feeder.envelope(c, clearing, feeder.sites(c, state))
+        return [outbox.grid_state(c, state.day, hour, rooms) for hour in range(1, HOURS + 1)]
 
     def settle(self, state: DayState, clearing: Clearing) -> tuple[dict[str, Statement], DayTotals]:
         """On a feeder each agent's energy at its own bus's prices."""

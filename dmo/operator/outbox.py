@@ -15,9 +15,8 @@ from ..market.settlement import RULES_VERSION, Statement
 from .config import DayConfig
 
 if TYPE_CHECKING:  # the feeder's clearing loads scipy's LP, which a reader of recordings never needs
-    import numpy as np
-
     from ..market.distflow import NetworkClearing
+    from ..market.envelope import Rooms
 
 
 def clock(config: DayConfig, day: int, phase: str, hour: int | None, deadline_s: float) -> Clock:
@@ -56,12 +55,14 @@ def award(config: DayConfig, day: int, clearing: ClearingResult | NetworkClearin
                  congestion=clearing.congested, **feeder)
 
 
-def grid_state(config: DayConfig, day: int, hour: int, room: np.ndarray | None = None) -> GridState:
+def grid_state(config: DayConfig, day: int, hour: int, rooms: Rooms | None = None) -> GridState:
     """Hour ``hour`` (1..24) of day ``day`` as realised: islanded in every sub-period of an islanded hour; on a
-    feeder (``room``: the day's operating envelope, 24 x buses), the hour's room at every bus, whether or not the hour
-    is islanded (P_M is 0 there whatever the room)."""
+    feeder (``rooms``: the day's operating envelope), the hour's import and export rooms at every bus, whether or not
+    the hour is islanded (P_M is 0 there whatever the rooms)."""
     connected = hour not in config.islanded(day)
-    envelope = {} if room is None else dict(buses=config.network.buses, room_mw=tuple(room[hour - 1].tolist()))
+    envelope = {} if rooms is None else dict(buses=config.network.buses,
+                                              import_room_mw=tuple(rooms.import_mw[hour - 1].tolist()),
+                                              export_room_mw=tuple(rooms.export_mw[hour - 1].tolist()))
     return GridState(sender=DMO, market_day=config.market_day_of(day), hour=hour, subperiods=config.subperiods,
                      connected=(connected,) * config.subperiods, **envelope)
 

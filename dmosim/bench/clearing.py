@@ -81,14 +81,16 @@ def run(args) -> dict:
         figures, cleared = _timed(lambda: clear_network(bids, network, buses, iso, limit, limit), args.repeats)
         injection = per_bus(network, buses, cleared.awards) - cleared.shed_mw
         ac, checks = _timed(lambda: check_hours(network, injection), args.repeats)
-        envelope, room = _timed(lambda: operating_envelope(cleared, network, buses, limit, limit), args.repeats)
+        envelope, rooms = _timed(lambda: operating_envelope(cleared, network, buses, limit, limit), args.repeats)
         at = [network.index[b] for b in set(buses.values())]
         rows.append({"case": network.name, "buses": network.n_buses, **figures, **_labels(cleared.congested),
                      "shed_mw": float(cleared.shed_mw.sum()), "ac_median_s": ac["median_s"],
                      "ac_max_s": ac["max_s"], "ac_converged": sum(c.converged for c in checks),
                      "ac_voltage_error_pu": max(c.voltage_error_pu for c in checks),
                      "envelope_median_s": envelope["median_s"], "envelope_max_s": envelope["max_s"],
-                     "room_mean_mw": float(room[:, at].mean()), "room_zero_share": float((room[:, at] == 0).mean())})
+                     **{f"{way}_room_{k}": v for way, room in (("import", rooms.import_mw), ("export", rooms.export_mw))
+                        for k, v in (("mean_mw", float(room[:, at].mean())),
+                                     ("zero_share", float((room[:, at] == 0).mean())))}})
         timed, ac_cleared = _timed(lambda: clear_network(bids, network, buses, iso, limit, limit, method="ac"),
                                    args.repeats)
         faithful.append(_faithful(network.name, figures, cleared, timed, ac_cleared))

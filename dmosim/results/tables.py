@@ -60,11 +60,14 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
     "buses": {**_WHEN, "hour": "int64", "stage": "string", "bus": "string", "injection_mw": "float64",
               "voltage_pu": "float64", "bus_price_per_mwh": "Float64", "loss_price_per_mwh": "Float64",
               "congestion_price_per_mwh": "Float64", "voltage_price_per_mwh": "Float64", "shed_mw": "Float64",
-              "spilled_mw": "Float64"},
-    "lines": {**_WHEN, "hour": "int64", "stage": "string", "line": "string", "loading": "float64"},
+              "spilled_mw": "Float64", "binding_voltage": "string", "voltage_shadow_price_per_pu": "Float64"},
+    "lines": {**_WHEN, "hour": "int64", "stage": "string", "line": "string", "loading": "float64",
+              "limit_loading": "Float64", "binding_facet": "Int64", "line_shadow_price_per_mwh": "Float64"},
 }
 _PER_BUS = ("injection_mw", "voltage_pu", "bus_price_per_mwh", "loss_price_per_mwh", "congestion_price_per_mwh",
-            "voltage_price_per_mwh", "shed_mw", "spilled_mw")
+            "voltage_price_per_mwh", "shed_mw", "spilled_mw", "binding_voltage", "voltage_shadow_price_per_pu")
+_PER_LINE = {"line_loading": "loading", "limit_loading": "limit_loading", "binding_facet": "binding_facet",
+             "line_shadow_price_per_mwh": "line_shadow_price_per_mwh"}  # the message's field: the table's column
 
 
 def open_recording(path: str | os.PathLike) -> dict[str, pd.DataFrame]:
@@ -286,9 +289,11 @@ def _buses(hours: list[dict]) -> pd.DataFrame:
 
 
 def _lines(hours: list[dict]) -> pd.DataFrame:
-    """One row per day, hour, stage and line: its loading by LinDistFlow (apparent power over its limit)."""
+    """One row per day, hour, stage and line: its loading by LinDistFlow (apparent power over its limit) and, in
+    the plan, what binds."""
     if not hours:
         return _typed("lines", None)
     frame = pd.DataFrame([{"market_day": m["market_day"], "hour": m["hour"], "stage": m["stage"], "line": m["lines"],
-                           "loading": m["line_loading"]} for m in hours])
-    return _typed("lines", frame.explode(["line", "loading"], ignore_index=True))
+                           **{column: m[k] if m[k] is not None else [None] * len(m["lines"])
+                              for k, column in _PER_LINE.items()}} for m in hours])
+    return _typed("lines", frame.explode(["line", *_PER_LINE.values()], ignore_index=True))

@@ -44,7 +44,7 @@ from ..instance import Instance
 from ..model import DeviationCost, Params, first_stage_of
 from ..schedule import FirstStage, StochasticSchedule
 from .delivery import RefusedPayload
-from .realtime import Operator
+from .realtime import Operator, Room
 from .strategies import (DEFAULT_STRATEGY, NO_BID, ChosenStrategy, DayLearned, Microgrid, StrategyError,
                          make_strategy, strategy_name)
 
@@ -406,22 +406,23 @@ class AgentMachine:
                         result.surplus.sum() / grid.subperiods)
         if result.envelope_infeasible:
             self.ignored["envelope_infeasible"] += 1
-            log.warning("%s: hour %d cannot be operated within its operating envelope (%g MW either side of the "
-                        "award): operated without it", self.name, grid.hour, room)
+            log.warning("%s: hour %d cannot be operated within its operating envelope (%g MW below the award, %g "
+                        "above): operated without it", self.name, grid.hour, room.export_mw, room.import_mw)
         if self.operator.next_hour > HOURS:
             self._realised_due = True
         return [Send(MeterReport(sender=self.name, market_day=self.market_day, hour=grid.hour,
                                  subperiods=grid.subperiods, p_m_mw=tuple(float(x) for x in result.p_m),
                                  deviation_mw=tuple(float(x) for x in result.deviation)))]
 
-    def _room(self, grid: GridState) -> float | None:
-        """The room the grid state's operating envelope gives this microgrid's bus (docs/network.md, "Operating
+    def _room(self, grid: GridState) -> Room | None:
+        """The rooms the grid state's operating envelope gives this microgrid's bus (docs/network.md, "Operating
         envelopes"): the bus its award names, else the one it registered at. None: the grid state carries no envelope
         (the copper plate), or none for that bus."""
         bus = self.award.bus if self.award.bus is not None else self.config.bus
         if bus is None or bus not in grid.buses:
             return None
-        return grid.room_mw[grid.buses.index(bus)]
+        j = grid.buses.index(bus)
+        return Room(grid.import_room_mw[j], grid.export_room_mw[j])
 
     def _handled(self, handled: Handled) -> list[Action]:
         """The computation of the message just handled counts in its day. After the last grid state of a day operated

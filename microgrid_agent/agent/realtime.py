@@ -9,7 +9,7 @@ and load curtailment absorb any surprise), so a day that started feasible stays 
 generation the microgrid cannot take is operated again with an outlet for the surplus (docs/agent.md,
 "Feasibility").
 
-On a feeder the DMO's grid state also gives the hour's operating envelope, a room either side of the award: P_M is
+On a feeder the DMO's grid state also gives the hour's operating envelope, a room below the award and one above: P_M is
 then held within it in the hour's grid-connected sub-periods, unless the hour cannot be operated so, in which case
 it is operated without the envelope and its result says so (docs/network.md, "Operating envelopes").
 """
@@ -33,12 +33,27 @@ from ..solvers.extensive import SolveError
 from ..solvers.rolling import RollingLP
 
 @dataclass(frozen=True)
+class Room:
+    """An hour's operating envelope at the microgrid's bus (docs/network.md, "Operating envelopes"): P_M within
+    [P^sch - ``export_mw``, P^sch + ``import_mw``] where connected. Both finite and >= 0 (ValueError)."""
+
+    import_mw: float
+    export_mw: float
+
+    def __post_init__(self):
+        for name in ("import_mw", "export_mw"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise ValueError(f"room's {name} must be a finite number of MW >= 0, got {value!r}")
+
+
+@dataclass(frozen=True)
 class HourResult:
     """What one operated hour did, per sub-period (K values): P_M (+ import), its deviation P_M - P^sch, load shed,
     unit outputs (G, K), renewables used (R, K), storage power (+ discharge) and state of charge, adjustable loads
     (D, K), the surplus generation let out while islanded (MW, docs/agent.md, "Feasibility"), and the hour's
     realised cost. ``plan`` is the rolling LP's whole-day solution on ``plan_scenario``.
-    ``room``: the operating envelope P_M was held within (MW either side of the award where connected), None if the
+    ``room``: the operating envelope P_M was held within (``Room``, where connected), None if the
     hour had none; ``envelope_infeasible``: the hour had one but could not be operated within it, and was operated
     without."""
 
@@ -57,7 +72,7 @@ class HourResult:
     cost: CostBreakdown
     plan: StochasticSchedule
     plan_scenario: ScenarioSet
-    room: float | None = None
+    room: Room | None = None
     envelope_infeasible: bool = False
 
 
@@ -152,15 +167,15 @@ class Operator:
         connected[0, :n1] = self._connected[:n1]
         return ScenarioSet(self.K, np.ones(1), load, renewable, connected)
 
-    def operate_hour(self, hour: int, connected: Sequence[bool], room: float | None = None) -> HourResult:
-        """Operate hour ``hour`` (1..24, in order) with the grid connection of its K sub-periods. ``room`` (MW, >= 0):
-        the hour's operating envelope at the microgrid's bus, P_M within P^sch +- room (and its own limits) in the
+    def operate_hour(self, hour: int, connected: Sequence[bool], room: Room | None = None) -> HourResult:
+        """Operate hour ``hour`` (1..24, in order) with the grid connection of its K sub-periods. ``room``: the
+        hour's operating envelope at the microgrid's bus, P_M within it (and its own limits) in the
         connected sub-periods; if the hour's LP is infeasible so, it is operated without (``envelope_infeasible``)."""
         if hour != self.next_hour or not 1 <= hour <= HOURS:
             expected = "none: the day is over" if self.next_hour > HOURS else f"hour {self.next_hour}"
             raise ValueError(f"hours must be operated in order 1..{HOURS}: got hour {hour}, expected {expected}")
-        if room is not None and not (isinstance(room, (int, float)) and math.isfinite(room) and room >= 0):
-            raise ValueError(f"room must be a finite number of MW >= 0, got {room!r}")
+        if room is not None and not isinstance(room, Room):
+            raise ValueError(f"room must be a realtime.Room, got {type(room).__name__}")
         return self._operate(hour, hour, [connected], room)[0]
 
     def catch_up(self, hour: int, connected: Mapping[int, Sequence[bool]] | None = None) -> tuple[HourResult, ...]:
@@ -180,7 +195,7 @@ class Operator:
         return self._operate(first, last, [known.get(h, [True] * self.K) for h in range(first, last + 1)])
 
     def _operate(self, first: int, last: int, connected: list[Sequence[bool]],
-                 room: float | None = None) -> list[HourResult]:
+                 room: Room | None = None) -> list[HourResult]:
         """Hours first..last (each with its K connection values) in one rolling LP; past sub-periods pinned; P_M
         within ``room`` of the award (one hour only), unless the LP is infeasible so."""
         n0, n1 = (first - 1) * self.K, last * self.K
@@ -208,20 +223,20 @@ class Operator:
                              '(docs/agent.md, "Feasibility")')
         infeasible = wanted is not None and bounds is None
         self._commit(plan.dispatch, surplus, n0, n1, bounds)
-        kept = None if room is None or infeasible else float(room)
+        kept = None if infeasible else room
         results = [self._hour_result(h, (h - 1) * self.K, h * self.K, plan, scen, kept, infeasible)
                    for h in range(first, last + 1)]
         self._hours.extend(results)
         return results
 
-    def _envelope(self, n0: int, n1: int, room: float) -> tuple[int, np.ndarray, np.ndarray] | None:
+    def _envelope(self, n0: int, n1: int, room: Room) -> tuple[int, np.ndarray, np.ndarray] | None:
         """P_M's bounds in the sub-periods n0..n1 of one hour: within ``room`` of the award and the registered
         limits where connected, 0 where islanded; None where that is no tighter than the limits (nothing to add)."""
         limit = self.case.grid.p_m_max * self._connected[n0:n1]
         award = per_subperiod(self.p_sch, self.K)[n0:n1]
         connected = self._connected[n0:n1] > 0.5
-        lower = np.where(connected, np.maximum(award - room, -limit), -limit)
-        upper = np.where(connected, np.minimum(award + room, limit), limit)
+        lower = np.where(connected, np.maximum(award - room.export_mw, -limit), -limit)
+        upper = np.where(connected, np.minimum(award + room.import_mw, limit), limit)
         if (lower <= -limit).all() and (upper >= limit).all():
             return None
         return n0, lower, upper
@@ -262,7 +277,7 @@ class Operator:
         )
 
     def _hour_result(self, hour: int, n0: int, n1: int, plan: StochasticSchedule, scen: ScenarioSet,
-                     room: float | None, envelope_infeasible: bool) -> HourResult:
+                     room: Room | None, envelope_infeasible: bool) -> HourResult:
         now, done = slice(n0, n1), self._done
         p_m = done["PM"][0, now].copy()
         return HourResult(

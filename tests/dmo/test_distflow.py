@@ -83,6 +83,11 @@ def test_a_congested_line_raises_the_price_behind_it_to_the_marginal_local_bid()
     assert at(r)["seller"] == -1.0 and at(r)["near"] == 1.0
     assert r.congestion[0, b3] == pytest.approx(50.0, abs=1e-9) and r.voltage[0, b3] == pytest.approx(0.0, abs=1e-9)
     assert r.buses_binding[0] == () and r.shed_mw.sum() == 0.0
+    # what binds: facet 0 (P + tan(pi/8) Q) of that line alone, at a limit loading of 1, worth the congestion's $50
+    # per MW of rating (the far bus's MW moves the facet by 1)
+    assert r.binding_facet[0, line] == 0 and (np.delete(r.binding_facet[0], line) == -1).all()
+    assert r.limit_loading[0, line] == pytest.approx(1.0, abs=1e-12) and r.line_shadow_price[0, line] == 50.0
+    assert math.hypot(r.flow_p[0, line], r.flow_q[0, line]) / net.s_max_mva[line] < 1.0  # |S| under the circle
 
 
 def test_a_voltage_limit_prices_the_far_bus():
@@ -95,6 +100,9 @@ def test_a_voltage_limit_prices_the_far_bus():
     assert r.agent_price["mg"][0] == 80.0 and r.price[0] == 40.0
     assert at(r)["mg"] == pytest.approx(cap, abs=1e-9) and r.voltage_pu[0, 1] == pytest.approx(0.95, abs=1e-9)
     assert r.voltage[0, 1] == pytest.approx(40.0, abs=1e-9) and r.congestion[0, 1] == 0.0
+    # its dual: $40 per MW at 0.02 p.u. of U per MW is $2,000 per p.u. of U, 2 x 0.95 x 2,000 per p.u. of V
+    assert r.binding_voltage[0].tolist() == [0, -1] and r.binding_facet[0].tolist() == [-1]
+    assert r.voltage_shadow_price[0, 1] == pytest.approx(3800.0, rel=1e-9)
 
 
 def test_a_voltage_margin_holds_lindistflow_inside_the_narrowed_band():
@@ -317,6 +325,41 @@ def test_each_bus_price_is_the_welfare_lost_per_mw_of_load_there(name, agents, s
     for b in range(net.n_buses):
         more = hour_program(bids, with_more_load(net, b, h, eps), where, h, 40.0, limit, limit).objective
         assert (more - base) / eps == pytest.approx(r.bus_price[h, b], rel=1e-5, abs=1e-5), net.buses[b]
+
+
+@pytest.mark.parametrize("method", ["lindistflow", "ac"])
+@pytest.mark.parametrize("name, agents, scale, limit, seed", [
+    ("feeder5", 8, 2.0, 20.0, 1),  # a line and a voltage limit
+    ("ieee33", 40, 0.15, 6.0, 3),  # five lines and two voltage limits
+])
+def test_each_shadow_price_is_the_welfare_a_looser_limit_gains(name, agents, scale, limit, seed, method):
+    """What binds is in the data: a binding line's limit loading is 1 and its shadow price is the welfare a MW more
+    of its rating gains; a binding voltage's shadow price is the welfare 1 p.u. more room at its limit gains (finite
+    differences of the hour's LP; on the AC flow, of the LP linearised at the plan, which moves with the limit)."""
+    net = load_network(name, power_factor=0.95)
+    h, eps = 19, 1e-6
+    bids, where = random_book(net, np.random.default_rng(seed), agents, scale, hours={h})
+    r = clear_network(bids, net, where, 40.0, limit, limit, method=method)
+    lines, buses = np.flatnonzero(r.binding_facet[h] >= 0), np.flatnonzero(r.binding_voltage[h])
+    assert lines.size and buses.size
+    assert r.lines_binding[h] == tuple(lines) and r.buses_binding[h] == tuple(buses)
+    assert np.abs(r.limit_loading[h, lines] - 1.0).max() <= 1e-6  # what a "limit_loading >= 1" query finds
+    assert (r.limit_loading[h] <= 1.0 + 1e-6).all() and (r.line_shadow_price[h, r.binding_facet[h] < 0] == 0).all()
+    assert (r.voltage_shadow_price[h, r.binding_voltage[h] == 0] == 0).all()
+    base = hour_program(bids, net, where, h, 40.0, limit, limit, method=method).objective
+    for line in lines[:3]:
+        s_max = net.s_max_mva.copy()
+        s_max[line] += eps
+        looser = dataclasses.replace(net, s_max_mva=s_max)
+        more = hour_program(bids, looser, where, h, 40.0, limit, limit, method=method).objective
+        assert (base - more) / eps == pytest.approx(r.line_shadow_price[h, line], rel=1e-4, abs=1e-3), line
+    for bus in buses[:2]:
+        side = r.binding_voltage[h, bus]
+        v = (net.v_max if side > 0 else net.v_min).copy()
+        v[bus] += side * eps
+        looser = dataclasses.replace(net, **{"v_max" if side > 0 else "v_min": v})
+        more = hour_program(bids, looser, where, h, 40.0, limit, limit, method=method).objective
+        assert (base - more) / eps == pytest.approx(r.voltage_shadow_price[h, bus], rel=1e-4, abs=1e-3), bus
 
 
 # --- determinism ----------------------------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """Operating envelopes (docs/network.md, "Operating envelopes"): every corner of the microgrids' boxes keeps the feeder
-within its limits, the rooms are max-min fair, a binding limit leaves the buses behind it no room, and a feeder no
-limit of which binds shares the substation's room."""
+within its limits, the rooms each way are max-min fair, a binding limit leaves the buses behind it no room towards it
+and room away from it, and a feeder no limit of which binds shares the substation's room each way."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import pytest
 from dmo.market.clearing import BidCurve, Step
 from dmo.market.distflow import FACETS, Feeder, clear_network
 from dmo.market.envelope import operating_envelope
+from dmosim.bench.clearing import market_day
 from dmo.operator import feeder as dmo_feeder
 from dmo.operator import outbox
 from dmo.operator.config import DayConfig
@@ -69,9 +70,10 @@ def limits_excess(network, imp, exp, p, q):
 
 
 def test_every_corner_of_the_boxes_keeps_every_limit_the_plan_keeps(day):
-    """All up, all down and 300 random corners per hour: each microgrid at its award plus or minus its bus's room.
-    No limit ends more than 1e-9 beyond where the plan left it (or beyond its bound, if the plan kept it)."""
-    network, clearing, buses, imp, exp, room = day
+    """All up, all down and 300 random corners per hour: each microgrid at its award plus its bus's import room or
+    less its export room. No limit ends more than 1e-9 beyond where the plan left it (or beyond its bound, if the
+    plan kept it)."""
+    network, clearing, buses, imp, exp, rooms = day
     rng = np.random.default_rng(7)
     names = sorted(clearing.awards)
     at = np.array([network.index[buses[a]] for a in names])
@@ -81,24 +83,27 @@ def test_every_corner_of_the_boxes_keeps_every_limit_the_plan_keeps(day):
     for h in range(HOURS):
         award = np.array([clearing.awards[a][h] for a in names])
         signs = np.vstack([np.ones(len(names)), -np.ones(len(names)), rng.choice([-1.0, 1.0], (300, len(names)))])
-        p_m = award + signs * room[h, at]
+        p_m = award + np.where(signs > 0, rooms.import_mw[h, at], -rooms.export_mw[h, at])
         plan_p = network.fixed_p[h] + award @ onto
         p = network.fixed_p[h] + p_m @ onto
         q = network.fixed_q[h] + tan * (p_m @ onto)
         planned = limits_excess(network, imp, exp, plan_p[None], (network.fixed_q[h] + tan * (award @ onto))[None])
         excess = limits_excess(network, imp, exp, p, q)
         assert (excess <= np.maximum(planned, 0.0) + TOL).all(), (h, excess.max())
-    assert room.min() >= 0 and np.isfinite(room).all()
-    assert (room[:, at] > 0).any() and (room[:, at] == 0).any()  # the day has hours with room and hours without
-    assert (room[:, np.setdiff1d(np.arange(network.n_buses), at)] == 0).all()  # no microgrid, no room
+    for room in (rooms.import_mw, rooms.export_mw):
+        assert room.min() >= 0 and np.isfinite(room).all() and not room.flags.writeable
+        assert (room[:, at] > 0).any() and (room[:, at] == 0).any()  # the day has hours with room and hours without
+        assert (room[:, np.setdiff1d(np.arange(network.n_buses), at)] == 0).all()  # no microgrid, no room
 
 
 def dense_limits(network, clearing, buses, imp, exp, h):
-    """Hour h's limits written out whole from ``Feeder.limits``: |g| per limit and bus (the substation's two rows of
-    ones last), each limit's slack at the plan (clamped at 0) and the number of microgrids per bus."""
+    """Hour h's limits written out whole from ``Feeder.limits``: g per limit and bus (the substation's import row
+    of ones and export row of minus ones last), each limit's slack at the plan (clamped at 0) and the number of
+    microgrids per bus."""
     feeder = Feeder(network, MARGIN)
     g_p, g_q, b = feeder.limits(feeder.rows)
-    g = np.abs(np.vstack([g_p + network.tan_phi * g_q, np.ones((2, network.n_buses))]))
+    ones = np.ones((1, network.n_buses))
+    g = np.vstack([g_p + network.tan_phi * g_q, ones, -ones])
     count = np.zeros(network.n_buses)
     inject = np.zeros(network.n_buses)
     for a, bus in buses.items():
@@ -110,35 +115,39 @@ def dense_limits(network, clearing, buses, imp, exp, h):
     return g, np.maximum(slack, 0.0), count
 
 
-def test_the_rooms_are_max_min_fair(day):
-    """Every bus with a microgrid has a bottleneck: a limit it moves, held at its slack by the rooms, in which no
-    bus it moves has more room. Then no bus's room can grow without shrinking a room no larger (max-min fairness),
-    and the robust sum holds for every limit."""
-    network, clearing, buses, imp, exp, room = day
+def test_the_rooms_each_way_are_max_min_fair(day):
+    """Each way, every bus with a microgrid has a bottleneck: a limit its room moves towards its bound, held at its
+    slack by the rooms, in which no bus it moves has more room. Then no bus's room can grow without shrinking a room
+    no larger (max-min fairness), and the robust sums hold for every limit: sum_j max(g_ij u_j, -g_ij e_j) <= s_i
+    with every microgrid at the worse end of its range."""
+    network, clearing, buses, imp, exp, rooms = day
     for h in range(HOURS):
         g, slack, count = dense_limits(network, clearing, buses, imp, exp, h)
-        used = g @ (count * room[h])
-        assert (used <= slack + TOL * np.maximum(1.0, slack)).all(), h
-        tight = used >= slack - TOL * np.maximum(1.0, slack)
-        for j in np.flatnonzero(count):
-            moved = tight & (g[:, j] > 0)
-            members = (g[moved] > 0) & (count > 0)
-            top = np.where(members, room[h][None, :], -np.inf).max(axis=1)
-            assert (room[h, j] >= top - TOL).any(), (h, network.buses[j])
+        worst = np.maximum(g * (count * rooms.import_mw[h]), -g * (count * rooms.export_mw[h])).sum(axis=1)
+        assert (worst <= slack + TOL * np.maximum(1.0, slack)).all(), h
+        for room, towards in ((rooms.import_mw[h], np.maximum(g, 0.0)), (rooms.export_mw[h], np.maximum(-g, 0.0))):
+            used = towards @ (count * room)
+            tight = used >= slack - TOL * np.maximum(1.0, slack)
+            for j in np.flatnonzero(count):
+                moved = tight & (towards[:, j] > 0)
+                members = (towards[moved] > 0) & (count > 0)
+                top = np.where(members, room[None, :], -np.inf).max(axis=1)
+                assert (room[j] >= top - TOL).any(), (h, network.buses[j])
 
 
-def test_buses_behind_a_binding_line_get_no_room_and_the_others_do():
+def test_buses_behind_a_binding_line_get_no_room_towards_it_and_room_away_from_it():
     # feeder5's line 2-3 (3 MVA): the buyer at bus 3 congests it in hour 1; the agents at buses 1 and 4 keep room
     network = load_network("feeder5")
     bids = [one_hour("far", [(90, 5)]), one_hour("near", [(60, 0.5)]), one_hour("side", [(60, 0.5)])]
     buses = {"far": "3", "near": "1", "side": "4"}
     clearing = clear_network(bids, network, buses, 40, 100, 100)
     assert clearing.congested[0] == "line"
-    room = operating_envelope(clearing, network, buses, 100, 100)
-    assert room[0, network.index["3"]] == 0
-    assert room[0, network.index["1"]] > 0.1 and room[0, network.index["4"]] > 0.1
+    rooms = operating_envelope(clearing, network, buses, 100, 100)
+    far, near, side = (network.index[b] for b in ("3", "1", "4"))
+    assert rooms.import_mw[0, far] == 0 and rooms.export_mw[0, far] > 1.0  # importing less relieves the line
+    assert (rooms.import_mw[0, [near, side]] > 0.1).all() and (rooms.export_mw[0, [near, side]] > 0.1).all()
     # an hour with no award anywhere leaves the line's room to the far bus too
-    assert room[1, network.index["3"]] > 0
+    assert rooms.import_mw[1, far] > 0
 
 
 def test_a_feeder_whose_limits_never_bind_shares_the_substations_room():
@@ -147,13 +156,14 @@ def test_a_feeder_whose_limits_never_bind_shares_the_substations_room():
     bids = [one_hour("a", [(50, 1.0)]), one_hour("b", [(50, -0.5)]), one_hour("c", [(50, 2.0)])]
     imp, exp = 5.0, 3.0
     clearing = clear_network(bids, network, buses, 40, imp, exp)
-    room = operating_envelope(clearing, network, buses, imp, exp)
+    rooms = operating_envelope(clearing, network, buses, imp, exp)
     for h in range(HOURS):
         p0 = network.fixed_p[h].sum() + clearing.net_import(h)
-        share = min(imp - p0, p0 + exp) / 3  # three microgrids, each with the same room
-        assert room[h, [1, 4]] == pytest.approx([share, share], rel=1e-12)
-        assert (room[h, [0, 2, 3]] == 0).all()
-    assert room[0, 1] == pytest.approx((5.0 - 1.2 - 1.0 - 2.0) / 3, rel=1e-12)  # the import limit, hour 1 (b sells nothing at $40)
+        for room, share in ((rooms.import_mw, (imp - p0) / 3), (rooms.export_mw, (p0 + exp) / 3)):
+            assert room[h, [1, 4]] == pytest.approx([share, share], rel=1e-12)  # three microgrids, the same room
+            assert (room[h, [0, 2, 3]] == 0).all()
+    assert rooms.import_mw[0, 1] == pytest.approx((5.0 - 1.2 - 1.0 - 2.0) / 3, rel=1e-12)  # b sells nothing at $40
+    assert rooms.export_mw[0, 1] == pytest.approx((3.0 + 1.2 + 1.0 + 2.0) / 3, rel=1e-12)
 
 
 def test_left_sides_are_the_limits_rows_and_each_row_has_one_sign():
@@ -195,12 +205,35 @@ def test_the_dmos_grid_states_carry_each_hours_rooms_at_every_bus_and_none_on_th
     clearing = clear_network([one_hour("far", [(90, 5)]), one_hour("near", [(60, 0.5)])], network, buses, 40, 100,
                              100)
     config = DayConfig(**settings, network=network, placement=buses, voltage_margin=0.01)
-    room = dmo_feeder.envelope(config, clearing, buses)
-    np.testing.assert_array_equal(room, operating_envelope(clearing, network, buses, 100.0, 100.0, 0.01))
+    rooms = dmo_feeder.envelope(config, clearing, buses)
+    again = operating_envelope(clearing, network, buses, 100.0, 100.0, 0.01)
+    np.testing.assert_array_equal(rooms.import_mw, again.import_mw)
+    np.testing.assert_array_equal(rooms.export_mw, again.export_mw)
     for hour in (1, 2, 5):
-        grid = decode(encode(outbox.grid_state(config, 1, hour, room)))
-        assert grid.buses == network.buses and grid.room_mw == tuple(room[hour - 1])
+        grid = decode(encode(outbox.grid_state(config, 1, hour, rooms)))
+        assert grid.buses == network.buses and grid.import_room_mw == tuple(rooms.import_mw[hour - 1])
+        assert grid.export_room_mw == tuple(rooms.export_mw[hour - 1])
         assert grid.connected == ((False,) * 2 if hour == 5 else (True,) * 2)  # islanded: the rooms come anyway
-    assert grid.room_mw[network.index["1"]] > 0 and grid.room_mw[network.index["2"]] == 0  # no microgrid at 2
+    assert grid.import_room_mw[network.index["1"]] > 0 and grid.import_room_mw[network.index["2"]] == 0  # none at 2
     plate = outbox.grid_state(DayConfig(**settings), 1, 1)
-    assert (plate.buses, plate.room_mw) == ((), ())
+    assert (plate.buses, plate.import_room_mw, plate.export_room_mw) == ((), (), ())
+
+
+@pytest.mark.parametrize("method", ["lindistflow", "ac"])
+def test_on_ieee33_a_binding_voltage_leaves_room_only_in_the_direction_that_relieves_it(method):
+    """``dmosim bench clearing``'s day of 30 agents holds a bus at its lower voltage limit in most hours. There the
+    buses that move it get no import room (importing more lowers it) and every microgrid keeps export room."""
+    network = load_network("ieee33")
+    bids, buses, iso, limit = market_day(network, 30, 0)
+    clearing = clear_network(bids, network, buses, iso, limit, limit, method=method)
+    rooms = operating_envelope(clearing, network, buses, limit, limit)
+    at = np.array([network.index[b] for b in buses.values()])
+    feeder = Feeder(network)
+    hours = [h for h in range(HOURS) if clearing.buses_binding[h]]
+    assert len(hours) >= 12
+    for h in hours:
+        low = np.array(clearing.buses_binding[h])
+        assert np.allclose(clearing.voltage_pu[h, low], network.v_min[low], atol=1e-6)  # at the lower limit
+        behind = feeder.behind(8 * network.n_lines + 2 * low)
+        assert behind[at].any() and (rooms.import_mw[h, behind] <= TOL).all(), h
+        assert (rooms.export_mw[h, at] > 1e-3).all(), h

@@ -51,18 +51,21 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     assert (settled_far["bus"] == "3").all()
     assert list(settled_far["clearing_price_per_mwh"]) == pytest.approx(far.clearing_price_per_mwh, abs=1e-9)  # its own
 
-    # each hour's grid state carries the room of every bus, and each agent meters within its award +- its bus's room
-    # in every connected sub-period, but in the hours it said it could not (counted in its agent_day)
+    # each hour's grid state carries the rooms of every bus, and each agent meters within its award less its bus's
+    # export room and plus its import room in every connected sub-period, but in the hours it said it could not
+    # (counted in its agent_day); behind the congested line the far bus has no import room but export room
     grids = {msg.hour: msg for _, msg in rec.decoded("grid_state")}
     assert sorted(grids) == list(range(1, 25))
-    assert all(g.buses == ("0", "1", "2", "3", "4") and len(g.room_mw) == 5 for g in grids.values())
-    assert any(g.room_mw[3] == 0 for g in grids.values()) and any(g.room_mw[1] > 0 for g in grids.values())
+    assert all(g.buses == ("0", "1", "2", "3", "4") and len(g.import_room_mw) == len(g.export_room_mw) == 5
+               for g in grids.values())
+    assert any(grids[h + 1].import_room_mw[3] == 0 < grids[h + 1].export_room_mw[3] for h in line)
+    assert any(g.import_room_mw[1] > 0 for g in grids.values())
     fallbacks = {msg.sender: msg.messages.ignored.get("envelope_infeasible", 0) for _, msg in rec.decoded("agent_day")}
     assert set(fallbacks) == {"near", "far"}
     for _, report in rec.decoded("meter_report"):
         award, grid = awards[report.sender], grids[report.hour]
-        room = grid.room_mw[grid.buses.index(award.bus)]
-        outside = [abs(p - award.p_sch_mw[report.hour - 1]) > room + 1e-9
+        j, p_sch = grid.buses.index(award.bus), award.p_sch_mw[report.hour - 1]
+        outside = [not p_sch - grid.export_room_mw[j] - 1e-9 <= p <= p_sch + grid.import_room_mw[j] + 1e-9
                    for p, connected in zip(report.p_m_mw, grid.connected) if connected]
         if any(outside):
             fallbacks[report.sender] -= 1
@@ -75,6 +78,12 @@ def test_a_day_on_a_feeder_prices_each_bus_and_settles_again_from_the_recording(
     assert len(network) == 48 and network["ac_converged"].all()
     assert (network["ac_voltage_error_pu"] < 0.02).all()
     assert len(pd.read_csv(out / "tables" / "buses.csv")) == 48 * 5
+    # what binds: in each hour labelled "line", line 2-3's facet at a limit loading of 1 with a positive shadow price
+    lines = pd.read_csv(out / "tables" / "lines.csv")
+    held = lines[(lines["stage"] == "plan") & lines["binding_facet"].notna()]
+    assert {h + 1 for h in line} <= set(held.loc[held["line"] == "2-3", "hour"])
+    assert ((held["limit_loading"] - 1).abs() < 1e-6).all() and (held["line_shadow_price_per_mwh"] > 0).all()
+    assert lines.loc[lines["stage"] == "realised", "binding_facet"].isna().all()
     assert result["figure"].endswith("run.png") and (out / "run.png").read_bytes()[:4] == b"\x89PNG"  # feeder row too
 
     info = cli("info", result["recording"]).stdout

@@ -57,7 +57,8 @@ SAMPLES = {
                          expected_cost=39566.0, p_m_expected_mw=[1.4] * HOURS, scenarios=10, mip_gap=0.004),
     "clock": Clock(sender="dmo", market_day=DAY, phase="realtime", hour=3, deadline_s=2.0, day=1, days=1),
     "grid_state": GridState(sender="dmo", market_day=DAY, hour=3, subperiods=K, connected=[True] * 4 + [False] * 2,
-                            buses=["0", "1", "2"], room_mw=[0.0, 0.25, 0.0]),
+                            buses=["0", "1", "2"], import_room_mw=[0.0, 0.25, 0.0],
+                            export_room_mw=[0.0, 0.5, 0.0]),
     "meter_report": MeterReport(sender="mg1", market_day=DAY, hour=3, subperiods=K, p_m_mw=[1.5] * K,
                                 deviation_mw=[0.0] * K),
     "agent_day": AgentDay(sender="mg1", market_day=DAY, generation=30000.0, startup=120.0, curtailment=0.0,
@@ -154,8 +155,11 @@ def _with(kind: str, /, **changes) -> bytes:
 
 
 def _older(kind: str, version: int, *dropped: str) -> bytes:
-    data = {k: v for k, v in _wire(kind).items() if k not in dropped}
-    return _bytes({**data, "schema_version": version})
+    return _bytes(_older_dict(kind, version, *dropped))
+
+
+def _older_dict(kind: str, version: int, *dropped: str) -> dict:
+    return {**{k: v for k, v in _wire(kind).items() if k not in dropped}, "schema_version": version}
 
 
 def _older_within(kind: str, version: int, within: str, *dropped: str) -> bytes:
@@ -169,6 +173,7 @@ BOUND = ("run", "incarnation")  # version 4's envelope fields
 
 FEEDER = ("bus", "energy_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh")  # since version 7
 LOSS = ("loss_price_per_mwh",)  # since version 10
+ROOMS = ("import_room_mw", "export_room_mw")  # since version 11, room_mw before
 
 
 def test_older_messages_read_as_they_were_meant():
@@ -176,7 +181,8 @@ def test_older_messages_read_as_they_were_meant():
     version-3 message is bound to no run and no process; a version-4 award states no congestion; a version-6 award
     or registration names no bus (the copper plate); a version-7 grid state carries no operating envelope; a version-8
     agent_day says neither when the messages it handled were taken up nor a wait for a turn; a version-9 award or
-    network_hour carries no loss component, and the network_hour names no clearing method and no spilled generation."""
+    network_hour carries no loss component, and the network_hour names no clearing method and no spilled generation;
+    a version-10 grid state's one room is its room either way."""
     clock = decode(_older("clock", 1, "day", "days", *BOUND))
     assert (clock.day, clock.days) == (1, 1)
     award = decode(_older("award", 2, "settlement_rule", "deviation_cost", "congestion", *BOUND, *FEEDER, *LOSS))
@@ -188,8 +194,11 @@ def test_older_messages_read_as_they_were_meant():
     award = decode(_older("award", 6, *FEEDER, *LOSS))
     assert award.bus is None and award.energy_price_per_mwh is None and award.congestion == SAMPLES["award"].congestion
     assert decode(_older("registration", 6, "bus")).bus is None
-    grid = decode(_older("grid_state", 7, "buses", "room_mw"))
-    assert (grid.buses, grid.room_mw) == ((), ()) and grid.connected == SAMPLES["grid_state"].connected
+    grid = decode(_older("grid_state", 7, "buses", *ROOMS))
+    assert (grid.buses, grid.import_room_mw, grid.export_room_mw) == ((), (), ())
+    assert grid.connected == SAMPLES["grid_state"].connected
+    grid = decode(_bytes({**_older_dict("grid_state", 10, *ROOMS), "room_mw": [0.0, 0.75, 0.0]}))
+    assert grid.import_room_mw == grid.export_room_mw == (0.0, 0.75, 0.0) and grid.buses == ("0", "1", "2")
     bid = decode(_older("bid", 3, *BOUND))
     assert (bid.run, bid.incarnation) == ("", 0) and bid.hours == SAMPLES["bid"].hours
     day = decode(_older_within("agent_day", 8, "compute", "started_at", "turn_s"))
@@ -203,8 +212,10 @@ def test_older_messages_read_as_they_were_meant():
     # leaves a field out is refused
     _rejects(_older("award", 2, "deviation_cost"), "invalid", "deviation_cost")
     _rejects(_older("award", 6, "bus"), "invalid", "bus")
-    _rejects(_older("grid_state", 7, "room_mw"), "invalid", "room_mw")
-    _rejects(_older("grid_state", SCHEMA_VERSION, "buses", "room_mw"), "invalid", "buses")
+    _rejects(_older("grid_state", 7, *ROOMS), "invalid", "import_room_mw")
+    _rejects(_bytes({**_older_dict("grid_state", 10, "export_room_mw"), "room_mw": [0.0] * 3}), "invalid",
+             "room_mw")
+    _rejects(_older("grid_state", SCHEMA_VERSION, "buses", *ROOMS), "invalid", "buses")
     _rejects(_older("bid", 3, "run"), "invalid", "run")
     _rejects(_older("award", SCHEMA_VERSION, "settlement_rule"), "invalid", "settlement_rule")
     _rejects(_older("award", SCHEMA_VERSION, "congestion"), "invalid", "congestion")
@@ -247,17 +258,22 @@ def test_rejects_wrong_lengths():
     _rejects(_with("grid_state", connected=[True]), "invalid", "connected")
 
 
-def test_a_grid_states_envelope_gives_one_finite_room_of_at_least_0_per_bus():
-    _rejects(_with("grid_state", room_mw=[0.0, 0.25]), "invalid", "room_mw has 2 values for 3 buses")
-    _rejects(_with("grid_state", buses=["0", "1"]), "invalid", "room_mw has 3 values for 2 buses")
-    _rejects(_with("grid_state", room_mw=[0.0, -0.25, 0.0]), "invalid", "room_mw[1]", "greater than or equal to 0")
+def test_a_grid_states_envelope_gives_two_finite_rooms_of_at_least_0_per_bus():
+    _rejects(_with("grid_state", import_room_mw=[0.0, 0.25]), "invalid", "import_room_mw has 2 values for 3 buses")
+    _rejects(_with("grid_state", export_room_mw=[0.5]), "invalid", "export_room_mw has 1 values for 3 buses")
+    _rejects(_with("grid_state", buses=["0", "1"]), "invalid", "import_room_mw has 3 values for 2 buses")
+    _rejects(_with("grid_state", import_room_mw=[0.0, -0.25, 0.0]), "invalid", "import_room_mw[1]",
+             "greater than or equal to 0")
+    _rejects(_with("grid_state", export_room_mw=[0.0, 0.25, -1.0]), "invalid", "export_room_mw[2]")
     _rejects(_with("grid_state", buses=["0", "1", "1"]), "invalid", "more than once")
     text = _with("grid_state").decode()
-    _rejects(text.replace('"room_mw":[0.0,0.25', '"room_mw":[0.0,Infinity').encode(), "invalid", "room_mw[1]")
+    _rejects(text.replace('"import_room_mw":[0.0,0.25', '"import_room_mw":[0.0,Infinity').encode(), "invalid",
+             "import_room_mw[1]")
     many = [str(b) for b in range(MAX_BUSES + 1)]
-    _rejects(_with("grid_state", buses=many, room_mw=[0.0] * len(many)), "invalid", "buses")
+    _rejects(_with("grid_state", buses=many, import_room_mw=[0.0] * len(many), export_room_mw=[0.0] * len(many)),
+             "invalid", "buses")
     copper = decode(encode(GridState(sender="dmo", market_day=DAY, hour=1, subperiods=1, connected=[True])))
-    assert (copper.buses, copper.room_mw) == ((), ())
+    assert (copper.buses, copper.import_room_mw, copper.export_room_mw) == ((), (), ())
     lines = _wire("settlement_statement")["lines"]
     _rejects(_with("settlement_statement", lines=lines[:-1]), "invalid", "lines")
     _rejects(_with("settlement_statement", total=1.0), "invalid", "total", "add up")

@@ -9,7 +9,7 @@ import pytest
 
 from dmo.market.rules import BUILT_IN
 from dmo.market.settlement import settle
-from microgrid_agent.agent.realtime import Operator
+from microgrid_agent.agent.realtime import Operator, Room
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.model import DeviationCost, Params, first_stage_of
 from microgrid_agent.solvers.extensive import SolveError, solve
@@ -219,17 +219,20 @@ def swinging(case, first_stage, subperiods=K):
     return Operator(case, first_stage, SWING, PENALTY, subperiods, sample(case, 1, subperiods, island_hours=0, seed=5))
 
 
-def test_a_small_room_holds_p_m_within_it_of_the_award(case, first_stage):
-    free, held = swinging(case, first_stage, 2), swinging(case, first_stage, 2)
-    for op in (free, held):
+def test_a_small_room_holds_p_m_within_it_of_the_award_on_its_own_side(case, first_stage):
+    free, held, below = (swinging(case, first_stage, 2) for _ in range(3))
+    for op in (free, held, below):
         for h in range(1, 8):
             op.operate_hour(h, [True, True])
     wanted = free.operate_hour(8, [True, False])
-    got = held.operate_hour(8, [True, False], room=0.5)
+    got = held.operate_hour(8, [True, False], room=Room(import_mw=0.5, export_mw=3.0))
     assert wanted.p_m[0] - SWING[7] > 1.0  # without the envelope the hour imports well above its award of 0
-    assert got.p_m[0] == pytest.approx(SWING[7] + 0.5, abs=1e-9)  # held at the envelope's edge
+    assert got.p_m[0] == pytest.approx(SWING[7] + 0.5, abs=1e-9)  # held at the import room's edge
     assert got.p_m[1] == 0 and not got.connected[1]  # islanded: 0 whatever the room
-    assert got.room == 0.5 and not got.envelope_infeasible and wanted.room is None
+    assert got.room == Room(0.5, 3.0) and not got.envelope_infeasible and wanted.room is None
+    # an export room alone does not hold an hour that wants to import more
+    np.testing.assert_array_equal(below.operate_hour(8, [True, False], room=Room(import_mw=40.0, export_mw=0.0)).p_m,
+                                  wanted.p_m)
     result = held.operate_hour(9, [True, True])  # the next hour, without an envelope, goes on from there
     check_schedule(case, result.plan_scenario, result.plan, p_sch=SWING, penalty=PENALTY).raise_if_failed()
 
@@ -239,10 +242,11 @@ def test_a_room_wider_than_the_microgrids_limits_changes_nothing_and_a_room_that
     ops = [swinging(case, first_stage) for _ in range(3)]
     for op in ops:
         op.operate_hour(1, [True])
-    free, wide, loose = (op.operate_hour(2, [True], room) for op, room in zip(ops, (None, 40.0, 1.0)))
+    free, wide, loose = (op.operate_hour(2, [True], room) for op, room in zip(ops, (None, Room(40.0, 40.0),
+                                                                                       Room(1.0, 1.0))))
     for field in ("p_m", "p_unit", "p_renewable", "p_storage", "soc", "d_load", "load_shed"):
         np.testing.assert_array_equal(getattr(wide, field), getattr(free, field))
-    assert wide.room == 40.0 and not wide.envelope_infeasible
+    assert wide.room == Room(40.0, 40.0) and not wide.envelope_infeasible
     assert abs(loose.p_m[0] - SWING[1]) < 1.0  # within the room: it did not bind
     assert loose.cost.total == pytest.approx(free.cost.total, rel=1e-9)
 
@@ -251,11 +255,14 @@ def test_an_hour_that_cannot_keep_its_envelope_is_operated_without_it(case, firs
     free, held = swinging(case, first_stage), swinging(case, first_stage)
     wanted = free.operate_hour(1, [True])
     assert SWING[0] - wanted.p_m[0] > 1.0  # 12 MW is more than the committed microgrid can take in hour 1
-    got = held.operate_hour(1, [True], room=0.5)
+    got = held.operate_hour(1, [True], room=Room(0.5, 0.5))
     assert got.envelope_infeasible and got.room is None
     np.testing.assert_array_equal(got.p_m, wanted.p_m)
     with pytest.raises(ValueError, match="room"):
-        held.operate_hour(2, [True], room=-0.1)
+        held.operate_hour(2, [True], room=0.5)
+    for bad in (-0.1, math.inf, math.nan, True, "1"):
+        with pytest.raises(ValueError, match="room's import_mw must be a finite number of MW >= 0"):
+            Room(bad, 0.0)
 
 
 # --- the rolling LP, compiled once (solvers/rolling.py) ------------------------------------------------------------
@@ -279,12 +286,13 @@ def test_each_hours_lp_is_the_extensive_form_and_depends_on_that_hours_data_alon
     connection = {3: [False, False], 4: [True, False]}
     for hour in range(1, 7):
         n0, n1 = (hour - 1) * k, hour * k
-        room = 0.5 if hour in (5, 6) else None
+        room = Room(0.5, 0.25) if hour in (5, 6) else None
         result = op.operate_hour(hour, connection.get(hour, [True] * k), room)
         bounds = None
         if result.room is not None:
             limit = case.grid.p_m_max
-            bounds = (n0, np.full(k, max(SWING[hour - 1] - room, -limit)), np.full(k, min(SWING[hour - 1] + room, limit)))
+            bounds = (n0, np.full(k, max(SWING[hour - 1] - room.export_mw, -limit)),
+                      np.full(k, min(SWING[hour - 1] + room.import_mw, limit)))
         past = {name: value.copy() for name, value in done.items()}
         reference = solve(case, result.plan_scenario, params, gap=1e-9, fixed=first_stage, pinned=(n0, past),
                           pm_bounds=bounds)
