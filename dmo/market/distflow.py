@@ -36,7 +36,7 @@ from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
 from .branchflow import BranchFlow, OperatingPoint
-from .clearing import (CLEARING_METHODS, FLAT, BidCurve, Book, IsoCurve, Segments, accepted_fractions,
+from .clearing import (CLEARING_METHODS, FLAT, BidCurve, Book, IsoCurve, Segments,
                        clear_on_curve, hour_book, market_inputs, per_agent, segments)
 
 # The value of lost load ($/MWh): what shedding a MW of fixed load costs the welfare. It is the bid cap, so no bid
@@ -57,6 +57,9 @@ LIMITS_PER_ROUND = 40
 # A step is at its bus's price when the LP leaves it strictly part-accepted, or when the bus price from the duals
 # lies within this of its bid price ($/MWh): floating-point duals then stand for the bid's own price.
 PRICE_TOLERANCE = 1e-9
+# Steps at their bus prices share alike at buses whose columns in the balance and the held limits agree to this many
+# significant digits: LinDistFlow's equal columns are equal bits, the AC flow's sensitivities agree to about 1e-15.
+SHARE_DIGITS = 12
 # The AC-faithful clearing's iterations end when the AC flow of the plan keeps every bus within this of its voltage
 # limits (p.u.) and every line within this share of its rating, or after MAX_AC_ITERATIONS linearised clearings.
 AC_VOLTAGE_TOLERANCE = 1e-6
@@ -637,17 +640,76 @@ def _snap(hour: _Hour, step_mw: np.ndarray, bus_price: np.ndarray) -> np.ndarray
     return out
 
 
-def _awards_at_bus_prices(hour: _Hour, lp_mw: np.ndarray, bus_price: np.ndarray) -> np.ndarray:
-    """Per step, its award decided from its bus's price as ``clearing`` decides from its one price: the net the
-    LP leaves at each bus is the target its steps at the price share pro rata (``clearing.accepted_fractions``)."""
+def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """The steps' awards, the curtailments and P0 decided from the bus prices (docs/market.md, "Awards from the
+    prices"): a step in the money at its bus's price is accepted in full, one out of it not at all, and the steps at
+    exactly their bus's price share, among the LP's optimal solutions (those that keep its duals' complementary
+    slackness: every limit with a nonzero dual at its bound, every column with a nonzero reduced cost at its
+    bound), the one that trades the most of them, each class of them accepted in equal shares: purchases alike,
+    sales alike, at buses whose columns in the balance and in every limit held at its bound are equal (to
+    SHARE_DIGITS significant digits), which no optimal solution can tell apart. Limits the LP left out are added
+    while the shares break them. The prices are the LP's, whatever the shares."""
     book, bus = hour.book, hour.bus
-    out = np.zeros(len(book.quantity))
-    buses, starts = np.unique(bus, return_index=True)  # the book is sorted by bus: each bus's steps are one run
-    ends = np.append(starts[1:], len(bus))
-    for b, i, j in zip(buses, starts, ends):
-        part = Book(book.owner[i:j], book.price[i:j], book.quantity[i:j])
-        out[i:j] = part.quantity * accepted_fractions(part, bus_price[b], math.fsum(lp_mw[i:j]))
-    return out
+    q, price = book.quantity, bus_price[bus]
+    at = book.price == price
+    decided = np.where(np.where(q > 0, book.price > price, book.price < price), q, 0.0)
+    n_buses = len(hour.fixed_p)
+    if not at.any():
+        return decided, sol.shed(n_buses), sol.p0
+    c, a_eq, b_eq, a_ub, b_ub, lower, upper = sol.lp
+    x, s = sol.res.x, len(q)
+    free = (np.abs(sol.res.lower.marginals) <= PRICE_TOLERANCE) & (np.abs(sol.res.upper.marginals) <= PRICE_TOLERANCE)
+    tight = -sol.ub_dual > PRICE_TOLERANCE  # limits the duals hold at their bounds
+    held = b_ub - exact.matvec(a_ub, x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
+    mine = np.flatnonzero(at)
+    signature = _significant(np.vstack([a_eq[:, mine], a_ub[held][:, mine]]).T, SHARE_DIGITS)
+    _, klass = np.unique(np.column_stack([signature, q[mine] > 0]), axis=0, return_inverse=True)
+    klass = klass.ravel()
+    m = int(klass.max()) + 1
+    onto = np.zeros((len(mine), m))
+    onto[np.arange(len(mine)), klass] = q[mine]  # a class's column: its steps' columns times their quantities
+    rest = np.arange(s, len(c))  # curtailments and P0's segments: free where their reduced cost is zero
+    rows, g_p, g_q, b = sol.rows, sol.g_p, sol.g_q, sol.b
+    while True:
+        _, a_eq, b_eq, a_ub, b_ub, _, _ = hour.program(g_p, g_q, b, sol.shed_at)
+        tight_rows = np.concatenate([tight, np.zeros(len(b_ub) - len(tight), bool)])
+
+        def split(a: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return (np.hstack([a[:, mine] @ onto, a[:, rest]]),
+                    rhs - exact.matvec(a[:, :s], decided))
+
+        eq_a, eq_b = split(np.vstack([a_eq, a_ub[tight_rows]]), np.concatenate([b_eq, b_ub[tight_rows]]))
+        ub_a, ub_b = split(a_ub[~tight_rows], b_ub[~tight_rows])
+        bounds = np.column_stack([np.concatenate([np.zeros(m), np.where(free[rest], lower[rest], x[rest])]),
+                                  np.concatenate([np.ones(m), np.where(free[rest], upper[rest], x[rest])])])
+        volume = np.concatenate([-np.abs(onto).sum(axis=0), np.zeros(len(rest))])  # the most MW of them traded
+        res = linprog(volume, A_ub=ub_a if len(ub_b) else None, b_ub=ub_b if len(ub_b) else None, A_eq=eq_a,
+                      b_eq=eq_b, bounds=bounds, method="highs", options={"presolve": False})
+        if res.status != 0:  # only by rounding: the LP's own solution, its steps at their prices pro rata per class
+            total = np.zeros(m)
+            np.add.at(total, klass, sol.step_mw[mine])
+            step_mw = decided.copy()
+            step_mw[mine] = q[mine] * total[klass] / onto.sum(axis=0)[klass]
+            return step_mw, sol.shed(n_buses), sol.p0
+        step_mw = decided.copy()
+        step_mw[mine] = q[mine] * res.x[klass]
+        shed = np.zeros(n_buses)
+        shed[sol.shed_at] = np.maximum(res.x[m:m + len(sol.shed_at)], 0.0)
+        ids, share = hour.feeder.violated(*hour.loads(step_mw, shed), None if hour.at is None else hour.at.point)
+        new = ~np.isin(ids, rows)
+        if not new.any():
+            return step_mw, shed, math.fsum(res.x[m + len(sol.shed_at):])
+        added = hour.feeder.worst(ids[new], share[new], LIMITS_PER_ROUND)
+        more = hour.limits(added)
+        rows = np.concatenate([rows, added])
+        g_p, g_q, b = np.vstack([g_p, more[0]]), np.vstack([g_q, more[1]]), np.concatenate([b, more[2]])
+
+
+def _significant(a: np.ndarray, digits: int) -> np.ndarray:
+    """``a`` rounded to ``digits`` significant digits (0 stays 0)."""
+    magnitude = np.floor(np.log10(np.abs(a), out=np.zeros_like(a), where=a != 0))
+    scale = 10.0 ** (digits - 1 - magnitude)
+    return np.round(a * scale) / scale
 
 
 def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
@@ -659,20 +721,19 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
     sol = hour.solve(np.union1d(broken, rows))
     energy, loss, congestion, voltage = _prices(hour, sol)
     bus_price = _snap(hour, sol.step_mw, energy + loss + congestion + voltage)
-    step_mw = _awards_at_bus_prices(hour, sol.step_mw, bus_price)
+    step_mw, shed, p0 = _shared(hour, sol, bus_price)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
     at_bound = b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
     order = np.argsort(sol.rows[at_bound], kind="stable")
     held, relief = sol.rows[at_bound][order], (-sol.ub_dual[at_bound] + 0.0)[order]
     lines = held < 8 * hour.feeder.network.n_lines
-    if sol.p0 >= hour.curve.top - LIMIT_TOLERANCE:
+    if p0 >= hour.curve.top - LIMIT_TOLERANCE:
         congested = "import"
-    elif sol.p0 <= hour.curve.bottom + LIMIT_TOLERANCE:
+    elif p0 <= hour.curve.bottom + LIMIT_TOLERANCE:
         congested = "export"
     else:
         congested = "line" if lines.any() else "voltage" if held.size else "none"
-    return _Cleared(energy, congested, step_mw, sol.shed(len(hour.fixed_p)), bus_price, loss, congestion, voltage,
-                    held, relief, sol.rows)
+    return _Cleared(energy, congested, step_mw, shed, bus_price, loss, congestion, voltage, held, relief, sol.rows)
 
 
 def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:

@@ -396,6 +396,66 @@ def test_a_bid_above_voll_behind_a_full_line_sheds_the_fixed_load_for_it():
     kkt(hour_program([one_hour("mg", [(150, 5)])], net, {"mg": "1"}, 0, 40, WIDE, WIDE, voll=100.0))
 
 
+# --- fair ties ------------------------------------------------------------------------------------------------
+
+def star(trunk_mva: float = 3.0, lateral_mva: float = 1e4):
+    """0-1, then 1-2 and 1-3: buses 2 and 3 sit behind the one trunk line 0-1, on twin laterals."""
+    buses = [{"name": str(b), "p_mw": 0.0, "q_mvar": 0.0} for b in range(4)]
+    lines = [{"from": "0", "to": "1", "r_ohm": 0.01, "x_ohm": 0.01, "s_max_mva": trunk_mva}] + [
+        {"from": "1", "to": str(b), "r_ohm": 0.01, "x_ohm": 0.01, "s_max_mva": lateral_mva} for b in (2, 3)]
+    return build("star", 10.0, buses, lines, "0", v_min=0.5, v_max=1.5, load_profile=(1.0,) * HOURS)
+
+
+@pytest.mark.parametrize("method", ["lindistflow", "ac"])
+def test_equal_bids_behind_one_full_line_share_it_equally_wherever_they_sit(method):
+    # Two buyers at $90 for 5 MW behind a 3 MW trunk: the LP may give either one everything; the clearing gives
+    # each half, on twin laterals or at one bus (less in AC there: one lateral carries both, with more losses)
+    net = star()
+    bids = [one_hour("a", [(90, 5)]), one_hour("b", [(90, 5)])]
+    apart = clear_network(bids, net, {"a": "2", "b": "3"}, 40, WIDE, WIDE, method=method)
+    swapped = clear_network(bids, net, {"a": "3", "b": "2"}, 40, WIDE, WIDE, method=method)
+    together = clear_network(bids, net, {"a": "2", "b": "2"}, 40, WIDE, WIDE, method=method)
+    for r in (apart, swapped, together):
+        assert at(r)["a"] == pytest.approx(at(r)["b"], abs=1e-12) and r.congested[0] == "line"
+        assert r.agent_price["a"][0] == r.agent_price["b"][0] == 90.0
+    assert at(apart) == at(swapped)
+    half = 1.5 if method == "lindistflow" else 1.49  # the trunk's 3 MW, less the laterals' losses in AC
+    assert half - 0.01 < at(apart)["a"] <= 1.5 and at(together)["a"] <= at(apart)["a"]
+
+
+@pytest.mark.parametrize("mw", [1.0, -1.0])
+def test_a_step_at_exactly_its_bus_price_is_accepted_in_full_whether_or_not_another_line_binds(mw):
+    # "m" buys (or sells) 1 MW at $40, the ISO's price, at bus 3. In hour 1 the copper plate clears: every step at
+    # the price is accepted. In hour 2 a buyer at bus 2 fills lateral 1-2: the LP clears, and "m", still at its
+    # bus's price of $40, is accepted in full again rather than wherever the LP's vertex left it.
+    net = star(trunk_mva=1e4, lateral_mva=2.0)
+    bids = [BidCurve("m", ((Step(40.0, mw),), (Step(40.0, mw),)) + ((),) * (HOURS - 2)),
+            one_hour("far", [(90, 5)], hour=1)]
+    r = clear_network(bids, net, {"m": "3", "far": "2"}, 40, WIDE, WIDE)
+    assert r.congested[:2] == ("none", "line") and r.agent_price["m"][:2] == (40.0, 40.0)
+    assert r.awards["m"][:2] == (mw, mw)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([60.0, 75.0, 90.0]), st.floats(0.1, 3.0), st.sampled_from(["2", "3"])),
+                min_size=2, max_size=6), st.data())
+def test_moving_equal_bids_between_equivalent_buses_changes_no_award(book, data):
+    """Buses 2 and 3 of the star face the same limits (the trunk, the substation): moving any bid from one to the
+    other, or permuting the agents, changes no award beyond 1e-9, and equal bids are awarded alike."""
+    net = star(trunk_mva=4.0)
+    bids = [one_hour(f"mg{i}", [(p, q)]) for i, (p, q, _) in enumerate(book)]
+    where = {f"mg{i}": b for i, (_, _, b) in enumerate(book)}
+    moved = {a: data.draw(st.sampled_from(["2", "3"])) for a in where}
+    r = clear_network(bids, net, where, 40, WIDE, WIDE)
+    again = clear_network(data.draw(st.permutations(bids)), net, moved, 40, WIDE, WIDE)
+    for a in where:
+        assert at(again)[a] == pytest.approx(at(r)[a], abs=1e-9), (a, where[a], moved[a])
+    for i, (p, q, _) in enumerate(book):
+        for j, (p2, q2, _) in enumerate(book):
+            if p == p2:  # equal prices: equal shares of their quantities
+                assert at(r)[f"mg{i}"] / q == pytest.approx(at(r)[f"mg{j}"] / q2, abs=1e-9)
+
+
 # --- AC-faithful -----------------------------------------------------------------------------------------------
 
 def microgrids(net, r: NetworkClearing, where) -> np.ndarray:
