@@ -640,14 +640,15 @@ def _snap(hour: _Hour, step_mw: np.ndarray, bus_price: np.ndarray) -> np.ndarray
     return out
 
 
-def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
+            held: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """The steps' awards, the curtailments and P0 decided from the bus prices (docs/market.md, "Awards from the
     prices"): a step in the money at its bus's price is accepted in full, one out of it not at all, and the steps at
     exactly their bus's price share, among the LP's optimal solutions (those that keep its duals' complementary
     slackness: every limit with a nonzero dual at its bound, every column with a nonzero reduced cost at its
     bound), the one that trades the most of them, each class of them accepted in equal shares: purchases alike,
-    sales alike, at buses whose columns in the balance and in every limit held at its bound are equal (to
-    SHARE_DIGITS significant digits), which no optimal solution can tell apart. Limits the LP left out are added
+    sales alike, at buses whose columns in the balance and in every limit held at its bound (``held``, per LP row)
+    are equal (to SHARE_DIGITS significant digits), which no optimal solution can tell apart. Limits the LP left out are added
     while the shares break them. The prices are the LP's, whatever the shares."""
     book, bus = hour.book, hour.bus
     q, price = book.quantity, bus_price[bus]
@@ -660,7 +661,6 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray) -> tuple[np.ndar
     x, s = sol.res.x, len(q)
     free = (np.abs(sol.res.lower.marginals) <= PRICE_TOLERANCE) & (np.abs(sol.res.upper.marginals) <= PRICE_TOLERANCE)
     tight = -sol.ub_dual > PRICE_TOLERANCE  # limits the duals hold at their bounds
-    held = b_ub - exact.matvec(a_ub, x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
     mine = np.flatnonzero(at)
     signature = _significant(np.vstack([a_eq[:, mine], a_ub[held][:, mine]]).T, SHARE_DIGITS)
     _, klass = np.unique(np.column_stack([signature, q[mine] > 0]), axis=0, return_inverse=True)
@@ -669,20 +669,19 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray) -> tuple[np.ndar
     onto = np.zeros((len(mine), m))
     onto[np.arange(len(mine)), klass] = q[mine]  # a class's column: its steps' columns times their quantities
     rest = np.arange(s, len(c))  # curtailments and P0's segments: free where their reduced cost is zero
-    rows, g_p, g_q, b = sol.rows, sol.g_p, sol.g_q, sol.b
+    fixed = np.flatnonzero(decided)
+
+    def split(a: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows over the classes' shares and the other columns, the decided steps' MW on the right side."""
+        return np.hstack([a[:, mine] @ onto, a[:, rest]]), rhs - exact.matvec(a[:, fixed], decided[fixed])
+
+    eq_a, eq_b = split(np.vstack([a_eq, a_ub[tight]]), np.concatenate([b_eq, b_ub[tight]]))
+    ub_a, ub_b = split(a_ub[~tight], b_ub[~tight])
+    bounds = np.column_stack([np.concatenate([np.zeros(m), np.where(free[rest], lower[rest], x[rest])]),
+                              np.concatenate([np.ones(m), np.where(free[rest], upper[rest], x[rest])])])
+    volume = np.concatenate([-np.abs(onto).sum(axis=0), np.zeros(len(rest))])  # the most MW of them traded
+    rows = sol.rows
     while True:
-        _, a_eq, b_eq, a_ub, b_ub, _, _ = hour.program(g_p, g_q, b, sol.shed_at)
-        tight_rows = np.concatenate([tight, np.zeros(len(b_ub) - len(tight), bool)])
-
-        def split(a: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            return (np.hstack([a[:, mine] @ onto, a[:, rest]]),
-                    rhs - exact.matvec(a[:, :s], decided))
-
-        eq_a, eq_b = split(np.vstack([a_eq, a_ub[tight_rows]]), np.concatenate([b_eq, b_ub[tight_rows]]))
-        ub_a, ub_b = split(a_ub[~tight_rows], b_ub[~tight_rows])
-        bounds = np.column_stack([np.concatenate([np.zeros(m), np.where(free[rest], lower[rest], x[rest])]),
-                                  np.concatenate([np.ones(m), np.where(free[rest], upper[rest], x[rest])])])
-        volume = np.concatenate([-np.abs(onto).sum(axis=0), np.zeros(len(rest))])  # the most MW of them traded
         res = linprog(volume, A_ub=ub_a if len(ub_b) else None, b_ub=ub_b if len(ub_b) else None, A_eq=eq_a,
                       b_eq=eq_b, bounds=bounds, method="highs", options={"presolve": False})
         if res.status != 0:  # only by rounding: the LP's own solution, its steps at their prices pro rata per class
@@ -700,9 +699,10 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray) -> tuple[np.ndar
         if not new.any():
             return step_mw, shed, math.fsum(res.x[m + len(sol.shed_at):])
         added = hour.feeder.worst(ids[new], share[new], LIMITS_PER_ROUND)
-        more = hour.limits(added)
         rows = np.concatenate([rows, added])
-        g_p, g_q, b = np.vstack([g_p, more[0]]), np.vstack([g_q, more[1]]), np.concatenate([b, more[2]])
+        _, _, _, more_a, more_b, _, _ = hour.program(*hour.limits(added), sol.shed_at)
+        more_a, more_b = split(more_a, more_b)
+        ub_a, ub_b = np.vstack([ub_a, more_a]), np.concatenate([ub_b, more_b])
 
 
 def _significant(a: np.ndarray, digits: int) -> np.ndarray:
@@ -721,9 +721,9 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
     sol = hour.solve(np.union1d(broken, rows))
     energy, loss, congestion, voltage = _prices(hour, sol)
     bus_price = _snap(hour, sol.step_mw, energy + loss + congestion + voltage)
-    step_mw, shed, p0 = _shared(hour, sol, bus_price)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
     at_bound = b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
+    step_mw, shed, p0 = _shared(hour, sol, bus_price, at_bound)
     order = np.argsort(sol.rows[at_bound], kind="stable")
     held, relief = sol.rows[at_bound][order], (-sol.ub_dual[at_bound] + 0.0)[order]
     lines = held < 8 * hour.feeder.network.n_lines
