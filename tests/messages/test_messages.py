@@ -78,7 +78,9 @@ SAMPLES = {
                                 clearing="ac", bus_price_per_mwh=[40.0, 41.0, 57.0],
                                 loss_price_per_mwh=[0.0, 1.0, 1.5], congestion_price_per_mwh=[0.0, 0.0, 15.5],
                                 voltage_price_per_mwh=[0.0, 0.0, 0.0], shed_mw=[0.0, 0.0, 0.0],
-                                spilled_mw=[0.0, 0.0, 0.0],
+                                spilled_mw=[0.0, 0.0, 0.0], limit_loading=[0.4, 1.0], binding_facet=[None, 0],
+                                line_shadow_price_per_mwh=[0.0, 15.5], binding_voltage=[None, None, "v_min"],
+                                voltage_shadow_price_per_pu=[0.0, 0.0, 0.0],
                                 ac=ACCheck(converged=True, v_min_pu=0.984, v_min_bus="2", v_max_pu=0.99,
                                            v_max_bus="1", max_loading=1.01, max_loading_line="1-2",
                                            voltage_error_pu=0.001, flow_error_mw=0.01, losses_mw=0.012,
@@ -174,6 +176,8 @@ BOUND = ("run", "incarnation")  # version 4's envelope fields
 FEEDER = ("bus", "energy_price_per_mwh", "congestion_price_per_mwh", "voltage_price_per_mwh")  # since version 7
 LOSS = ("loss_price_per_mwh",)  # since version 10
 ROOMS = ("import_room_mw", "export_room_mw")  # since version 11, room_mw before
+BINDS = ("limit_loading", "binding_facet", "line_shadow_price_per_mwh", "binding_voltage",
+         "voltage_shadow_price_per_pu")  # since version 11
 
 
 def test_older_messages_read_as_they_were_meant():
@@ -204,8 +208,10 @@ def test_older_messages_read_as_they_were_meant():
     day = decode(_older_within("agent_day", 8, "compute", "started_at", "turn_s"))
     assert [(h.started_at, h.turn_s) for h in day.compute] == [(None, 0.0), (None, 0.0)]
     assert decode(_older("award", 9, *LOSS)).loss_price_per_mwh is None
-    hour = decode(_older("network_hour", 9, "clearing", "spilled_mw", *LOSS))
+    hour = decode(_older("network_hour", 9, "clearing", "spilled_mw", *LOSS, *BINDS))
     assert (hour.clearing, hour.loss_price_per_mwh, hour.spilled_mw) == (None, None, None)
+    hour = decode(_older("network_hour", 10, *BINDS))
+    assert all(getattr(hour, name) is None for name in BINDS) and hour.clearing == SAMPLES["network_hour"].clearing
     assert hour.bus_price_per_mwh == (40.0, 41.0, 57.0)
     assert [h.wall_s for h in day.compute] == [h.wall_s for h in SAMPLES["agent_day"].compute]
     # a message of an older version that has a later version's field is not upgraded, and a current one that
@@ -256,6 +262,16 @@ def test_rejects_wrong_lengths():
     _rejects(_with("bid", hours=[[]] * (HOURS + 1)), "invalid", "hours")
     _rejects(_with("meter_report", p_m_mw=[1.0] * (K + 1)), "invalid", "p_m_mw", f"subperiods={K}")
     _rejects(_with("grid_state", connected=[True]), "invalid", "connected")
+
+
+def test_a_network_hours_binding_limits_name_one_facet_or_voltage_limit_per_line_or_bus():
+    _rejects(_with("network_hour", binding_facet=[None]), "invalid", "binding_facet has 1 values for 2 lines")
+    _rejects(_with("network_hour", limit_loading=[1.0, 1.0, 1.0]), "invalid", "limit_loading has 3 values for 2 lines")
+    _rejects(_with("network_hour", binding_facet=[None, 8]), "invalid", "binding_facet[1]", "less than or equal to 7")
+    _rejects(_with("network_hour", binding_facet=[None, 1.0]), "invalid", "binding_facet[1]")
+    _rejects(_with("network_hour", binding_voltage=[None, "low", None]), "invalid", "binding_voltage[1]")
+    _rejects(_with("network_hour", binding_voltage=[None, None]), "invalid", "binding_voltage has 2 values for 3 buses")
+    _rejects(_with("network_hour", voltage_shadow_price_per_pu=[0.0]), "invalid", "voltage_shadow_price_per_pu")
 
 
 def test_a_grid_states_envelope_gives_two_finite_rooms_of_at_least_0_per_bus():
