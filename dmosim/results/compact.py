@@ -13,7 +13,7 @@ from matplotlib.patches import Rectangle
 from .feeder import label_step
 from .style import CREDIT, DOLLARS, ENERGY, MISSING, PENALTY, RESTART, short_dates
 
-COMPACT_AGENTS = 8  # more agents than this: a heat-map row each, not two panels (9 agents: 19 in tall, 22 on a feeder)
+COMPACT_AGENTS = 8  # more agents than this: a heat-map row each, not two panels (9 agents: 19 in tall, 24 on a feeder)
 AGENT_IN, MAPS_IN = 0.11, (2.8, 6.6)  # a heat map's row per agent, inches, and the maps' least and most height
 MAP_TEXT_IN = 0.6  # of the maps' height, what their title and the hours below them take
 LABEL_IN = 0.11  # room for one agent's name along a heat map (7 pt), inches: fewer names where rows are thinner

@@ -7,8 +7,9 @@ with no accepted meter report hatched, process restarts dashed. With more than `
 figure is compact instead (compact.py): below the price, agents x hours heat maps of the deviation and of the
 penalty, and beside the price the bills ranked, so that its size stays bounded at hundreds of agents. A recording
 of several market days lays them end to end on an axis of hours, each day's start labelled with its date. On a
-feeder a last row shows its prices by bus and hour, its voltages and its line loading at the peak hour
-(feeder.py). ``figure_of`` titles it by the run and its settlement rule.
+feeder two last rows show its prices by bus and hour on the same time axis, then at one hour its voltage along
+each branch and its lines' loading as the clearing limits it (feeder.py). ``figure_of`` titles it by the run and
+its settlement rule.
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, short_d
 _AWARD, _IMPORT = "black", "#1f77b4"
 WIDTH_IN, ROW_IN, DPI = 10.5, 1.75, 120  # 1,260 px wide at DPI; each agent adds a row of ROW_IN inches
 TOP_IN = 2.4  # the price's row with many agents: the ranked bills beside it need the room
-FEEDER_IN = 3.2  # the feeder's row (prices by bus, voltages, loading), on a feeder only
 _MISSING_LABEL = "hour with no accepted meter report (missing-data rule)"
 _DMO_RESTARTED = "process restarted (the DMO)"
 
@@ -51,7 +51,8 @@ def figure_of(rec: Recording, frames: dict[str, pd.DataFrame], head: str) -> Fig
     rules = list(dict.fromkeys(rule_named(award) for _, award in day_messages(rec, None, "award")))
     market_days = sorted(frames["hours"]["market_day"].unique())
     title = f"{head}, {days_label(market_days)}" + (f"\nsettled by {' then '.join(rules)}" if rules else "")
-    return recording_figure(frames, title, restarts(rec))
+    on_feeder = not frames.get("network", pd.DataFrame()).empty
+    return recording_figure(frames, title, restarts(rec), feeder.voltage_limits(rec) if on_feeder else None)
 
 
 def restarts(rec: Recording) -> pd.DataFrame:
@@ -77,11 +78,12 @@ def restarts(rec: Recording) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["sender", "market_day", "hour"])
 
 
-def recording_figure(frames: dict[str, pd.DataFrame], title: str = "",
-                     restarted: pd.DataFrame | None = None) -> Figure:
+def recording_figure(frames: dict[str, pd.DataFrame], title: str = "", restarted: pd.DataFrame | None = None,
+                     voltage_limits: tuple[float, float] | None = None) -> Figure:
     """The figure of the tables ``frames`` (``dmosim.results.tables.tables``); needs at least one statement.
     ``restarted`` (``restarts``) marks where a process was restarted. Up to ``COMPACT_AGENTS`` agents each has its
-    row of panels; more share heat maps (compact.py), so the figure's size does not grow with them."""
+    row of panels; more share heat maps (compact.py), so the figure's size does not grow with them. On a feeder,
+    ``voltage_limits`` (v_min, v_max) are drawn on its voltage panel (``feeder.voltage_limits``)."""
     hours, meter, days = frames["hours"], frames["meter"], frames["days"]
     if hours.empty:
         raise ValueError("no settlement statement recorded: nothing to plot")
@@ -96,13 +98,14 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "",
 
     on_feeder = not frames.get("network", pd.DataFrame()).empty
     market_in = TOP_IN + maps_height(len(agents)) if compact else ROW_IN * (1 + len(agents))
-    fig = plt.figure(figsize=(WIDTH_IN, market_in + 1.2 + FEEDER_IN * on_feeder), dpi=DPI, layout="constrained")
-    rows = fig.add_gridspec(2 if on_feeder else 1, 1, height_ratios=(market_in, FEEDER_IN) if on_feeder else None)
-    if on_feeder:
-        feeder.draw(fig, rows[1].subgridspec(1, 3, width_ratios=(3, 2, 2)), frames, start)
+    below = (feeder.HEAT_IN, feeder.LOADING_IN) if on_feeder else ()  # the feeder's rows, in the market's grid
+    fig = plt.figure(figsize=(WIDTH_IN, market_in + 1.2 + sum(below)), dpi=DPI, layout="constrained")
     draw = _compact if compact else _per_agent
-    price_ax, time_axes = draw(fig, rows[0], hours, meter, days, agents, start, places)
+    price_ax, time_axes, grid = draw(fig, hours, meter, days, agents, start, places, below)
     _price(price_ax, hours, on_feeder)
+    heat_ax = None
+    if on_feeder:  # in the same grid, so that its heat map's columns stand under the hours above
+        heat_ax = feeder.draw(fig, (grid[-2, 0], grid[-2, 1], grid[-1, :]), frames, start, price_ax, voltage_limits)
     for t in places.loc[~places["sender"].isin(agents), "t"]:
         price_ax.axvline(t, color=RESTART, lw=1.5, ls="--", zorder=4, label=_DMO_RESTARTED)
 
@@ -120,6 +123,10 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "",
             ax.tick_params(which="both", labelbottom=False)
         else:
             ax.set_xlabel(xlabel)
+    if heat_ax is not None:
+        _time_axis(heat_ax, market_days)
+        heat_ax.tick_params(which="both", labelbottom=True)  # sharing x with the price, whose labels are off
+        heat_ax.set_xlabel(xlabel)
 
     handles = {}  # one entry per label, whichever axis drew it
     for ax in fig.axes:
@@ -134,11 +141,12 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "",
     return fig
 
 
-def _per_agent(fig, cell, hours, meter, days, agents, start, places):
+def _per_agent(fig, hours, meter, days, agents, start, places, below):
     """Up to ``COMPACT_AGENTS`` agents: the price, then each agent's award against its metered import and, beside,
-    its penalties per hour; the bills beside the price. Returns the price's axes and every axes on the time axis,
-    the two lowest last."""
-    grid = cell.subgridspec(1 + len(agents), 2, width_ratios=(3, 2))
+    its penalties per hour; the bills beside the price. Returns the price's axes, every axes on the time axis (the
+    two lowest last) and the grid, whose last rows, of heights ``below`` (inches), are left for the caller."""
+    grid = fig.add_gridspec(1 + len(agents) + len(below), 2, width_ratios=(3, 2),
+                            height_ratios=[ROW_IN] * (1 + len(agents)) + list(below))
     price_ax = fig.add_subplot(grid[0, 0])
     power_axes = [fig.add_subplot(grid[1 + i, 0], sharex=price_ax) for i in range(len(agents))]
     money_axes = [fig.add_subplot(grid[1 + i, 1], sharex=price_ax) for i in range(len(agents))]
@@ -160,15 +168,15 @@ def _per_agent(fig, cell, hours, meter, days, agents, start, places):
         _bill(totals_ax, days, agents)
     else:
         _daily_totals(totals_ax, days, list(start), agents)
-    return price_ax, [price_ax, *power_axes, *money_axes[:-1], power_axes[-1], money_axes[-1]]
+    return price_ax, [price_ax, *power_axes, *money_axes[:-1], power_axes[-1], money_axes[-1]], grid
 
 
-def _compact(fig, cell, hours, meter, days, agents, start, places):
+def _compact(fig, hours, meter, days, agents, start, places, below):
     """More agents: the price and, beside it, the bills ranked; below, agents x hours heat maps of the deviation and,
-    beside it on the same rows, of the penalty (compact.py). Returns the price's axes and every axes on the time
-    axis."""
+    beside it on the same rows, of the penalty (compact.py). Returns the price's axes, every axes on the time axis
+    and the grid, whose last rows, of heights ``below`` (inches), are left for the caller."""
     height, span = maps_height(len(agents)), 24 * len(start)
-    grid = cell.subgridspec(2, 2, width_ratios=(3, 2), height_ratios=(TOP_IN, height))
+    grid = fig.add_gridspec(2 + len(below), 2, width_ratios=(3, 2), height_ratios=(TOP_IN, height, *below))
     price_ax = fig.add_subplot(grid[0, 0])
     deviation_ax = fig.add_subplot(grid[1, 0], sharex=price_ax)
     penalty_ax = fig.add_subplot(grid[1, 1], sharey=deviation_ax)
@@ -184,7 +192,7 @@ def _compact(fig, cell, hours, meter, days, agents, start, places):
     for t in places.loc[~places["sender"].isin(agents), "t"]:  # the DMO's: every agent's row
         deviation_ax.axvline(t, color=RESTART, lw=1.5, ls="--", zorder=4, label=_DMO_RESTARTED)
     ranked_bills(fig.add_subplot(grid[0, 1]), days, agents, len(start))
-    return price_ax, [price_ax, deviation_ax, *([penalty_ax] if per == 1 else [])]
+    return price_ax, [price_ax, deviation_ax, *([penalty_ax] if per == 1 else [])], grid
 
 
 def _price(ax, hours: pd.DataFrame, on_feeder: bool) -> None:
