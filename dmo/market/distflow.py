@@ -648,8 +648,8 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
     slackness: every limit with a nonzero dual at its bound, every column with a nonzero reduced cost at its
     bound), the one that trades the most of them, each class of them accepted in equal shares: purchases alike,
     sales alike, at buses whose columns in the balance and in every limit held at its bound (``held``, per LP row)
-    are equal (to SHARE_DIGITS significant digits), which no optimal solution can tell apart. Limits the LP left out are added
-    while the shares break them. The prices are the LP's, whatever the shares."""
+    are equal (to SHARE_DIGITS significant digits), which no optimal solution can tell apart. Limits the LP left
+    out are added while the shares break them. The prices are the LP's, whatever the shares."""
     book, bus = hour.book, hour.bus
     q, price = book.quantity, bus_price[bus]
     at = book.price == price
