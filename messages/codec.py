@@ -90,8 +90,8 @@ def _upgrade(payload: bytes) -> bytes | None:
     agent handled say neither when each was taken up (null) nor a wait for a turn (0). Version 9 -> 10: an award
     and a network_hour carry no loss component, and a network_hour names no clearing method and no spilled
     generation (null). Version 10 -> 11: a grid state's one room either way (``room_mw``) is its room above
-    the awards and below them alike, and a network_hour says nothing of what binds (null). An older message that already has a field of a later version is left as it is,
-    for validation to refuse."""
+    the awards and below them alike, and a network_hour says nothing of what binds (null). An older message that
+    already has a field of a later version is left as it is, for validation to refuse."""
     try:
         data = json.loads(payload)
     except (ValueError, RecursionError):
