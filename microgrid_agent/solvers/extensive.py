@@ -13,7 +13,7 @@ from scenarios.horizon import HOURS
 
 from ..model import Model, Params, build, dp_plus_of
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
-from .highs import FEASIBLE
+from .highs import FEASIBLE, HIGHS_THREADS
 
 
 class SolveError(RuntimeError):
@@ -45,7 +45,7 @@ def solve_model(model: Model, start: float, *, gap: float = 0.005, time_limit: f
     problem holds cvxpy Parameters is solved again after their values change without being compiled again
     (cvxpy keeps its compiled program): the bidding model at each price level (agent/bidding.py)."""
     case, scen, params = model.case, model.scen, model.params
-    options = {"mip_rel_gap": gap}
+    options = {"mip_rel_gap": gap, "threads": HIGHS_THREADS}
     if time_limit is not None:
         options["time_limit"] = float(time_limit)
     model.problem.solve(solver=cp.HIGHS, canon_backend="SCIPY", verbose=verbose, **options)
