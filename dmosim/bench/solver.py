@@ -6,6 +6,8 @@ same time cap; a route that hits the cap reports the gap it certified by then. E
 independent checker. The summary is the median over the seeds: one scenario set's path through the masters is not
 the route's speed (docs/solver.md, "One machine, two paths"). Each run's time is split into the branch-and-bound
 tree (Benders' MILP masters, SCIP's tree, the extensive form's HiGHS solve), the scenario subproblems and building.
+Beside the seconds, each run's work: simplex iterations and branch-and-bound nodes, in all, and for the decompositions
+per master and per round of subproblems (``trace``), which are the same on every machine where the seconds are not.
 Peak memory is the resident high-water mark of the process and of the subproblem workers.
 """
 
@@ -20,6 +22,7 @@ import time
 
 from microgrid_agent.checker import check_schedule
 from microgrid_agent.instance import make_instance
+from microgrid_agent.solvers.benders import WORK
 from microgrid_agent.solvers.extensive import SolveError
 from microgrid_agent.solvers.routes import check_available
 from scenarios.case import load_case
@@ -29,6 +32,7 @@ from ..console import UsageError, progress
 
 TIMED_ROUTES = ("benders", "tree", "extensive")
 SHARES = ("tree_share", "subproblems_share", "build_share")
+TOTAL_WORK = ("simplex_iterations", "nodes")  # a solve's work in all, beside its seconds
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,12 +75,15 @@ def _peak_mib() -> float:
 
 def _row(schedule, seconds: float, case, scen) -> dict:
     """One solve: its figures, whether the checker accepts it, and where its time went."""
+    work = schedule.extra["work"]
     row = {"wall_s": seconds, "objective": schedule.objective, "bound": schedule.bound, "gap": schedule.mip_gap,
-           "status": schedule.status, "verified": check_schedule(case, scen, schedule).ok}
+           "status": schedule.status, "verified": check_schedule(case, scen, schedule).ok,
+           **{k: work[k] for k in TOTAL_WORK}}
     d = schedule.extra.get("decomposition")
     if d:
         row |= {"iterations": d["iterations"], "tree_share": d["master_s"] / seconds,
-                "subproblems_share": d["subproblems_s"] / seconds, "build_share": d["build_s"] / seconds}
+                "subproblems_share": d["subproblems_s"] / seconds, "build_share": d["build_s"] / seconds,
+                **{k: d[k] for k in WORK}}
     else:
         row |= {"tree_share": schedule.timings.solve_s / seconds, "subproblems_share": 0.0,
                 "build_share": schedule.timings.build_s / seconds}
@@ -101,7 +108,7 @@ def summary(rows: list[dict]) -> list[dict]:
                          "verified": all(r["verified"] for r in solved)}
                 if all("iterations" in r for r in solved):
                     line["median_iterations"] = statistics.median(r["iterations"] for r in solved)
-                line |= {f"median_{k}": statistics.median(r[k] for r in solved) for k in SHARES}
+                line |= {f"median_{k}": statistics.median(r[k] for r in solved) for k in (*TOTAL_WORK, *SHARES)}
             out.append(line)
     for line in out:
         benders = next((b for b in out if b["scenarios"] == line["scenarios"] and b["route"] == "benders"
@@ -124,7 +131,7 @@ def run(args) -> dict:
     _load(routes)
     case = load_case("paper")
     seeds = list(range(args.seed, args.seed + args.seeds))
-    rows = []
+    rows, steps = [], []
     for n in args.scenarios:
         for seed in seeds:
             inst = make_instance(case, scenarios=n, subperiods=args.subperiods, seed=seed)
@@ -136,8 +143,18 @@ def run(args) -> dict:
                     schedule = inst.solve(method=route, workers=args.workers, gap=args.gap, time_limit=args.cap,
                                           progress=lambda m, label=label: progress(f"{label}: {m}"))
                     row = _row(schedule, time.perf_counter() - start, case, inst.scen)
+                    steps += _steps(schedule, {"scenarios": n, "seed": seed, "route": route})
                 except SolveError as exc:
                     row = {"status": f"no schedule in {args.cap:g} s ({exc})"}
                 rows.append({"scenarios": n, "seed": seed, "route": route, **row})
     return {"subperiods": args.subperiods, "target_gap": args.gap, "cap_s": args.cap, "seeds": seeds,
-            "summary": summary(rows), "rows": rows, "peak_rss_mib": _peak_mib()}
+            "summary": summary(rows), "rows": rows, "trace": steps, "peak_rss_mib": _peak_mib()}
+
+
+def _steps(schedule, run: dict) -> list[dict]:
+    """A decomposed solve's trace, row by row (docs/solver.md, "What a solve reports"): each master's seconds,
+    simplex iterations and nodes, and its round of subproblems' seconds and simplex iterations; none for the
+    extensive form, whose one MILP is its row."""
+    keys = ("phase", "master_s", "master_simplex_iterations", "master_nodes", "subproblems_s",
+            "subproblems_simplex_iterations")
+    return [run | {"step": i} | {k: r[k] for k in keys} for i, r in enumerate(schedule.extra.get("trace", []), 1)]

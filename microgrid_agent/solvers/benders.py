@@ -38,18 +38,20 @@ from ..model import (FIRST_STAGE, Params, dp_plus_of, first_stage_constraints, f
                      variables)
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
 from .extensive import SolveError
-from .highs import FEASIBLE, INF, compile_problem, fix_columns, highs_model
+from .highs import FEASIBLE, HIGHS_THREADS, INF, compile_problem, fix_columns, highs_model, work
 from .relaxation import group_relaxation, islanding_groups, relaxed
 from .scenario_lp import ScenarioLP
 
 
 class Subproblems:
-    """The scenario LPs of a subset of scenarios, each a live HiGHS model (warm re-solves)."""
+    """The scenario LPs of a subset of scenarios, each a live HiGHS model (warm re-solves); ``simplex_iterations``:
+    those of every solve so far."""
 
     def __init__(self, case: Case, scen: ScenarioSet, params: Params, indices):
         self.lp = ScenarioLP(case, params, scen.subperiods, scen.N)
         self.indices = list(indices)
         self.models: dict[int, highspy.Highs] = {}
+        self.simplex_iterations = 0
         for s in self.indices:
             data, self.columns = self.lp.compile(scen, s)
             self.models[s] = highs_model(data, integer=False)
@@ -75,6 +77,7 @@ class Subproblems:
         h = self.models[s]
         fix_columns(h, self.x_cols, np.asarray(x)[self.x_held])
         h.run()
+        self.simplex_iterations += work(h.getInfo())[0]
         if h.getModelStatus() != highspy.HighsModelStatus.kOptimal:
             raise SolveError(f"scenario {s}: subproblem {h.modelStatusToString(h.getModelStatus())} for the "
                              "master's first stage (complete recourse violated: check the case)")
@@ -93,9 +96,9 @@ def _worker(conn, case, scen, params, indices, solver: int) -> None:
         if command == "stop":
             return
         try:
-            conn.send(("ok", sub.evaluate(x) if command == "evaluate" else sub.dispatch(x)))
+            conn.send(("ok", sub.evaluate(x) if command == "evaluate" else sub.dispatch(x), sub.simplex_iterations))
         except Exception as exc:  # the parent re-raises it; the worker stays usable
-            conn.send(("error", exc))
+            conn.send(("error", exc, sub.simplex_iterations))
 
 
 def dies_with(solver: int) -> None:
@@ -117,6 +120,7 @@ class ScenarioPool:
         self.S = scen.S
         parts = [list(range(w, scen.S, workers)) for w in range(min(workers, scen.S))]
         self.parts = parts
+        self._counted = [0] * len(parts)  # each worker's simplex iterations, as its last reply said
         if len(parts) == 1:
             self.local, self.procs = Subproblems(case, scen, params, parts[0]), []
             return
@@ -138,10 +142,16 @@ class ScenarioPool:
         for conn in self.conns:
             conn.send((command, x))
         replies = [conn.recv() for conn in self.conns]
-        for status, payload in replies:
+        self._counted = [counted for _, _, counted in replies]
+        for status, payload, _ in replies:
             if status == "error":
                 raise payload
-        return [payload for _, payload in replies]
+        return [payload for _, payload, _ in replies]
+
+    @property
+    def simplex_iterations(self) -> int:
+        """The simplex iterations of every scenario LP solved so far, in every worker."""
+        return self.local.simplex_iterations if self.local is not None else sum(self._counted)
 
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         values, grads = np.empty(self.S), None
@@ -228,6 +238,7 @@ class Master:
         self.active = np.zeros(0, dtype=np.int64)  # pool ids of the cut rows, in master row order
         self.incumbent = None
         self.last = None
+        self.work = (0, 0)  # the simplex iterations and nodes of the last solve (``highs.work``)
 
     def first_stage_cost(self, x: np.ndarray) -> float:
         return exact.dot(self.cost, x)
@@ -236,12 +247,13 @@ class Master:
         """Objective (1) of first stage ``x`` whose scenario recourse costs are ``values``: an upper bound."""
         return self.first_stage_cost(x) + exact.dot(self.probability, values)
 
-    def cut_at(self, pool: ScenarioPool, x: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """Evaluate ``x`` on the scenario LPs and add its cuts: Q_s(x), the expected cost, the seconds it took."""
-        t0 = time.perf_counter()
+    def cut_at(self, pool: ScenarioPool, x: np.ndarray) -> tuple[np.ndarray, float, float, int]:
+        """Evaluate ``x`` on the scenario LPs and add its cuts: Q_s(x), the expected cost, the seconds and the simplex
+        iterations it took."""
+        t0, before = time.perf_counter(), pool.simplex_iterations
         values, grads = pool.evaluate(x)
         self.add_cuts(x, values, grads)
-        return values, self.expected_cost(x, values), time.perf_counter() - t0
+        return values, self.expected_cost(x, values), time.perf_counter() - t0, pool.simplex_iterations - before
 
     def add_cuts(self, x: np.ndarray, values: np.ndarray, grads: np.ndarray) -> None:
         """theta_s - g_s x >= Q_s(x^) - g_s x^ for every scenario s: into the pool, and active in the master."""
@@ -290,6 +302,7 @@ class Master:
             self.h.setSolution(self._start())
         self.h.run()
         info, status = self.h.getInfo(), self.h.getModelStatus()
+        self.work = work(info)
         # Nothing below the cutoff: HiGHS says infeasible, or, started from an incumbent above it, returns that
         # incumbent as optimal with its value as the bound; either way the master's optimum is at the cutoff or above.
         if not relaxed and cutoff is not None and (status == highspy.HighsModelStatus.kInfeasible or (
@@ -314,6 +327,7 @@ class Master:
         fix_columns(self.h, self.x_cols, x)
         self.h.setOptionValue("objective_bound", INF)
         self.h.run()
+        self.work = work(self.h.getInfo())
         ok = self.h.getModelStatus() == highspy.HighsModelStatus.kOptimal
         col = np.asarray(self.h.getSolution().col_value) if ok else None
         self.h.changeColsBounds(len(self.x_cols), self.x_cols, lower, upper)
@@ -366,26 +380,33 @@ class Found:
 ITERATIONS = ("lp", "milp", "tree")  # the trace's phases that are iterations: a master solved
 
 
+WORK = ("master_simplex_iterations", "master_nodes", "subproblems_simplex_iterations")  # a trace row's work
+
+
 @dataclass
 class Trace:
-    """Where the time went: per row (phase, lower bound, upper bound, master s, subproblem s). A row is an
-    iteration (``lp``, ``milp``, ``tree``), a start evaluated between them (``start``, ``start_set_aside``), or a
-    stalled search's new master (``regroup``, its seconds to build as the master's); the last three solve no master
+    """Where the time and the work went: per row the phase, the lower and upper bounds, the master's seconds,
+    simplex iterations and nodes, and the subproblems' seconds and simplex iterations (they are LPs: no nodes). A row
+    is an iteration (``lp``, ``milp``, ``tree``), a start evaluated between them (``start``, ``start_set_aside``: the
+    master's work is the LP that completes the start), or a stalled search's new master (``regroup``, its seconds to
+    build as the master's, and its work the LP that completes the incumbent in it); the last three solve no master
     and are not counted in ``iterations``."""
 
     rows: list = field(default_factory=list)
     build_s: float = 0.0
 
-    def add(self, phase, lb, ub, master_s, sub_s):
+    def add(self, phase, lb, ub, master_s, sub_s, master_work: tuple[int, int] = (0, 0), sub_iterations: int = 0):
         self.rows.append({"phase": phase, "lower_bound": lb, "upper_bound": ub, "master_s": master_s,
-                          "subproblems_s": sub_s})
+                          "subproblems_s": sub_s, "master_simplex_iterations": master_work[0],
+                          "master_nodes": master_work[1], "subproblems_simplex_iterations": sub_iterations})
 
     def summary(self) -> dict:
         master = sum(r["master_s"] for r in self.rows)
         sub = sum(r["subproblems_s"] for r in self.rows)
         return {"iterations": sum(r["phase"] in ITERATIONS for r in self.rows),
                 "lp_iterations": sum(r["phase"] == "lp" for r in self.rows),
-                "build_s": self.build_s, "master_s": master, "subproblems_s": sub}
+                "build_s": self.build_s, "master_s": master, "subproblems_s": sub,
+                **{k: sum(r[k] for r in self.rows) for k in WORK}}
 
 
 class Stall:
@@ -449,16 +470,16 @@ def solve_decomposed(case: Case, scen: ScenarioSet, params: Params, *, gap: floa
                 t0 = time.perf_counter()
                 master = master.regrouped(case, scen, params, islanding_groups(scen))
                 built_s = time.perf_counter() - t0
-                trace.add("regroup", lower, upper, built_s, 0.0)
+                trace.add("regroup", lower, upper, built_s, 0.0, master.work)
                 report("stalled: one relaxation group per islanding pattern after iteration", lower, upper, built_s)
             x, bound, master_s = master_solve()
             lower = max(lower, bound)
             if x is None:  # every x left costs (1 - gap) x the best value or more: the best is certified
-                trace.add("milp", bound, upper, master_s, 0.0)
+                trace.add("milp", bound, upper, master_s, 0.0, master.work)
                 report("integer master, iteration", lower, upper, master_s)
                 break
-            values, value, sub_s = master.cut_at(pool, x)
-            trace.add("milp", bound, value, master_s, sub_s)
+            values, value, sub_s, sub_iterations = master.cut_at(pool, x)
+            trace.add("milp", bound, value, master_s, sub_s, master.work, sub_iterations)
             if value < upper:
                 upper, best = value, x
                 master.remember(x, values)
@@ -482,11 +503,11 @@ def begin_from(master: Master, pool: ScenarioPool, trace: Trace, x: np.ndarray) 
     bound = trace.rows[-1]["lower_bound"]
     col = master.completion(x)
     if col is None:
-        trace.add("start_set_aside", bound, trace.rows[-1]["upper_bound"], 0.0, 0.0)
+        trace.add("start_set_aside", bound, trace.rows[-1]["upper_bound"], 0.0, 0.0, master.work)
         return np.inf, None
-    values, value, sub_s = master.cut_at(pool, x)
+    values, value, sub_s, sub_iterations = master.cut_at(pool, x)
     master.remember(x, values, col)
-    trace.add("start", bound, value, 0.0, sub_s)
+    trace.add("start", bound, value, 0.0, sub_s, master.work, sub_iterations)
     return value, x
 
 
@@ -531,8 +552,8 @@ def relax(master: Master, pool: ScenarioPool, trace: Trace, deadline: float | No
         x_master, _, bound = master.solve(relaxed=True, gap=gap, time_limit=None)
         master_s = time.perf_counter() - t0
         x = x_master if core is None else stability * x_master + (1 - stability) * core
-        _, value, sub_s = master.cut_at(pool, x)
-        trace.add("lp", bound, value, master_s, sub_s)
+        _, value, sub_s, sub_iterations = master.cut_at(pool, x)
+        trace.add("lp", bound, value, master_s, sub_s, master.work, sub_iterations)
         if value < core_value:
             core, core_value = x, value
         report("LP relaxation, iteration", bound, core_value, master_s)
@@ -591,8 +612,10 @@ def schedule_of(case: Case, scen: ScenarioSet, params: Params, found: Found, tra
     """The schedule of what a decomposed search (``method``) found, in ``total`` seconds."""
     summary = trace.summary()
     timings = Timings(build_s=summary["build_s"], solve_s=total - summary["build_s"], total_s=total)
+    work_done = {"simplex_iterations": summary["master_simplex_iterations"] + summary["subproblems_simplex_iterations"],
+                 "nodes": summary["master_nodes"], "highs_threads": HIGHS_THREADS}
     return found_schedule(case, scen, params, found, timings,
-                          {"method": method, "decomposition": summary, "trace": trace.rows})
+                          {"method": method, "work": work_done, "decomposition": summary, "trace": trace.rows})
 
 
 def found_schedule(case: Case, scen: ScenarioSet, params: Params, found: Found, timings: Timings,

@@ -13,7 +13,7 @@ from scenarios.horizon import HOURS
 
 from ..model import Model, Params, build, dp_plus_of
 from ..schedule import CostBreakdown, Dispatch, FirstStage, StochasticSchedule, Timings
-from .highs import FEASIBLE, HIGHS_THREADS
+from .highs import FEASIBLE, HIGHS_THREADS, work
 
 
 class SolveError(RuntimeError):
@@ -61,6 +61,7 @@ def solve_model(model: Model, start: float, *, gap: float = 0.005, time_limit: f
     offset = objective - info.objective_function_value
     bound = float(info.mip_dual_bound) + offset if model.problem.is_mixed_integer() else objective
     solve_s = float(stats.solve_time)
+    simplex_iterations, nodes = work(info)
     return StochasticSchedule(
         status=status,
         objective=objective,
@@ -76,6 +77,8 @@ def solve_model(model: Model, start: float, *, gap: float = 0.005, time_limit: f
         unit_names=tuple(u.name for u in case.units),
         load_names=tuple(d.name for d in case.loads),
         take_award=params.take_award,
+        extra={"method": "extensive",
+               "work": {"simplex_iterations": simplex_iterations, "nodes": nodes, "highs_threads": HIGHS_THREADS}},
     )
 
 

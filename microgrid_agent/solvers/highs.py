@@ -92,6 +92,13 @@ def highs_model(data: dict, integer: bool = True) -> highspy.Highs:
     return h
 
 
+def work(info: highspy.HighsInfo) -> tuple[int, int]:
+    """The simplex iterations and branch-and-bound nodes of the HiGHS solve whose ``info`` this is: the same on every
+    machine, where its seconds are not. A MIP's simplex iterations are every LP iteration of its tree (the nodes',
+    strong branching's, separation's and its heuristics' LPs); an LP has no nodes (HiGHS says -1)."""
+    return max(int(info.simplex_iteration_count), 0), max(int(info.mip_node_count), 0)
+
+
 def column_bounds(data: dict) -> tuple[np.ndarray, np.ndarray]:
     """The columns' lower and upper bounds in cvxpy's data (infinite where it gives none)."""
     n = data["A"].shape[1]

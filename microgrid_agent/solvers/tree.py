@@ -102,10 +102,12 @@ class _Tree:
         # The scenario rows are hidden from presolving, so it may not fix variables by dual arguments.
         m.setBoolParam("misc/allowstrongdualreds", False)
         m.setBoolParam("misc/allowweakdualreds", False)
-        t0 = time.perf_counter()
+        t0, before = time.perf_counter(), self.pool.simplex_iterations
         m.optimize()
         tree_s = time.perf_counter() - t0
-        self.trace.add("tree", m.getDualbound(), self.value, tree_s - self.evaluation_s, self.evaluation_s)
+        # the master's work here is SCIP's: the simplex iterations of its LPs and its nodes
+        self.trace.add("tree", m.getDualbound(), self.value, tree_s - self.evaluation_s, self.evaluation_s,
+                       (m.getNLPIterations(), m.getNNodes()), self.pool.simplex_iterations - before)
         if progress:
             progress(f"tree: bound {m.getDualbound():,.2f}, best {self.value:,.2f} "
                      f"({apart(m.getDualbound(), self.value):.2%} apart), {m.getNNodes()} nodes, "

@@ -187,6 +187,7 @@ def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
 @pytest.mark.slow  # a benchmark's run: every route, SCIP's included, on two seeds
 def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_the_median(capsys):
     from dmosim.bench import solver
+    from microgrid_agent.solvers.benders import ITERATIONS
 
     args = argparse.Namespace(scenarios=[1], subperiods=1, gap=0.01, cap=60.0, workers=1, seed=4, seeds=2, routes=None)
     result = solver.run(args)
@@ -198,6 +199,12 @@ def test_solver_bench_runs_every_route_on_every_seed_verifies_and_summarises_by_
             assert runs[route]["bound"] <= runs["extensive"]["objective"] * (1 + 1e-6)
         for r in runs.values():
             assert 0.99 < sum(r[k] for k in solver.SHARES) <= 1 + 1e-9 or r["route"] == "extensive"
+            # the work beside the seconds: in all, and for a decomposition step by step in the trace
+            assert r["simplex_iterations"] > 0 and r["nodes"] >= 0
+            steps = [t for t in result["trace"] if (t["seed"], t["route"]) == (seed, r["route"])]
+            assert sum(t["phase"] in ITERATIONS for t in steps) == r.get("iterations", 0)  # the extensive form: none
+            for k in ("master_simplex_iterations", "master_nodes", "subproblems_simplex_iterations"):
+                assert r.get(k, 0) == sum(t[k] for t in steps)
     lines = {line["route"]: line for line in result["summary"]}
     assert list(lines) == list(solver.TIMED_ROUTES) and lines["benders"]["over_benders"] == 1.0
     for route, line in lines.items():

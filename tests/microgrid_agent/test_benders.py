@@ -29,6 +29,7 @@ from microgrid_agent.instance import make_instance
 from microgrid_agent.model import DeviationCost, first_stage_variables, variables
 from microgrid_agent.solvers.relaxation import group_means, group_relaxation, islanding_groups
 from microgrid_agent.solvers.extensive import SolveError, solve
+from microgrid_agent.solvers.highs import HIGHS_THREADS
 from scenarios.case import HOURS, load_case
 
 GAP = 0.005
@@ -49,6 +50,33 @@ def test_benders_agrees_with_the_extensive_form_within_the_gap(small, workers):
     assert schedule.objective >= reference.bound * (1 - 1e-6)
     assert schedule.mip_gap <= GAP + 1e-9
     assert schedule.objective <= reference.objective * (1 + GAP) + 1e-6
+
+
+def test_every_route_reports_its_work_and_a_decomposition_step_by_step(small):
+    """Simplex iterations and nodes beside the seconds (docs/solver.md, "What a solve reports"): the trace's rows add
+    up to the decomposition's sums and those to the solve's work; LP masters have no nodes (a warm one whose new cuts
+    its optimum meets has no simplex iterations either), an integer one at least its root; the extensive form reports
+    its one MILP's. Every HiGHS ran on the pinned thread count."""
+    schedule = solve_decomposed(small.case, small.scen, small.params, gap=GAP, workers=1)
+    rows, sums, work = schedule.extra["trace"], schedule.extra["decomposition"], schedule.extra["work"]
+    for k in benders.WORK:
+        assert sums[k] == sum(r[k] for r in rows)
+    assert work == {"simplex_iterations": sums["master_simplex_iterations"] + sums["subproblems_simplex_iterations"],
+                    "nodes": sums["master_nodes"], "highs_threads": HIGHS_THREADS}
+    assert rows[0]["master_simplex_iterations"] > 0 and rows[0]["subproblems_simplex_iterations"] > 0  # cold starts
+    assert all(r["master_nodes"] == 0 for r in rows if r["phase"] == "lp")
+    assert all(r["master_nodes"] >= 1 for r in rows if r["phase"] == "milp")
+    extensive = small.solve(gap=GAP).extra
+    assert extensive["method"] == "extensive" and extensive["work"]["simplex_iterations"] > 0
+    assert extensive["work"]["nodes"] >= 1 and extensive["work"]["highs_threads"] == HIGHS_THREADS
+
+
+@pytest.mark.slow  # a pool of two worker processes
+def test_the_work_is_the_same_on_one_worker_or_two(small):
+    """Each scenario keeps its own warm LP whichever worker holds it, so how they are spread changes no count."""
+    one, two = (solve_decomposed(small.case, small.scen, small.params, gap=GAP, workers=w) for w in (1, 2))
+    assert [{k: r[k] for k in ("lower_bound", "upper_bound", *benders.WORK)} for r in one.extra["trace"]] == \
+        [{k: r[k] for k in ("lower_bound", "upper_bound", *benders.WORK)} for r in two.extra["trace"]]
 
 
 def test_cuts_under_estimate_the_scenario_cost(small):
