@@ -49,6 +49,10 @@ class OperatingPoint:
     def v(self) -> np.ndarray:
         return np.sqrt(self.u)
 
+    def of(self, p: np.ndarray, q: np.ndarray) -> bool:
+        """Whether this is the solution at the loads ``p``, ``q`` exactly (the same bits)."""
+        return np.array_equal(self.p, p) and np.array_equal(self.q, q)
+
 
 class BranchFlow:
     """A network's branch-flow equations, sparse: ``solve`` gives the AC operating point at given loads,

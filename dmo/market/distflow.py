@@ -234,11 +234,13 @@ class Feeder:
         facets = FACETS[:, :1] * flow_p + FACETS[:, 1:] * flow_q  # 8 x lines
         return np.concatenate([facets.T.ravel(), np.column_stack([drop, -drop]).ravel()])
 
-    def violated(self, p: np.ndarray, q: np.ndarray,
-                 near: OperatingPoint | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def violated(self, p: np.ndarray, q: np.ndarray, near: OperatingPoint | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, OperatingPoint | None]:
         """The ids of the limits the loads p, q break by more than LIMIT_TOLERANCE, sorted, and by how much as a
         share of the limit (of s_max for a line facet, of U_min or U_max for a bus): in LinDistFlow, or, given an
-        AC operating point ``near`` them, in the AC flow (every limit, if it has none)."""
+        AC operating point ``near`` them, in the AC flow (every limit, if it has none). Third, the AC flow it solved
+        (None without ``near``, or where it has none)."""
+        point = None
         if near is not None:
             point = self.ac.solve(p, q, near)
             left = self.bounds + 1.0 if point is None else self.ac_left_sides(point)[0]
@@ -246,7 +248,7 @@ class Feeder:
             left = self.left_sides(p, q)
         excess = left - self.bounds
         broken = excess > LIMIT_TOLERANCE
-        return self.rows[broken], excess[broken] / self.scale[broken]
+        return self.rows[broken], excess[broken] / self.scale[broken], point
 
     def worst(self, ids: np.ndarray, share: np.ndarray, most: int) -> np.ndarray:
         """Of the broken limits ``ids``, the worst facet of each line, then the ``most`` lines and the ``most``
@@ -445,11 +447,11 @@ class _Hour:
             if dear.size:
                 shed_at = np.union1d(shed_at, dear)
                 continue
-            ids, share = self.feeder.violated(*self.loads(solution.step_mw, solution.shed(len(self.fixed_p))),
-                                              None if self.at is None else self.at.point)
+            ids, share, flow = self.feeder.violated(*self.loads(solution.step_mw, solution.shed(len(self.fixed_p))),
+                                                    None if self.at is None else self.at.point)
             new = ~np.isin(ids, rows)
             if not new.any():
-                return solution
+                return dataclasses.replace(solution, flow=flow)
             added = self.feeder.worst(ids[new], share[new], LIMITS_PER_ROUND)
             more = self.limits(added)
             rows = np.concatenate([rows, added])
@@ -469,7 +471,8 @@ class _Hour:
 class _Solution:
     """An hour's LP as last solved: its limits (ids; left sides G_P, G_Q per bus; right sides b), the buses whose
     load it may shed, how many segments P0 has, its data (c, A_eq, b_eq, A_ub, b_ub, lower, upper) and scipy's
-    result."""
+    result; at an AC operating point, ``flow``, the AC flow of its plan that constraint generation solved (None
+    where it has none, and on LinDistFlow)."""
 
     rows: np.ndarray
     g_p: np.ndarray
@@ -479,6 +482,7 @@ class _Solution:
     segments: int
     lp: tuple[np.ndarray, ...]
     res: object
+    flow: OperatingPoint | None = None
 
     @property
     def step_mw(self) -> np.ndarray:
@@ -505,7 +509,7 @@ class _Solution:
 @dataclass(frozen=True)
 class _Cleared:
     """One hour's outcome: the energy price, the label, the steps' awards, the shed load, the bus prices with
-    their components, and the limits held at their bounds."""
+    their components, the limits held at their bounds, and its LP's ``_Solution.flow``."""
 
     energy: float
     congested: str
@@ -518,6 +522,7 @@ class _Cleared:
     lines: tuple[int, ...]
     buses: tuple[int, ...]
     rows: np.ndarray  # the limits its LP held (none on the copper plate)
+    flow: OperatingPoint | None = None
 
 
 def _plate(hour: _Hour) -> _Cleared | None:
@@ -529,7 +534,7 @@ def _plate(hour: _Hour) -> _Cleared | None:
         return None
     price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
     n = len(hour.fixed_p)
-    ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
+    ids, share, _ = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
     rows = hour.feeder.worst(ids, share, LIMITS_PER_ROUND) if ids.size else np.zeros(0, int)
     zero = np.zeros(n)
     return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, (), (), rows)
@@ -627,7 +632,7 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
     else:
         congested = "line" if lines else "voltage" if buses else "none"
     return _Cleared(energy, congested, step_mw, sol.shed(len(hour.fixed_p)), bus_price, loss, congestion, voltage,
-                    lines, buses, sol.rows)
+                    lines, buses, sol.rows, sol.flow)
 
 
 def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
@@ -661,7 +666,10 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
             return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
         loads = linearised.loads(cleared.step_mw, cleared.shed)
         moved = max(np.abs(loads[0] - point.p).max(), np.abs(loads[1] - point.q).max())
-        point = hour.feeder.ac.solve(*loads, point)
+        # Constraint generation solved the AC flow of the LP's plan from this point: the awards' loads are the LP's
+        # but for rounding in a pro-rata share, and where they are the same bits, so is their AC flow.
+        known = cleared.flow
+        point = known if known is not None and known.of(*loads) else hour.feeder.ac.solve(*loads, point)
         if point is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
             return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
         hour, done = linearised, cleared
