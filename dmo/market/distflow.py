@@ -635,7 +635,7 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
                     lines, buses, sol.rows, sol.flow)
 
 
-def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
+def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
     """Clear one hour on the AC flow linearised at its own plan (docs/market.md, "AC-faithful clearing"): clear on
     LinDistFlow, solve the branch-flow equations at the plan, clear again on the AC flow linearised at that
     operating point (its limits' sensitivities and marginal losses there), until the AC flow of the plan keeps
@@ -649,39 +649,49 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     and out at the other, and each plan's AC flow is a little off the other's linearisation. Once a plan repeats
     the one two clearings before, the clearing keeps the one of the two whose AC flow breaks the limits least: its
     prices and awards are those of its own LP, and what its AC flow breaks is reported. The hour as linearised for
-    the plan kept, its clearing, and how many linearised clearings were made."""
+    the plan kept, its clearing, the AC flow of its plan (None where it has none) and how many linearised clearings
+    were made."""
+    solve = hour.feeder.ac.solve
     done = _plate(hour) or _on_feeder(hour)  # the copper plate's plan, with the limits it breaks to start from
-    point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+    point = solve(*hour.loads(done.step_mw, done.shed))
     if point is None:  # the copper plate's plan has no AC solution: LinDistFlow's, which keeps its limits, may
         done = _on_feeder(hour)
-        point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+        point = solve(*hour.loads(done.step_mw, done.shed))
         if point is None:
-            return hour, done, 0
-    tried: list[tuple[float, _Hour, _Cleared]] = []  # each linearised clearing, and how far its plan's AC flow breaks
+            return hour, done, None, 0
+    # each linearised clearing, how far its plan's AC flow breaks the limits, and that flow
+    tried: list[tuple[float, _Hour, _Cleared, OperatingPoint]] = []
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
         linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point))
         try:
             cleared = _on_feeder(linearised, done.rows)
         except ValueError:  # no plan meets the limits linearised there: the last one that did, or LinDistFlow's
-            return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
+            return (hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
         loads = linearised.loads(cleared.step_mw, cleared.shed)
         moved = max(np.abs(loads[0] - point.p).max(), np.abs(loads[1] - point.q).max())
         # Constraint generation solved the AC flow of the LP's plan from this point: the awards' loads are the LP's
         # but for rounding in a pro-rata share, and where they are the same bits, so is their AC flow.
         known = cleared.flow
-        point = known if known is not None and known.of(*loads) else hour.feeder.ac.solve(*loads, point)
-        if point is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
-            return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
-        hour, done = linearised, cleared
+        flow = known if known is not None and known.of(*loads) else solve(*loads, point)
+        if flow is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
+            return (hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
+        hour, done, point = linearised, cleared, flow
         broken = max(_voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
                      _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
         if broken <= 1.0 and moved <= AC_PLAN_TOLERANCE:
             break
-        tried.append((broken, hour, done))
+        tried.append((broken, hour, done, point))
         if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max(initial=0.0) <= AC_CYCLE_TOLERANCE:
-            _, hour, done = min(tried[-2:], key=lambda t: t[0])
+            _, hour, done, point = min(tried[-2:], key=lambda t: t[0])
             break
-    return hour, done, iteration
+    return hour, done, point, iteration
+
+
+def _lindistflow(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
+    """The hour's LinDistFlow clearing as ``_ac_faithful`` answers it: the hour, its clearing, the AC flow of its plan
+    (None where it has none) and no linearised clearing."""
+    done = _on_feeder(hour)
+    return hour, done, hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed)), 0
 
 
 # --- the day ------------------------------------------------------------------------------------------------------
@@ -783,17 +793,16 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
     """
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
                                      margin, curve, method, spill_price)
-    out, columns, iterations = [], [], []
-    for h in range(HOURS):
-        hour = make(h)
-        hour, done, k = _ac_faithful(hour) if method == "ac" else (hour, _on_feeder(hour), 0)
+    out, points, columns, iterations = [], [], [], []
+    for h in range(HOURS):  # each hour's clearing and the AC flow of its plan (None where it has none)
+        hour, done, point, k = (_ac_faithful if method == "ac" else _lindistflow)(make(h))
         out.append((hour, done))
+        points.append(point)
         iterations.append(k)
         columns.append(per_agent(hour.book, done.step_mw, len(names)))
     flows_p, flows_q, volts, exchange, welfare, excess, overload = [], [], [], [], [], [], []
-    for hour, done in out:
+    for (hour, done), point in zip(out, points):
         p, q = hour.loads(done.step_mw, done.shed)
-        point = feeder.ac.solve(p, q)
         excess.append(math.nan if point is None else _voltage_excess(network, point.v))
         overload.append(math.nan if point is None else _overload(feeder, point))
         if method == "ac" and point is not None:
