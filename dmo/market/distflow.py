@@ -35,7 +35,7 @@ from scenarios import exact
 from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
-from .branchflow import BranchFlow, OperatingPoint
+from .branchflow import Adjoint, BranchFlow, OperatingPoint
 from .clearing import (CLEARING_METHODS, FLAT, BidCurve, Book, IsoCurve, Segments, accepted_fractions,
                        clear_on_curve, hour_book, market_inputs, per_agent, segments)
 
@@ -158,14 +158,15 @@ class Linearised:
     """The feeder's AC flow linearised at an operating point (``Feeder.linearised``): ``values`` (one per limit,
     in ``Feeder.rows`` order), each limit's left side in the AC flow there; ``child_end`` (8 x lines), which end
     of its line each facet reads; ``lf_p``, ``lf_q`` (per bus) the losses' marginal factors. Each limit's
-    sensitivities there come from ``branchflow.BranchFlow.sensitivities``: the LP's limits are then the AC flow's
-    to first order, exactly at the point."""
+    sensitivities there come from ``adjoint`` (``branchflow.Adjoint.sensitivities``): the LP's limits are then the
+    AC flow's to first order, exactly at the point."""
 
     point: OperatingPoint
     values: np.ndarray
     child_end: np.ndarray
     lf_p: np.ndarray
     lf_q: np.ndarray
+    adjoint: Adjoint
 
 
 # --- the feeder as sparse sensitivities ---------------------------------------------------------------------------
@@ -202,7 +203,8 @@ class Feeder:
     def linearised(self, point: OperatingPoint) -> Linearised:
         """The feeder's limits and losses linearised at the AC operating point ``point`` (``Linearised``)."""
         values, child_end = self.ac_left_sides(point)
-        return Linearised(point, values, child_end, *self.ac.loss_factors(point))
+        adjoint = self.ac.adjoint(point)
+        return Linearised(point, values, child_end, *adjoint.loss_factors(), adjoint)
 
     def ac_left_sides(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray]:
         """Every limit's left side (as ``left_sides``) in the AC flow ``point``, and per line facet (8 x lines)
@@ -368,7 +370,7 @@ class _Hour:
         gradient["g_l"][line, facets] = -np.where(at.child_end[facet, line], n_p * feeder.ac.r[line]
                                                   + n_q * feeder.ac.x[line], 0.0)
         gradient["g_u"][net.line_to[bus], len(line) + np.arange(len(bus))] = np.where(upper == 1, 1.0, -1.0)
-        g_p, g_q = feeder.ac.sensitivities(at.point, **gradient)
+        g_p, g_q = at.adjoint.sensitivities(**gradient)
         where = np.searchsorted(feeder.rows, grouped)
         b = (feeder.bounds[where] - at.values[where] + exact.matvec(g_p, at.point.p - self.fixed_p)
              + exact.matvec(g_q, at.point.q - self.fixed_q))
