@@ -194,10 +194,17 @@ class Adjoint:
     m_ba: np.ndarray
     m_bb: np.ndarray
 
-    def loss_factors(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per bus, d losses / d p_j and d losses / d q_j (MW per MW, per Mvar; 0 at the substation)."""
-        lf_p, lf_q = self.sensitivities(g_l=self.flow.r[:, None])  # the losses are sum r l
-        return lf_p[0], lf_q[0]
+    def loss_factors(self, **gradients: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per bus, d losses / d p_j and d losses / d q_j (MW per MW, per Mvar; 0 at the substation); then the
+        sensitivities of k more quantities given as ``sensitivities`` takes them (none by default, k = 0), from the
+        same passes. Each quantity's arithmetic is its own: the bits are those of separate calls."""
+        n = self.flow.network.n_lines
+        k = next((np.shape(g)[1] for g in gradients.values()), 0)
+        losses = {"g_l": self.flow.r[:, None]}  # the losses are sum r l
+        dp, dq = self.sensitivities(**{name: np.hstack([losses.get(name, np.zeros((n, 1))),
+                                                        gradients.get(name, np.zeros((n, k)))])
+                                       for name in ("g_p", "g_q", "g_l", "g_u")})
+        return dp[0], dq[0], dp[1:], dq[1:]
 
     def sensitivities(self, g_p=None, g_q=None, g_l=None, g_u=None) -> tuple[np.ndarray, np.ndarray]:
         """The sensitivities of k quantities that are each linear in the lines' flows, currents and voltages, y =

@@ -159,7 +159,8 @@ class Linearised:
     in ``Feeder.rows`` order), each limit's left side in the AC flow there; ``child_end`` (8 x lines), which end
     of its line each facet reads; ``lf_p``, ``lf_q`` (per bus) the losses' marginal factors. Each limit's
     sensitivities there come from ``adjoint`` (``branchflow.Adjoint.sensitivities``): the LP's limits are then the
-    AC flow's to first order, exactly at the point."""
+    AC flow's to first order, exactly at the point. Those of the limits ``rows`` (in ``Feeder.grouped`` order), the
+    first an hour's LP there holds, were solved with the loss factors: ``g_p``, ``g_q`` (rows x buses)."""
 
     point: OperatingPoint
     values: np.ndarray
@@ -167,6 +168,9 @@ class Linearised:
     lf_p: np.ndarray
     lf_q: np.ndarray
     adjoint: Adjoint
+    rows: np.ndarray
+    g_p: np.ndarray
+    g_q: np.ndarray
 
 
 # --- the feeder as sparse sensitivities ---------------------------------------------------------------------------
@@ -200,11 +204,35 @@ class Feeder:
         self.scale = np.concatenate([np.repeat(self.s_max, 8), np.column_stack([self.u_min[j], self.u_max[j]]).ravel()])
         self.ac = BranchFlow(network)
 
-    def linearised(self, point: OperatingPoint) -> Linearised:
-        """The feeder's limits and losses linearised at the AC operating point ``point`` (``Linearised``)."""
+    def linearised(self, point: OperatingPoint, rows: np.ndarray) -> Linearised:
+        """The feeder's limits and losses linearised at the AC operating point ``point`` (``Linearised``), the
+        sensitivities of the limits ``rows`` (those the hour's first LP there holds) solved with the loss factors."""
         values, child_end = self.ac_left_sides(point)
-        adjoint = self.ac.adjoint(point)
-        return Linearised(point, values, child_end, *adjoint.loss_factors(), adjoint)
+        adjoint, rows = self.ac.adjoint(point), self.grouped(np.unique(rows))
+        lf_p, lf_q, g_p, g_q = adjoint.loss_factors(**self.gradients(child_end, rows))
+        return Linearised(point, values, child_end, lf_p, lf_q, adjoint, rows, g_p, g_q)
+
+    def grouped(self, rows: np.ndarray) -> np.ndarray:
+        """The limits ``rows`` in the order ``limits`` gives their left and right sides: the lines' facets first."""
+        base = 8 * self.network.n_lines
+        return np.concatenate([rows[rows < base], rows[rows >= base]])
+
+    def gradients(self, child_end: np.ndarray, grouped: np.ndarray) -> dict[str, np.ndarray]:
+        """The limits ``grouped`` as quantities of the branch flow (``branchflow.Adjoint.sensitivities``' g_p, g_q,
+        g_l, g_u, lines x limits), each facet read at the end ``child_end`` gives it (``ac_left_sides``): facet n of
+        line l is n_P P_l + n_Q Q_l, less n_P r_l l_l + n_Q x_l l_l at the child end; a bus's lower voltage limit
+        is -U, its upper one U."""
+        net, base = self.network, 8 * self.network.n_lines
+        line, facet = divmod(grouped[grouped < base], 8)
+        bus, upper = divmod(grouped[grouped >= base] - base, 2)
+        gradient = {g: np.zeros((net.n_lines, len(grouped))) for g in ("g_p", "g_q", "g_l", "g_u")}
+        facets = np.arange(len(line))
+        n_p, n_q = FACETS[facet, 0], FACETS[facet, 1]
+        gradient["g_p"][line, facets], gradient["g_q"][line, facets] = n_p, n_q
+        gradient["g_l"][line, facets] = -np.where(child_end[facet, line], n_p * self.ac.r[line]
+                                                  + n_q * self.ac.x[line], 0.0)
+        gradient["g_u"][net.line_to[bus], len(line) + np.arange(len(bus))] = np.where(upper == 1, 1.0, -1.0)
+        return gradient
 
     def ac_left_sides(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray]:
         """Every limit's left side (as ``left_sides``) in the AC flow ``point``, and per line facet (8 x lines)
@@ -290,8 +318,7 @@ class Feeder:
         path = self.DT[bus]  # the lines from the substation to each bus
         g_p = np.vstack([FACETS[facet, :1] * d, sign * (path @ self.D_r).toarray()])
         g_q = np.vstack([FACETS[facet, 1:] * d, sign * (path @ self.D_x).toarray()])
-        grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # the lines' rows first, as g_p and g_q
-        return g_p, g_q, self.bounds[np.searchsorted(self.rows, grouped)]
+        return g_p, g_q, self.bounds[np.searchsorted(self.rows, self.grouped(rows))]
 
     def row_names(self, rows: np.ndarray) -> tuple[str, ...]:
         net, base = self.network, 8 * self.network.n_lines
@@ -358,19 +385,11 @@ class _Hour:
         feeder = self.feeder
         if self.at is None:
             return feeder.limits(rows)
-        net, at = feeder.network, self.at
-        base = 8 * net.n_lines
-        grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # as Feeder.limits: lines' rows first
-        line, facet = divmod(grouped[grouped < base], 8)
-        bus, upper = divmod(grouped[grouped >= base] - base, 2)
-        gradient = {g: np.zeros((net.n_lines, len(grouped))) for g in ("g_p", "g_q", "g_l", "g_u")}
-        facets = np.arange(len(line))
-        n_p, n_q = FACETS[facet, 0], FACETS[facet, 1]
-        gradient["g_p"][line, facets], gradient["g_q"][line, facets] = n_p, n_q
-        gradient["g_l"][line, facets] = -np.where(at.child_end[facet, line], n_p * feeder.ac.r[line]
-                                                  + n_q * feeder.ac.x[line], 0.0)
-        gradient["g_u"][net.line_to[bus], len(line) + np.arange(len(bus))] = np.where(upper == 1, 1.0, -1.0)
-        g_p, g_q = at.adjoint.sensitivities(**gradient)
+        at, grouped = self.at, feeder.grouped(rows)
+        if np.array_equal(grouped, at.rows):  # the limits the linearisation solved with the loss factors
+            g_p, g_q = at.g_p, at.g_q
+        else:
+            g_p, g_q = at.adjoint.sensitivities(**feeder.gradients(at.child_end, grouped))
         where = np.searchsorted(feeder.rows, grouped)
         b = (feeder.bounds[where] - at.values[where] + exact.matvec(g_p, at.point.p - self.fixed_p)
              + exact.matvec(g_q, at.point.q - self.fixed_q))
@@ -664,7 +683,7 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, i
     # each linearised clearing, how far its plan's AC flow breaks the limits, and that flow
     tried: list[tuple[float, _Hour, _Cleared, OperatingPoint]] = []
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
-        linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point))
+        linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point, done.rows))
         try:
             cleared = _on_feeder(linearised, done.rows)
         except ValueError:  # no plan meets the limits linearised there: the last one that did, or LinDistFlow's

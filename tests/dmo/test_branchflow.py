@@ -61,7 +61,7 @@ def test_the_sensitivities_and_loss_factors_are_the_derivatives_of_the_solution(
     g["g_p"][3, 0], g["g_q"][10, 1], g["g_l"][5, 2], g["g_u"][20, 3] = 1.0, 1.0, 1.0, 1.0
     adjoint = flow.adjoint(point)
     dp, dq = adjoint.sensitivities(**g)
-    lf_p, lf_q = adjoint.loss_factors()
+    lf_p, lf_q, _, _ = adjoint.loss_factors()
 
     def quantities(pt):
         return np.array([pt.flow_p[3], pt.flow_q[10], pt.current2[5], pt.u[net.child[20]], pt.losses])
