@@ -69,8 +69,8 @@ class BranchFlow:
         self.u0 = network.v_substation ** 2
         # The tree depth by depth, for the adjoint's elimination: the lines renumbered by depth (``order``; line l is
         # ``place[l]``), each depth's lines grouped by their parent's place, so that a line's children are one run of
-        # the next depth. Per depth: its slice, each line's parent's place in the depth above (``parent``), and the
-        # runs of its lines that share a parent (where each starts, and that parent's place in the depth above).
+        # the next depth. Per depth: its slice, each line's parent's place (``parent``; 0 at depth 1, which has none),
+        # and the runs of its lines that share a parent (where each starts in the slice, and that parent's place).
         n = network.n_lines
         depth = np.bincount(self.below.indices, minlength=n)  # the lines on each line's path, itself included
         up = network.line_to[network.parent]  # each line's parent line (-1 for a line leaving the substation)
@@ -82,7 +82,6 @@ class BranchFlow:
             lines, parent = lines[np.argsort(parent, kind="stable")], np.sort(parent, kind="stable")
             self.place[lines] = start + np.arange(len(lines))
             self.order = np.concatenate([self.order, lines])
-            parent -= self.depths[-1][0].start if self.depths else 0
             runs = np.flatnonzero(np.diff(parent, prepend=-1) != 0)
             self.depths.append((slice(start, start + len(lines)), parent, runs, parent[runs]))
             start += len(lines)
@@ -145,7 +144,7 @@ class BranchFlow:
         phi, psi, big_phi, big_psi, alpha, beta, gamma = (np.zeros(net.n_lines) for _ in range(7))
         for (here, _, _, _), (below, _, runs, owners) in zip(self.depths[::-1], [(None,) * 4] + self.depths[:0:-1]):
             if below is not None:  # the children's phi, psi, summed per parent
-                big_phi[here][owners], big_psi[here][owners] = (np.add.reduceat(v[below], runs) for v in (phi, psi))
+                big_phi[owners], big_psi[owners] = np.add.reduceat(phi[below], runs), np.add.reduceat(psi[below], runs)
             alpha[here] = 1.0 / (1.0 + 2 * (r[here] * big_phi[here] + x[here] * big_psi[here]))
             beta[here] = 2 * alpha[here] * (flow_p[here] * big_phi[here] + flow_q[here] * big_psi[here])
             gamma[here] = 1.0 / (sending[here] - 2 * (r[here] * flow_p[here] + x[here] * flow_q[here])
@@ -219,13 +218,13 @@ class Adjoint:
         big_g, tau = g_u.copy(), np.zeros((n, k))
         for (here, _, _, _), (below, _, runs, owners) in zip(flow.depths[::-1], [(None,) * 4] + flow.depths[:0:-1]):
             if below is not None:
-                big_g[here][owners] += np.add.reduceat(tau[below], runs, axis=0)
+                big_g[owners] += np.add.reduceat(tau[below], runs, axis=0)
             tau[here] = self.omega[here] * big_g[here] + own[here]
         c = self.c_g * big_g + self.c_a * g_p + self.c_b * g_q + self.c_l * g_l
         d = self.d_g * big_g + self.d_a * g_p + self.d_b * g_q + self.d_c * c
         a, b = g_p + self.p2 * c - self.r2 * d, g_q + self.q2 * c - self.x2 * d  # with the parent's a = b = 0
-        for (above, _, _, _), (here, parent, _, _) in zip(flow.depths, flow.depths[1:]):
-            parent_a, parent_b = a[above][parent], b[above][parent]
+        for here, parent, _, _ in flow.depths[1:]:
+            parent_a, parent_b = a[parent], b[parent]
             a[here] += self.m_aa[here] * parent_a + self.m_ab[here] * parent_b
             b[here] += self.m_ba[here] * parent_a + self.m_bb[here] * parent_b
         line = flow.network.line_to
