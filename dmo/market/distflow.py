@@ -35,7 +35,7 @@ from scenarios import exact
 from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
-from .branchflow import BranchFlow, OperatingPoint
+from .branchflow import Adjoint, BranchFlow, OperatingPoint
 from .clearing import (CLEARING_METHODS, FLAT, BidCurve, Book, IsoCurve, Segments,
                        clear_on_curve, hour_book, market_inputs, per_agent, segments)
 
@@ -181,14 +181,19 @@ class Linearised:
     """The feeder's AC flow linearised at an operating point (``Feeder.linearised``): ``values`` (one per limit,
     in ``Feeder.rows`` order), each limit's left side in the AC flow there; ``child_end`` (8 x lines), which end
     of its line each facet reads; ``lf_p``, ``lf_q`` (per bus) the losses' marginal factors. Each limit's
-    sensitivities there come from ``branchflow.BranchFlow.sensitivities``: the LP's limits are then the AC flow's
-    to first order, exactly at the point."""
+    sensitivities there come from ``adjoint`` (``branchflow.Adjoint.sensitivities``): the LP's limits are then the
+    AC flow's to first order, exactly at the point. Those of the limits ``rows`` (in ``Feeder.grouped`` order), the
+    first an hour's LP there holds, were solved with the loss factors: ``g_p``, ``g_q`` (rows x buses)."""
 
     point: OperatingPoint
     values: np.ndarray
     child_end: np.ndarray
     lf_p: np.ndarray
     lf_q: np.ndarray
+    adjoint: Adjoint
+    rows: np.ndarray
+    g_p: np.ndarray
+    g_q: np.ndarray
 
 
 # --- the feeder as sparse sensitivities ---------------------------------------------------------------------------
@@ -222,10 +227,35 @@ class Feeder:
         self.scale = np.concatenate([np.repeat(self.s_max, 8), np.column_stack([self.u_min[j], self.u_max[j]]).ravel()])
         self.ac = BranchFlow(network)
 
-    def linearised(self, point: OperatingPoint) -> Linearised:
-        """The feeder's limits and losses linearised at the AC operating point ``point`` (``Linearised``)."""
+    def linearised(self, point: OperatingPoint, rows: np.ndarray) -> Linearised:
+        """The feeder's limits and losses linearised at the AC operating point ``point`` (``Linearised``), the
+        sensitivities of the limits ``rows`` (those the hour's first LP there holds) solved with the loss factors."""
         values, child_end = self.ac_left_sides(point)
-        return Linearised(point, values, child_end, *self.ac.loss_factors(point))
+        adjoint, rows = self.ac.adjoint(point), self.grouped(np.unique(rows))
+        lf_p, lf_q, g_p, g_q = adjoint.loss_factors(**self.gradients(child_end, rows))
+        return Linearised(point, values, child_end, lf_p, lf_q, adjoint, rows, g_p, g_q)
+
+    def grouped(self, rows: np.ndarray) -> np.ndarray:
+        """The limits ``rows`` in the order ``limits`` gives their left and right sides: the lines' facets first."""
+        base = 8 * self.network.n_lines
+        return np.concatenate([rows[rows < base], rows[rows >= base]])
+
+    def gradients(self, child_end: np.ndarray, grouped: np.ndarray) -> dict[str, np.ndarray]:
+        """The limits ``grouped`` as quantities of the branch flow (``branchflow.Adjoint.sensitivities``' g_p, g_q,
+        g_l, g_u, lines x limits), each facet read at the end ``child_end`` gives it (``ac_left_sides``): facet n of
+        line l is n_P P_l + n_Q Q_l, less n_P r_l l_l + n_Q x_l l_l at the child end; a bus's lower voltage limit
+        is -U, its upper one U."""
+        net, base = self.network, 8 * self.network.n_lines
+        line, facet = divmod(grouped[grouped < base], 8)
+        bus, upper = divmod(grouped[grouped >= base] - base, 2)
+        gradient = {g: np.zeros((net.n_lines, len(grouped))) for g in ("g_p", "g_q", "g_l", "g_u")}
+        facets = np.arange(len(line))
+        n_p, n_q = FACETS[facet, 0], FACETS[facet, 1]
+        gradient["g_p"][line, facets], gradient["g_q"][line, facets] = n_p, n_q
+        gradient["g_l"][line, facets] = -np.where(child_end[facet, line], n_p * self.ac.r[line]
+                                                  + n_q * self.ac.x[line], 0.0)
+        gradient["g_u"][net.line_to[bus], len(line) + np.arange(len(bus))] = np.where(upper == 1, 1.0, -1.0)
+        return gradient
 
     def ac_left_sides(self, point: OperatingPoint) -> tuple[np.ndarray, np.ndarray]:
         """Every limit's left side (as ``left_sides``) in the AC flow ``point``, and per line facet (8 x lines)
@@ -257,11 +287,13 @@ class Feeder:
         facets = FACETS[:, :1] * flow_p + FACETS[:, 1:] * flow_q  # 8 x lines
         return np.concatenate([facets.T.ravel(), np.column_stack([drop, -drop]).ravel()])
 
-    def violated(self, p: np.ndarray, q: np.ndarray,
-                 near: OperatingPoint | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def violated(self, p: np.ndarray, q: np.ndarray, near: OperatingPoint | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, OperatingPoint | None]:
         """The ids of the limits the loads p, q break by more than LIMIT_TOLERANCE, sorted, and by how much as a
         share of the limit (of s_max for a line facet, of U_min or U_max for a bus): in LinDistFlow, or, given an
-        AC operating point ``near`` them, in the AC flow (every limit, if it has none)."""
+        AC operating point ``near`` them, in the AC flow (every limit, if it has none). Third, the AC flow it solved
+        (None without ``near``, or where it has none)."""
+        point = None
         if near is not None:
             point = self.ac.solve(p, q, near)
             left = self.bounds + 1.0 if point is None else self.ac_left_sides(point)[0]
@@ -269,7 +301,7 @@ class Feeder:
             left = self.left_sides(p, q)
         excess = left - self.bounds
         broken = excess > LIMIT_TOLERANCE
-        return self.rows[broken], excess[broken] / self.scale[broken]
+        return self.rows[broken], excess[broken] / self.scale[broken], point
 
     def worst(self, ids: np.ndarray, share: np.ndarray, most: int) -> np.ndarray:
         """Of the broken limits ``ids``, the worst facet of each line, then the ``most`` lines and the ``most``
@@ -309,8 +341,7 @@ class Feeder:
         path = self.DT[bus]  # the lines from the substation to each bus
         g_p = np.vstack([FACETS[facet, :1] * d, sign * (path @ self.D_r).toarray()])
         g_q = np.vstack([FACETS[facet, 1:] * d, sign * (path @ self.D_x).toarray()])
-        grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # the lines' rows first, as g_p and g_q
-        return g_p, g_q, self.bounds[np.searchsorted(self.rows, grouped)]
+        return g_p, g_q, self.bounds[np.searchsorted(self.rows, self.grouped(rows))]
 
     def loading(self, left: np.ndarray) -> np.ndarray:
         """Per line, its largest facet over its rating, from every limit's left side ``left`` (``left_sides`` or
@@ -402,19 +433,11 @@ class _Hour:
         feeder = self.feeder
         if self.at is None:
             return feeder.limits(rows)
-        net, at = feeder.network, self.at
-        base = 8 * net.n_lines
-        grouped = np.concatenate([rows[rows < base], rows[rows >= base]])  # as Feeder.limits: lines' rows first
-        line, facet = divmod(grouped[grouped < base], 8)
-        bus, upper = divmod(grouped[grouped >= base] - base, 2)
-        gradient = {g: np.zeros((net.n_lines, len(grouped))) for g in ("g_p", "g_q", "g_l", "g_u")}
-        facets = np.arange(len(line))
-        n_p, n_q = FACETS[facet, 0], FACETS[facet, 1]
-        gradient["g_p"][line, facets], gradient["g_q"][line, facets] = n_p, n_q
-        gradient["g_l"][line, facets] = -np.where(at.child_end[facet, line], n_p * feeder.ac.r[line]
-                                                  + n_q * feeder.ac.x[line], 0.0)
-        gradient["g_u"][net.line_to[bus], len(line) + np.arange(len(bus))] = np.where(upper == 1, 1.0, -1.0)
-        g_p, g_q = feeder.ac.sensitivities(at.point, **gradient)
+        at, grouped = self.at, feeder.grouped(rows)
+        if np.array_equal(grouped, at.rows):  # the limits the linearisation solved with the loss factors
+            g_p, g_q = at.g_p, at.g_q
+        else:
+            g_p, g_q = at.adjoint.sensitivities(**feeder.gradients(at.child_end, grouped))
         where = np.searchsorted(feeder.rows, grouped)
         b = (feeder.bounds[where] - at.values[where] + exact.matvec(g_p, at.point.p - self.fixed_p)
              + exact.matvec(g_q, at.point.q - self.fixed_q))
@@ -493,11 +516,11 @@ class _Hour:
             if dear.size:
                 shed_at = np.union1d(shed_at, dear)
                 continue
-            ids, share = self.feeder.violated(*self.loads(solution.step_mw, solution.shed(len(self.fixed_p))),
-                                              None if self.at is None else self.at.point)
+            ids, share, flow = self.feeder.violated(*self.loads(solution.step_mw, solution.shed(len(self.fixed_p))),
+                                                    None if self.at is None else self.at.point)
             new = ~np.isin(ids, rows)
             if not new.any():
-                return solution
+                return dataclasses.replace(solution, flow=flow)
             added = self.feeder.worst(ids[new], share[new], LIMITS_PER_ROUND)
             more = self.limits(added)
             rows = np.concatenate([rows, added])
@@ -517,7 +540,8 @@ class _Hour:
 class _Solution:
     """An hour's LP as last solved: its limits (ids; left sides G_P, G_Q per bus; right sides b), the buses whose
     load it may shed, how many segments P0 has, its data (c, A_eq, b_eq, A_ub, b_ub, lower, upper) and scipy's
-    result."""
+    result; at an AC operating point, ``flow``, the AC flow of its plan that constraint generation solved (None
+    where it has none, and on LinDistFlow)."""
 
     rows: np.ndarray
     g_p: np.ndarray
@@ -527,6 +551,7 @@ class _Solution:
     segments: int
     lp: tuple[np.ndarray, ...]
     res: object
+    flow: OperatingPoint | None = None
 
     @property
     def step_mw(self) -> np.ndarray:
@@ -553,7 +578,8 @@ class _Solution:
 @dataclass(frozen=True)
 class _Cleared:
     """One hour's outcome: the energy price, the label, the steps' awards, the shed load, the bus prices with
-    their components, and the limits its LP held at their bounds (ids) with their duals as relief (>= 0)."""
+    their components, the limits its LP held at their bounds (ids) with their duals as relief (>= 0), and the AC
+    flow of its plan where the clearing solved it (``_Solution.flow``)."""
 
     energy: float
     congested: str
@@ -566,6 +592,7 @@ class _Cleared:
     held: np.ndarray
     relief: np.ndarray
     rows: np.ndarray  # the limits its LP had (none on the copper plate)
+    flow: OperatingPoint | None = None
 
 
 def _plate(hour: _Hour) -> _Cleared | None:
@@ -577,7 +604,7 @@ def _plate(hour: _Hour) -> _Cleared | None:
         return None
     price, congested, step_mw = clear_on_curve(hour.book, hour.curve, fixed)
     n = len(hour.fixed_p)
-    ids, share = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
+    ids, share, _ = hour.feeder.violated(*hour.loads(step_mw, np.zeros(n)))
     rows = hour.feeder.worst(ids, share, LIMITS_PER_ROUND) if ids.size else np.zeros(0, int)
     zero, none = np.zeros(n), np.zeros(0, int)
     return _Cleared(price, congested, step_mw, zero, np.full(n, price), zero, zero, zero, none, np.zeros(0), rows)
@@ -641,7 +668,7 @@ def _snap(hour: _Hour, step_mw: np.ndarray, bus_price: np.ndarray) -> np.ndarray
 
 
 def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
-            held: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+            held: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, OperatingPoint | None]:
     """The steps' awards, the curtailments and P0 decided from the bus prices (docs/market.md, "Awards from the
     prices"): a step in the money at its bus's price is accepted in full, one out of it not at all, and the steps at
     exactly their bus's price share, among the LP's optimal solutions (those that keep its duals' complementary
@@ -649,14 +676,15 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
     bound), the one that trades the most of them, each class of them accepted in equal shares: purchases alike,
     sales alike, at buses whose columns in the balance and in every limit held at its bound (``held``, per LP row)
     are equal (to SHARE_DIGITS significant digits), which no optimal solution can tell apart. Limits the LP left
-    out are added while the shares break them. The prices are the LP's, whatever the shares."""
+    out are added while the shares break them. The prices are the LP's, whatever the shares. Also the AC flow of
+    the loads it checked last, where it solved one (``_Solution.flow``: the LP's own plan's)."""
     book, bus = hour.book, hour.bus
     q, price = book.quantity, bus_price[bus]
     at = book.price == price
     decided = np.where(np.where(q > 0, book.price > price, book.price < price), q, 0.0)
     n_buses = len(hour.fixed_p)
     if not at.any():
-        return decided, sol.shed(n_buses), sol.p0
+        return decided, sol.shed(n_buses), sol.p0, sol.flow
     c, a_eq, b_eq, a_ub, b_ub, lower, upper = sol.lp
     x, s = sol.res.x, len(q)
     free = (np.abs(sol.res.lower.marginals) <= PRICE_TOLERANCE) & (np.abs(sol.res.upper.marginals) <= PRICE_TOLERANCE)
@@ -689,15 +717,16 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
             np.add.at(total, klass, sol.step_mw[mine])
             step_mw = decided.copy()
             step_mw[mine] = q[mine] * total[klass] / onto.sum(axis=0)[klass]
-            return step_mw, sol.shed(n_buses), sol.p0
+            return step_mw, sol.shed(n_buses), sol.p0, sol.flow
         step_mw = decided.copy()
         step_mw[mine] = q[mine] * res.x[klass]
         shed = np.zeros(n_buses)
         shed[sol.shed_at] = np.maximum(res.x[m:m + len(sol.shed_at)], 0.0)
-        ids, share = hour.feeder.violated(*hour.loads(step_mw, shed), None if hour.at is None else hour.at.point)
+        ids, share, flow = hour.feeder.violated(*hour.loads(step_mw, shed),
+                                                None if hour.at is None else hour.at.point)
         new = ~np.isin(ids, rows)
         if not new.any():
-            return step_mw, shed, math.fsum(res.x[m + len(sol.shed_at):])
+            return step_mw, shed, math.fsum(res.x[m + len(sol.shed_at):]), flow
         added = hour.feeder.worst(ids[new], share[new], LIMITS_PER_ROUND)
         rows = np.concatenate([rows, added])
         _, _, _, more_a, more_b, _, _ = hour.program(*hour.limits(added), sol.shed_at)
@@ -723,7 +752,7 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
     bus_price = _snap(hour, sol.step_mw, energy + loss + congestion + voltage)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
     at_bound = b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
-    step_mw, shed, p0 = _shared(hour, sol, bus_price, at_bound)
+    step_mw, shed, p0, flow = _shared(hour, sol, bus_price, at_bound)
     order = np.argsort(sol.rows[at_bound], kind="stable")
     held, relief = sol.rows[at_bound][order], (-sol.ub_dual[at_bound] + 0.0)[order]
     lines = held < 8 * hour.feeder.network.n_lines
@@ -733,10 +762,11 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
         congested = "export"
     else:
         congested = "line" if lines.any() else "voltage" if held.size else "none"
-    return _Cleared(energy, congested, step_mw, shed, bus_price, loss, congestion, voltage, held, relief, sol.rows)
+    return _Cleared(energy, congested, step_mw, shed, bus_price, loss, congestion, voltage, held, relief, sol.rows,
+                    flow)
 
 
-def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
+def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
     """Clear one hour on the AC flow linearised at its own plan (docs/market.md, "AC-faithful clearing"): clear on
     LinDistFlow, solve the branch-flow equations at the plan, clear again on the AC flow linearised at that
     operating point (its limits' sensitivities and marginal losses there), until the AC flow of the plan keeps
@@ -750,36 +780,49 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, int]:
     and out at the other, and each plan's AC flow is a little off the other's linearisation. Once a plan repeats
     the one two clearings before, the clearing keeps the one of the two whose AC flow breaks the limits least: its
     prices and awards are those of its own LP, and what its AC flow breaks is reported. The hour as linearised for
-    the plan kept, its clearing, and how many linearised clearings were made."""
+    the plan kept, its clearing, the AC flow of its plan (None where it has none) and how many linearised clearings
+    were made."""
+    solve = hour.feeder.ac.solve
     done = _plate(hour) or _on_feeder(hour)  # the copper plate's plan, with the limits it breaks to start from
-    point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+    point = solve(*hour.loads(done.step_mw, done.shed))
     if point is None:  # the copper plate's plan has no AC solution: LinDistFlow's, which keeps its limits, may
         done = _on_feeder(hour)
-        point = hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed))
+        point = solve(*hour.loads(done.step_mw, done.shed))
         if point is None:
-            return hour, done, 0
-    tried: list[tuple[float, _Hour, _Cleared]] = []  # each linearised clearing, and how far its plan's AC flow breaks
+            return hour, done, None, 0
+    # each linearised clearing, how far its plan's AC flow breaks the limits, and that flow
+    tried: list[tuple[float, _Hour, _Cleared, OperatingPoint]] = []
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
-        linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point))
+        linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point, done.rows))
         try:
             cleared = _on_feeder(linearised, done.rows)
         except ValueError:  # no plan meets the limits linearised there: the last one that did, or LinDistFlow's
-            return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
+            return (hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
         loads = linearised.loads(cleared.step_mw, cleared.shed)
         moved = max(np.abs(loads[0] - point.p).max(), np.abs(loads[1] - point.q).max())
-        point = hour.feeder.ac.solve(*loads, point)
-        if point is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
-            return (hour, done, iteration - 1) if hour.at is not None else (hour, _on_feeder(hour), 0)
-        hour, done = linearised, cleared
+        # Constraint generation solved the AC flow of the LP's plan from this point: the awards' loads are the LP's
+        # but for rounding in a pro-rata share, and where they are the same bits, so is their AC flow.
+        known = cleared.flow
+        flow = known if known is not None and known.of(*loads) else solve(*loads, point)
+        if flow is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
+            return (hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
+        hour, done, point = linearised, cleared, flow
         broken = max(_voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
                      _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
         if broken <= 1.0 and moved <= AC_PLAN_TOLERANCE:
             break
-        tried.append((broken, hour, done))
+        tried.append((broken, hour, done, point))
         if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max(initial=0.0) <= AC_CYCLE_TOLERANCE:
-            _, hour, done = min(tried[-2:], key=lambda t: t[0])
+            _, hour, done, point = min(tried[-2:], key=lambda t: t[0])
             break
-    return hour, done, iteration
+    return hour, done, point, iteration
+
+
+def _lindistflow(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
+    """The hour's LinDistFlow clearing as ``_ac_faithful`` answers it: the hour, its clearing, the AC flow of its plan
+    (None where it has none) and no linearised clearing."""
+    done = _on_feeder(hour)
+    return hour, done, hour.feeder.ac.solve(*hour.loads(done.step_mw, done.shed)), 0
 
 
 # --- the day ------------------------------------------------------------------------------------------------------
@@ -881,17 +924,16 @@ def clear_network(bids: Iterable[BidCurve], network: Network, buses: Mapping[str
     """
     names, at, feeder, make = _hours(bids, network, buses, iso_price, import_limit, export_limit, agents, voll,
                                      margin, curve, method, spill_price)
-    out, columns, iterations = [], [], []
-    for h in range(HOURS):
-        hour = make(h)
-        hour, done, k = _ac_faithful(hour) if method == "ac" else (hour, _on_feeder(hour), 0)
+    out, points, columns, iterations = [], [], [], []
+    for h in range(HOURS):  # each hour's clearing and the AC flow of its plan (None where it has none)
+        hour, done, point, k = (_ac_faithful if method == "ac" else _lindistflow)(make(h))
         out.append((hour, done))
+        points.append(point)
         iterations.append(k)
         columns.append(per_agent(hour.book, done.step_mw, len(names)))
     flows_p, flows_q, loading, volts, exchange, welfare, excess, overload = [], [], [], [], [], [], [], []
-    for hour, done in out:
+    for (hour, done), point in zip(out, points):
         p, q = hour.loads(done.step_mw, done.shed)
-        point = feeder.ac.solve(p, q)
         excess.append(math.nan if point is None else _voltage_excess(network, point.v))
         overload.append(math.nan if point is None else _overload(feeder, point))
         if method == "ac" and point is not None:
