@@ -4,13 +4,23 @@
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+
+from messages import Schedule
 
 from scenarios.horizon import HOURS
 
 from ..market.clearing import ClearingResult
 from ..market.settlement import DayTotals, Statement
 from .state import DayState
+
+
+def stopped_short(schedules: Mapping[str, Schedule]) -> list[dict]:
+    """The day's schedules whose solve stopped short of its gap (any status but "optimal": a time limit, most
+    often), by agent: its ``agent``, ``status`` and certified ``mip_gap`` (None where the solve certified none)."""
+    return [{"agent": a, "status": m.status, "mip_gap": m.mip_gap} for a, m in sorted(schedules.items())
+            if m.status != "optimal"]
 
 
 @dataclass(frozen=True)
@@ -44,6 +54,7 @@ class DayResult:
                            for a, st in self.statements.items()},
             "day_summary": self.totals.as_dict(),
             "expected_cost": {a: m.expected_cost for a, m in s.schedules.items()},
+            "schedules_stopped_short": stopped_short(s.schedules),
             "rejected_messages": s.rejected, "rejected_by_code": dict(s.rejected_by_code),
             "accepted_messages": dict(s.accepted), "received_again": s.again, "dropped_messages": dict(s.dropped),
             "locked_out": list(self.locked_out),
@@ -91,7 +102,9 @@ class RunResult:
                 "received_again": sum(d["received_again"] for d in days),
                 "dropped_messages": dict(sum((Counter(d["dropped_messages"]) for d in days), Counter())),
                 "locked_out": sorted({a for d in days for a in d["locked_out"]}),
-                "incidents": [{**i, "market_day": d["market_day"]} for d in days for i in d["incidents"]]}
+                "incidents": [{**i, "market_day": d["market_day"]} for d in days for i in d["incidents"]],
+                "schedules_stopped_short": [{**x, "market_day": d["market_day"]} for d in days
+                                            for x in d["schedules_stopped_short"]]}
 
 
     def realised_days(self, agents: list[str]) -> dict[str, list[dict]]:

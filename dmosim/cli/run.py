@@ -270,6 +270,14 @@ def _tail(path: Path, lines: int = 15) -> None:
             print(f"    {line}", file=sys.stderr)
 
 
+def _stopped(schedule: dict) -> str:
+    """One schedule stopped short, as the summary names it: agent, market day (of a run of several), status and
+    certified gap."""
+    day = f" {schedule['market_day']}" if "market_day" in schedule else ""
+    gap = "" if schedule["mip_gap"] is None else f" at gap {100 * schedule['mip_gap']:.2f}%"
+    return f"{schedule['agent']}{day} {schedule['status']}{gap}"
+
+
 def summary_table(result: dict) -> str:
     """Per agent: award energy, realised import, deviation energy, energy charge, penalty and total."""
     head = f"{'agent':<8}{'award MWh':>11}{'import MWh':>12}{'dev. MWh':>10}{'energy $':>12}{'penalty $':>11}{'total $':>12}"
@@ -283,6 +291,9 @@ def summary_table(result: dict) -> str:
     islanded = "; ".join(f"{d['market_day']}: {', '.join(map(str, d['islanded_hours'])) or 'none'}" for d in days)
     rows.append(f"settled by: {result['settlement_rule']}")
     rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {islanded}")
+    short = result.get("schedules_stopped_short", [])
+    if short:
+        rows.append(f"schedules stopped short of their gap: {len(short)} ({', '.join(map(_stopped, short))})")
     recorded = result.get("recorded") or {}
     if result.get("recording"):
         rows.append(f"recording: {result['recording']}" + (
