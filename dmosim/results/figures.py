@@ -137,8 +137,22 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "", restarted
     handles = [*handles.values(), Patch(facecolor=ISLANDED, edgecolor="0.2" if compact else ISLANDED,
                                         label=islanded_label)]
     fig.legend(handles=handles, loc="outside lower center", ncol=min(len(handles), 3), fontsize=9, frameon=False)
-    fig.suptitle(title or days_label(market_days), fontsize=12)
+    fig.suptitle((title or days_label(market_days)) + stopped_short(frames.get("schedules"), len(market_days)),
+                 fontsize=12)
     return fig
+
+
+def stopped_short(schedules: pd.DataFrame | None, days: int, shown: int = 4) -> str:
+    """A line for the figure's title naming the schedules whose solve stopped short of its gap (the ``schedules``
+    table's ``stopped_short``), the first ``shown`` of them and how many more; empty if none did (or no table)."""
+    if schedules is None or not schedules["stopped_short"].any():
+        return ""
+    short = schedules[schedules["stopped_short"]]
+    named = [f"{row.agent}{f' {row.market_day}' if days > 1 else ''} ({row.status}"
+             f"{'' if pd.isna(row.mip_gap) else f', gap {100 * row.mip_gap:.2f}%'})"
+             for row in short.head(shown).itertuples()]
+    more = f" and {len(short) - shown} more" if len(short) > shown else ""
+    return f"\nschedules stopped short of their gap: {', '.join(named)}{more}"
 
 
 def _per_agent(fig, hours, meter, days, agents, start, places, below):

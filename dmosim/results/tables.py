@@ -49,6 +49,8 @@ TABLE_COLUMNS: dict[str, dict[str, str]] = {
                    "curtailment": "float64", "penalty": "float64", "total": "float64", "curtailment_mwh": "float64",
                    "deviation_mwh": "float64", "stored_mwh": "Float64", "wall_s": "float64", "cpu_s": "float64",
                    "sent_again": "int64", "asked": "int64"},
+    "schedules": {**_WHEN, "agent": "string", "status": "string", "stopped_short": "bool", "mip_gap": "Float64",
+                  "scenarios": "int64", "expected_cost": "float64"},
     "network": {**_WHEN, "hour": "int64", "stage": "string", "network": "string", "clearing": "string",
                 "substation_mw": "float64",
                 "energy_price_per_mwh": "Float64", "shed_mw": "Float64", "spilled_mw": "Float64", "v_min_pu": "float64",
@@ -83,6 +85,7 @@ def tables(rec: Recording) -> dict[str, pd.DataFrame]:
     network = _network_hours(rec)
     return {"hours": hours, "days": _days(statements, hours), "meter": _meter(rec, grid), "bids": _bids(rec),
             "incidents": _incidents(rec), "rejections": _rejections(rec), "agent_days": _agent_days(rec),
+            "schedules": _schedules(rec),
             "network": _network(network), "buses": _buses(network), "lines": _lines(network)}
 
 
@@ -236,6 +239,19 @@ def _rejections(rec: Recording) -> pd.DataFrame:
     prefix = rec.prefix
     rejections["key"] = rejections["key"].map(lambda key: relative_key(key, prefix))
     return _typed("rejections", rejections)
+
+
+def _schedules(rec: Recording) -> pd.DataFrame:
+    """The last day-ahead schedule the DMO accepted of each agent and day (a rejoined agent sends its schedule
+    again): how its solve ended (``status``; ``stopped_short`` unless "optimal", a time limit most often), its
+    certified gap, scenarios and expected cost."""
+    kept, _ = accepted_messages(rec, "schedule")
+    last = {(msg.market_day, msg.sender): msg for _, msg in kept}
+    if not last:
+        return _typed("schedules", None)
+    rows = [{"market_day": m.market_day, "agent": m.sender, "status": m.status, "stopped_short": m.status != "optimal",
+             "mip_gap": m.mip_gap, "scenarios": m.scenarios, "expected_cost": m.expected_cost} for m in last.values()]
+    return _typed("schedules", pd.DataFrame(rows).sort_values(["market_day", "agent"]))
 
 
 def _agent_days(rec: Recording) -> pd.DataFrame:

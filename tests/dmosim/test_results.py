@@ -15,6 +15,7 @@ import sys
 from decimal import Decimal
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import pandas as pd
 import pytest
 
@@ -24,7 +25,7 @@ from dmo.replay.resettle import as_message, recorded_day, resettle
 from dmo.market.clearing import BidCurve, Step, clear
 from dmo.operator import outbox
 from dmo.operator.config import DayConfig
-from dmosim.results.figures import recording_figure
+from dmosim.results.figures import recording_figure, stopped_short
 from dmosim.results.tables import TABLE_COLUMNS, open_recording, tables
 from messages import HOURS, Incident, Keys, MessageError, decode, encode, make_rejection
 from messages.schemas import AgentDay, HandlingTime, MessageCounts
@@ -56,7 +57,8 @@ def find(messages: list[tuple[str, bytes]], suffix: str, **fields) -> int:
 def faulty_day(run_id: str, market_day: str = DAY, agents: int = 2) -> list[tuple[str, bytes]]:
     """A synthetic day with: a refused meter report of mg1 hour 5 arriving before the accepted one; an identical
     copy of mg2's hour 6 report, refused as a duplicate; hour 7 islanded in its second sub-period only (hour 12 is
-    islanded throughout, as synthetic_day has it); two incidents in the day summary."""
+    islanded throughout, as synthetic_day has it); two incidents in the day summary; mg2's schedule stopped at a time
+    limit."""
     day = synthetic_day(run_id, agents, K, market_day=market_day)
     i = find(day, "agent/mg1/meter", hour=5)
     key, good = day[i]
@@ -66,6 +68,8 @@ def faulty_day(run_id: str, market_day: str = DAY, agents: int = 2) -> list[tupl
     day.insert(j + 1, day[j])
     g = find(day, "dmo/grid", hour=7)
     day[g] = (day[g][0], encode(decode(day[g][1]).model_copy(update={"connected": (True, False, True)})))
+    c = find(day, "agent/mg2/schedule")
+    day[c] = (day[c][0], encode(decode(day[c][1]).model_copy(update={"status": "time_limit", "mip_gap": 0.0125})))
     s = find(day, "dmo/summary")
     incidents = (Incident(agent="mg2", phase="realtime", hour=6, reason="duplicate meter report"),
                  Incident(agent=None, phase="bidding", hour=None, reason="a bid came late"))
@@ -94,6 +98,21 @@ def cents(x: float) -> Decimal:
 
 
 # --- the tables ------------------------------------------------------------------------------------------------
+
+def test_the_schedules_table_says_whose_schedule_stopped_short_and_the_figure_names_it(frames):
+    schedules = frames["schedules"]
+    assert list(schedules["agent"]) == ["mg1", "mg2"] and (schedules["market_day"] == DAY).all()
+    assert list(schedules["stopped_short"]) == [False, True] and list(schedules["status"]) == ["optimal", "time_limit"]
+    assert schedules["mip_gap"].iloc[1] == 0.0125
+    assert stopped_short(schedules, 1) == "\nschedules stopped short of their gap: mg2 (time_limit, gap 1.25%)"
+    many = pd.concat([schedules.assign(agent=schedules["agent"] + str(i), stopped_short=True) for i in range(3)])
+    text = stopped_short(many, 2)  # six stopped short: four named, with their day, and how many more
+    assert f"mg20 {DAY} (time_limit, gap 1.25%)" in text and text.endswith(" and 2 more") and text.count("(") == 4
+    assert stopped_short(schedules.iloc[:1], 1) == stopped_short(None, 1) == ""
+    fig = recording_figure(frames)
+    assert fig._suptitle.get_text().endswith("mg2 (time_limit, gap 1.25%)")
+    plt.close(fig)
+
 
 def test_every_table_has_its_columns_in_order(frames):
     assert list(frames) == list(TABLE_COLUMNS)
