@@ -433,6 +433,11 @@ class Schedule(_FromAgent):
     mip_gap: Annotated[Annotated[float, Strict(), Field(ge=0)] | None, Field(description=(
         "the solve's certified relative gap, or null"))] = None
 
+    @property
+    def stopped_short(self) -> bool:
+        """Whether the solve stopped short of its gap: any status but "optimal" (a time limit, most often)."""
+        return self.status != "optimal"
+
 
 # --- real-time operation ------------------------------------------------------------------------------------
 

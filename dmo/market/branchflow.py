@@ -115,6 +115,14 @@ class BranchFlow:
         """U at each line's parent bus."""
         return u[self.network.parent]
 
+    def upward(self):
+        """The depths from the leaves up, each as its slice, with the depth below it (its slice, where each run of
+        lines sharing a parent starts in it, and those parents' places; None at the deepest)."""
+        below = (None, None, None)
+        for here, _, runs, owners in self.depths[::-1]:
+            yield (here, *below)
+            below = (here, runs, owners)
+
     def adjoint(self, point: OperatingPoint) -> Adjoint:
         """The adjoint of the branch-flow equations at ``point`` (``Adjoint``), eliminated on the tree: what depends
         on the point alone, worked out once for every set of quantities whose sensitivities are then asked.
@@ -142,7 +150,7 @@ class BranchFlow:
         r, x, z2 = self.r[o], self.x[o], self.z2[o]
         flow_p, flow_q, current2, sending = point.flow_p[o], point.flow_q[o], point.current2[o], point.u[net.parent][o]
         phi, psi, big_phi, big_psi, alpha, beta, gamma = (np.zeros(net.n_lines) for _ in range(7))
-        for (here, _, _, _), (below, _, runs, owners) in zip(self.depths[::-1], [(None,) * 4] + self.depths[:0:-1]):
+        for here, below, runs, owners in self.upward():
             if below is not None:  # the children's phi, psi, summed per parent
                 big_phi[owners], big_psi[owners] = np.add.reduceat(phi[below], runs), np.add.reduceat(psi[below], runs)
             alpha[here] = 1.0 / (1.0 + 2 * (r[here] * big_phi[here] + x[here] * big_psi[here]))
@@ -216,7 +224,7 @@ class Adjoint:
         g_p, g_q, g_l, g_u = (np.zeros((n, k)) if g is None else np.asarray(g, float)[o] for g in (g_p, g_q, g_l, g_u))
         own = self.phi * g_p + self.psi * g_q + self.lam * g_l  # tau less omega G
         big_g, tau = g_u.copy(), np.zeros((n, k))
-        for (here, _, _, _), (below, _, runs, owners) in zip(flow.depths[::-1], [(None,) * 4] + flow.depths[:0:-1]):
+        for here, below, runs, owners in flow.upward():
             if below is not None:
                 big_g[owners] += np.add.reduceat(tau[below], runs, axis=0)
             tau[here] = self.omega[here] * big_g[here] + own[here]

@@ -20,7 +20,7 @@ def stopped_short(schedules: Mapping[str, Schedule]) -> list[dict]:
     """The day's schedules whose solve stopped short of its gap (any status but "optimal": a time limit, most
     often), by agent: its ``agent``, ``status`` and certified ``mip_gap`` (None where the solve certified none)."""
     return [{"agent": a, "status": m.status, "mip_gap": m.mip_gap} for a, m in sorted(schedules.items())
-            if m.status != "optimal"]
+            if m.stopped_short]
 
 
 @dataclass(frozen=True)

@@ -243,13 +243,13 @@ def _rejections(rec: Recording) -> pd.DataFrame:
 
 def _schedules(rec: Recording) -> pd.DataFrame:
     """The last day-ahead schedule the DMO accepted of each agent and day (a rejoined agent sends its schedule
-    again): how its solve ended (``status``; ``stopped_short`` unless "optimal", a time limit most often), its
+    again): how its solve ended (``status``, ``stopped_short``: ``messages.Schedule.stopped_short``), its
     certified gap, scenarios and expected cost."""
     kept, _ = accepted_messages(rec, "schedule")
     last = {(msg.market_day, msg.sender): msg for _, msg in kept}
     if not last:
         return _typed("schedules", None)
-    rows = [{"market_day": m.market_day, "agent": m.sender, "status": m.status, "stopped_short": m.status != "optimal",
+    rows = [{"market_day": m.market_day, "agent": m.sender, "status": m.status, "stopped_short": m.stopped_short,
              "mip_gap": m.mip_gap, "scenarios": m.scenarios, "expected_cost": m.expected_cost} for m in last.values()]
     return _typed("schedules", pd.DataFrame(rows).sort_values(["market_day", "agent"]))
 
