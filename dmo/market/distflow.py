@@ -35,6 +35,7 @@ from scenarios import exact
 from scenarios.horizon import HOURS, finite
 from scenarios.network import Network, voltage_band
 
+from . import quadratic
 from .branchflow import Adjoint, BranchFlow, OperatingPoint
 from .clearing import (CLEARING_METHODS, FLAT, BidCurve, Book, IsoCurve, Segments,
                        clear_on_curve, hour_book, market_inputs, per_agent, segments)
@@ -67,8 +68,11 @@ AC_LOADING_TOLERANCE = 1e-6
 MAX_AC_ITERATIONS = 20
 AC_CYCLE_TOLERANCE = 1e-9  # MW: a plan this close to the one two clearings before repeats it
 # MW, Mvar: a plan this close to the operating point its LP was linearised at is that point (its loss factors and
-# sensitivities are the plan's own to well within a cent per MWh)
-AC_PLAN_TOLERANCE = 1e-6
+# sensitivities are the plan's own: its prices differ from those of the LP linearised at the plan itself by at most
+# 3.4e-4 $/MWh over `dmosim bench clearing`'s days on ieee33 and a 1000-bus feeder)
+AC_PLAN_TOLERANCE = 1e-4
+# $/MWh: the prices of an hour whose plans alternated support its settled awards within this (``_supported``)
+AC_PRICE_TOLERANCE = 1e-3
 
 
 @dataclass(frozen=True, eq=False)  # arrays inside: compare fields, not results
@@ -194,6 +198,24 @@ class Linearised:
     rows: np.ndarray
     g_p: np.ndarray
     g_q: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Proximal:
+    """A proximal term added to an hour's LP (``_Hour.solve``): (x - centre)' H (x - centre) / 2 over the steps
+    ``steps`` (indices into the hour's book), at MW ``centre``, with H (steps x steps) positive semidefinite: the
+    welfare a move of those steps from the centre loses to the curvature the LP's linearisation leaves out."""
+
+    steps: np.ndarray
+    hessian: np.ndarray
+    centre: np.ndarray
+
+    def objective(self, c: np.ndarray) -> tuple[np.ndarray, sp.sparray]:
+        """The QP's linear term and Hessian for an LP of objective ``c`` (its first columns the book's steps)."""
+        linear = c.copy()
+        linear[self.steps] -= self.hessian @ self.centre
+        i, j = np.meshgrid(self.steps, self.steps, indexing="ij")
+        return linear, sp.coo_array((self.hessian.ravel(), (i.ravel(), j.ravel())), shape=(len(c), len(c)))
 
 
 # --- the feeder as sparse sensitivities ---------------------------------------------------------------------------
@@ -390,6 +412,9 @@ class _Hour:
     voll: float
     spill_price: float = 0.0  # $/MWh: what spilling a MW of fixed generation costs the welfare
     at: Linearised | None = None  # the AC operating point the hour's LP is corrected at (None: LinDistFlow alone)
+    # per step, the MW its award is held at (NaN: free; None: none held): the steps a proximal clearing settled
+    # (``_settle``), which the LP leaves at their prices and the awards keep where the plan has them
+    pinned: np.ndarray | None = None
 
     @property
     def shed_buses(self) -> np.ndarray:
@@ -489,20 +514,24 @@ class _Hour:
         generation's proportion."""
         return g_p[:, shed_at] + g_q[:, shed_at] * self.shed_ratio[shed_at]
 
-    def solve(self, rows: np.ndarray) -> _Solution:
+    def solve(self, rows: np.ndarray, proximal: Proximal | None = None) -> _Solution:
         """Solve with the limits ``rows`` and no curtailment; add the limits the solution breaks (the worst,
         ``worst``) and the fixed loads and generation whose curtailment gains welfare at the solution's prices (a
         load whose bus price exceeds VOLL, a generation whose bus price is below minus the spill price: their
         columns' reduced costs are negative), again until neither is left: then the solution is that of the LP with
-        every limit and every curtailment."""
+        every limit and every curtailment. With ``proximal``, the LP's objective gains its quadratic term (a QP)."""
         rows = np.asarray(rows, int)
         g_p, g_q, b = self.limits(rows)
         shed_at, every = np.zeros(0, int), self.shed_buses
         while True:
             lp = self.program(g_p, g_q, b, shed_at)
             c, a_eq, b_eq, a_ub, b_ub, lower, upper = lp
-            res = linprog(c, A_ub=a_ub if len(b) else None, b_ub=b_ub if len(b) else None, A_eq=a_eq, b_eq=b_eq,
-                          bounds=np.column_stack([lower, upper]), method="highs", options={"presolve": False})
+            if proximal is not None:
+                res = quadratic.minimise(*proximal.objective(c), a_eq, b_eq, a_ub, b_ub, lower, upper)
+            else:
+                res = linprog(c, A_ub=a_ub if len(b) else None, b_ub=b_ub if len(b) else None, A_eq=a_eq,
+                              b_eq=b_eq, bounds=np.column_stack([lower, upper]), method="highs",
+                              options={"presolve": False})
             if res.status == 2 and len(shed_at) < len(every):  # infeasible without curtailing: offer every one
                 shed_at = every
                 continue
@@ -579,7 +608,8 @@ class _Solution:
 class _Cleared:
     """One hour's outcome: the energy price, the label, the steps' awards, the shed load, the bus prices with
     their components, the limits its LP held at their bounds (ids) with their duals as relief (>= 0), and the AC
-    flow of its plan where the clearing solved it (``_Solution.flow``)."""
+    flow of its plan where the clearing solved it (``_Solution.flow``). ``solution``: the LP whose own plan the
+    awards are, not yet shared by the rule (``_awarded`` with ``fair=False``); None once they are."""
 
     energy: float
     congested: str
@@ -593,6 +623,7 @@ class _Cleared:
     relief: np.ndarray
     rows: np.ndarray  # the limits its LP had (none on the copper plate)
     flow: OperatingPoint | None = None
+    solution: _Solution | None = None
 
 
 def _plate(hour: _Hour) -> _Cleared | None:
@@ -680,8 +711,11 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
     the loads it checked last, where it solved one (``_Solution.flow``: the LP's own plan's)."""
     book, bus = hour.book, hour.bus
     q, price = book.quantity, bus_price[bus]
-    at = book.price == price
+    pinned = np.zeros(len(q), bool) if hour.pinned is None else np.isfinite(hour.pinned)
+    at = (book.price == price) & ~pinned
     decided = np.where(np.where(q > 0, book.price > price, book.price < price), q, 0.0)
+    if pinned.any():  # a step held at its MW (``_settle``) stays there
+        decided = np.where(pinned, hour.pinned, decided)
     n_buses = len(hour.fixed_p)
     if not at.any():
         return decided, sol.shed(n_buses), sol.p0, sol.flow
@@ -690,9 +724,7 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
     free = (np.abs(sol.res.lower.marginals) <= PRICE_TOLERANCE) & (np.abs(sol.res.upper.marginals) <= PRICE_TOLERANCE)
     tight = -sol.ub_dual > PRICE_TOLERANCE  # limits the duals hold at their bounds
     mine = np.flatnonzero(at)
-    signature = _significant(np.vstack([a_eq[:, mine], a_ub[held][:, mine]]).T, SHARE_DIGITS)
-    _, klass = np.unique(np.column_stack([signature, q[mine] > 0]), axis=0, return_inverse=True)
-    klass = klass.ravel()
+    klass = _alike(np.vstack([a_eq, a_ub[held]]), mine, book)
     m = int(klass.max()) + 1
     onto = np.zeros((len(mine), m))
     onto[np.arange(len(mine)), klass] = q[mine]  # a class's column: its steps' columns times their quantities
@@ -713,10 +745,8 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
         res = linprog(volume, A_ub=ub_a if len(ub_b) else None, b_ub=ub_b if len(ub_b) else None, A_eq=eq_a,
                       b_eq=eq_b, bounds=bounds, method="highs", options={"presolve": False})
         if res.status != 0:  # only by rounding: the LP's own solution, its steps at their prices pro rata per class
-            total = np.zeros(m)
-            np.add.at(total, klass, sol.step_mw[mine])
             step_mw = decided.copy()
-            step_mw[mine] = q[mine] * total[klass] / onto.sum(axis=0)[klass]
+            step_mw[mine] = _equal_shares(sol.step_mw[mine], klass, q[mine])
             return step_mw, sol.shed(n_buses), sol.p0, sol.flow
         step_mw = decided.copy()
         step_mw[mine] = q[mine] * res.x[klass]
@@ -734,6 +764,24 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
         ub_a, ub_b = np.vstack([ub_a, more_a]), np.concatenate([ub_b, more_b])
 
 
+def _alike(columns: np.ndarray, mine: np.ndarray, book: Book) -> np.ndarray:
+    """The class of each step of ``mine`` (indices into the book), numbered from 0: steps alike are purchases alike
+    or sales alike, at one price, whose ``columns`` (rows x steps: the balance and the limits) are equal to
+    SHARE_DIGITS significant digits, which no solution of the LP can tell apart."""
+    signature = _significant(columns[:, mine].T, SHARE_DIGITS)
+    key = np.column_stack([signature, book.quantity[mine] > 0, book.price[mine]])
+    return np.unique(key, axis=0, return_inverse=True)[1].ravel()
+
+
+def _equal_shares(mw: np.ndarray, klass: np.ndarray, quantity: np.ndarray) -> np.ndarray:
+    """The MW ``mw`` of steps of ``quantity`` shared equally within each class ``klass``: each step the same share
+    of its quantity as its class as a whole."""
+    total, size = np.zeros(klass.max(initial=-1) + 1), np.zeros(klass.max(initial=-1) + 1)
+    np.add.at(total, klass, mw)
+    np.add.at(size, klass, quantity)
+    return quantity * total[klass] / size[klass]
+
+
 def _significant(a: np.ndarray, digits: int) -> np.ndarray:
     """``a`` rounded to ``digits`` significant digits (0 stays 0)."""
     magnitude = np.floor(np.log10(np.abs(a), out=np.zeros_like(a), where=a != 0))
@@ -741,18 +789,36 @@ def _significant(a: np.ndarray, digits: int) -> np.ndarray:
     return np.round(a * scale) / scale
 
 
-def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
+def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int), fair: bool = True) -> _Cleared:
     """Clear one hour: the copper plate where it holds, else the LP and prices per bus, its limits found from
-    ``rows`` on (those of a clearing of the same hour at another operating point: most hold again)."""
+    ``rows`` on (those of a clearing of the same hour at another operating point: most hold again); the awards
+    shared by the rule, or with ``fair=False`` the LP's own plan (``_awarded``)."""
     cleared, broken = _copper_plate(hour)
     if cleared is not None:
         return cleared
-    sol = hour.solve(np.union1d(broken, rows))
+    return _awarded(hour, hour.solve(np.union1d(broken, rows)), fair)
+
+
+def _awarded(hour: _Hour, sol: _Solution, fair: bool = True) -> _Cleared:
+    """The hour's outcome from its LP ``sol``: the prices from its duals and the awards from the prices, the steps
+    at their bus prices shared by the rule (``_shared``); with ``fair=False``, the LP's own plan, kept with its LP
+    (``_Cleared.solution``) to be shared later: what an AC-faithful clearing linearises at until it has converged,
+    one LP fewer per corrected clearing."""
     energy, loss, congestion, voltage = _prices(hour, sol)
-    bus_price = _snap(hour, sol.step_mw, energy + loss + congestion + voltage)
+    x = sol.res.x
+    if hour.pinned is not None:  # a settled hour: its plan holds the steps the LP may leave elsewhere on its face
+        x = x.copy()
+        x[:len(hour.pinned)] = np.where(np.isfinite(hour.pinned), hour.pinned, sol.step_mw)
+    raw = energy + loss + congestion + voltage
+    bus_price = _snap(hour, x[:len(hour.book.price)], raw)
+    if hour.pinned is not None:  # the loss components at the plan itself, which its awards meet
+        loss = np.where(bus_price == raw, loss, bus_price - energy - congestion - voltage)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
-    at_bound = b_ub - exact.matvec(a_ub, sol.res.x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
-    step_mw, shed, p0, flow = _shared(hour, sol, bus_price, at_bound)
+    at_bound = b_ub - exact.matvec(a_ub, x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
+    if fair:
+        step_mw, shed, p0, flow = _shared(hour, sol, bus_price, at_bound)
+    else:
+        step_mw, shed, p0, flow = sol.step_mw, sol.shed(len(hour.fixed_p)), sol.p0, sol.flow
     order = np.argsort(sol.rows[at_bound], kind="stable")
     held, relief = sol.rows[at_bound][order], (-sol.ub_dual[at_bound] + 0.0)[order]
     lines = held < 8 * hour.feeder.network.n_lines
@@ -763,7 +829,7 @@ def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int)) -> _Cleared:
     else:
         congested = "line" if lines.any() else "voltage" if held.size else "none"
     return _Cleared(energy, congested, step_mw, shed, bus_price, loss, congestion, voltage, held, relief, sol.rows,
-                    flow)
+                    flow, None if fair else sol)
 
 
 def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
@@ -776,46 +842,165 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, i
     reactive load that cannot be shed, its line full in AC), the hour is LinDistFlow's clearing, and what its AC
     flow breaks is reported; where a later one fails so, the last plan that did not.
 
+    The clearings linearise at their LPs' own plans; once a plan is its own operating point, its awards are shared
+    by the rule (``_awarded``), and if that moves the plan, the clearings go on sharing theirs.
+
     Plans can alternate: a step whose own losses move its bus's price across its bid is in at one operating point
     and out at the other, and each plan's AC flow is a little off the other's linearisation. Once a plan repeats
-    the one two clearings before, the clearing keeps the one of the two whose AC flow breaks the limits least: its
+    the one two clearings before, the hour is settled between the two (``_settle``); where that finds no plan
+    within MAX_AC_ITERATIONS, the clearing keeps the one of the two whose AC flow breaks the limits least: its
     prices and awards are those of its own LP, and what its AC flow breaks is reported. The hour as linearised for
     the plan kept, its clearing, the AC flow of its plan (None where it has none) and how many linearised clearings
     were made."""
-    solve = hour.feeder.ac.solve
-    done = _plate(hour) or _on_feeder(hour)  # the copper plate's plan, with the limits it breaks to start from
+    solve, base = hour.feeder.ac.solve, hour
+    done = _plate(hour) or _on_feeder(hour, fair=False)  # the copper plate's plan, with the limits it breaks
     point = solve(*hour.loads(done.step_mw, done.shed))
     if point is None:  # the copper plate's plan has no AC solution: LinDistFlow's, which keeps its limits, may
         done = _on_feeder(hour)
         point = solve(*hour.loads(done.step_mw, done.shed))
         if point is None:
             return hour, done, None, 0
+    # The clearings linearise at their LPs' own plans until one is its own operating point; only then are its awards
+    # shared by the rule, and where the shares move the plan, every clearing from there on shares its awards.
+    fair = False
     # each linearised clearing, how far its plan's AC flow breaks the limits, and that flow
     tried: list[tuple[float, _Hour, _Cleared, OperatingPoint]] = []
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
         linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point, done.rows))
         try:
-            cleared = _on_feeder(linearised, done.rows)
+            cleared = _on_feeder(linearised, done.rows, fair)
         except ValueError:  # no plan meets the limits linearised there: the last one that did, or LinDistFlow's
-            return (hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
-        loads = linearised.loads(cleared.step_mw, cleared.shed)
-        moved = max(np.abs(loads[0] - point.p).max(), np.abs(loads[1] - point.q).max())
-        # Constraint generation solved the AC flow of the LP's plan from this point: the awards' loads are the LP's
-        # but for rounding in a pro-rata share, and where they are the same bits, so is their AC flow.
-        known = cleared.flow
-        flow = known if known is not None and known.of(*loads) else solve(*loads, point)
+            return _fairly(hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
+        flow = _flow_of(linearised, cleared, point)
         if flow is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
-            return (hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
-        hour, done, point = linearised, cleared, flow
-        broken = max(_voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
-                     _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
+            return _fairly(hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
+        hour, done, point, broken, moved = linearised, cleared, flow, _broken(linearised, flow), _moved(flow, linearised)
         if broken <= 1.0 and moved <= AC_PLAN_TOLERANCE:
-            break
+            if done.solution is None:
+                break
+            done = _awarded(hour, done.solution)
+            point = _flow_of(hour, done, point)
+            if point is None:  # the shares moved the plan where the AC flow has no solution: reported so
+                return hour, done, None, iteration
+            if _broken(hour, point) <= 1.0 and _moved(point, hour) <= AC_PLAN_TOLERANCE:
+                break
+            fair = True
         tried.append((broken, hour, done, point))
         if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max(initial=0.0) <= AC_CYCLE_TOLERANCE:
+            settled = _settle(base, tried[-2][2], done, point)
+            if settled is not None:
+                hour, done, point, more = settled
+                return hour, done, point, iteration + more
             _, hour, done, point = min(tried[-2:], key=lambda t: t[0])
             break
-    return hour, done, point, iteration
+    return _fairly(hour, done, point, iteration)
+
+
+def _settle(hour: _Hour, one: _Cleared, other: _Cleared,
+            near: OperatingPoint) -> tuple[_Hour, _Cleared, OperatingPoint, int] | None:
+    """Settle an hour whose linearised clearings alternate between the plans ``one`` and ``other`` (docs/market.md,
+    "Plans that alternate"): a step whose own losses move its bus's price across its bid (or steps that trade one
+    binding limit for another) is in at one operating point and out at the other, and the plan that is its own
+    operating point lies between them, those steps part-accepted where their bus prices meet their bids.
+
+    From the plans' midpoint, each clearing is the LP linearised at the last plan with a proximal term over the
+    steps that alternate: the losses' curvature there, (x - x_k)' H (x - x_k) / 2 times the energy price, H the
+    second derivative of the AC losses in those steps' MW (2 r (1 + tan(phi)^2) / U per line they share), raised
+    fourfold whenever a move is not half the one before; a sequential quadratic programme with a proximal
+    (Levenberg-Marquardt) term (Nocedal and Wright 2006, ch. 18; Rockafellar 1976). Once a plan lies within
+    AC_PLAN_TOLERANCE of the point it was linearised at, the term is nil to first order there: the alternating
+    steps are held at that plan's MW, shared equally by steps alike (``_alike``), and the hour is the LP linearised
+    there with them held (``_Hour.pinned``): its prices and the other awards are that LP's, by the rule of
+    ``_awarded``. The hour, its clearing, the AC flow of its plan and the clearings made; None where the
+    iterations end without such a plan within MAX_AC_ITERATIONS."""
+    feeder = hour.feeder
+    steps = np.flatnonzero(np.abs(one.step_mw - other.step_mw) > AC_CYCLE_TOLERANCE)
+    rows = np.union1d(one.rows, other.rows)
+    plan = (one.step_mw + other.step_mw) / 2
+    point = feeder.ac.solve(*hour.loads(plan, (one.shed + other.shed) / 2), near)
+    base = max(abs(one.energy), 1.0)
+    weight, step = base, np.zeros(len(steps))
+    for iteration in range(1, MAX_AC_ITERATIONS + 1):
+        if point is None:
+            return None
+        linearised = dataclasses.replace(hour, at=feeder.linearised(point, rows))
+        term = Proximal(steps, weight * _curvature(linearised, steps), plan[steps])
+        try:
+            sol = linearised.solve(rows, term)
+        except ValueError:
+            return None
+        if sol.flow is None:
+            return None
+        moved, rows = _moved(sol.flow, linearised), sol.rows
+        last, step, plan = step, sol.step_mw[steps] - plan[steps], sol.step_mw
+        if moved <= AC_PLAN_TOLERANCE:
+            _, a_eq, _, a_ub, _, _, _ = sol.lp
+            pinned = np.full(len(plan), np.nan)
+            pinned[steps] = _equal_shares(plan[steps], _alike(np.vstack([a_eq, a_ub]), steps, hour.book),
+                                          hour.book.quantity[steps])
+            settled = dataclasses.replace(linearised, pinned=pinned)
+            done = _on_feeder(settled, rows)
+            flow = _flow_of(settled, done, sol.flow)
+            if flow is not None and _moved(flow, settled) <= AC_PLAN_TOLERANCE and _supported(settled, done):
+                return settled, done, flow, iteration + 1
+        # a move back against the last one overshot: more weight; one further on: less, down to the losses' own
+        weight = weight * 4.0 if step @ last < 0 else max(weight / 2.0, base)
+        point = sol.flow
+    return None
+
+
+def _supported(hour: _Hour, done: _Cleared) -> bool:
+    """Whether the prices of ``done`` (its LP's duals, before ``_snap``) support the awards of the steps the hour
+    holds (``_Hour.pinned``) within AC_PRICE_TOLERANCE: each part-accepted one at its bid, each accepted in full in
+    the money or at its price, each rejected out of it or at its price."""
+    held = np.flatnonzero(np.isfinite(hour.pinned))
+    book = hour.book
+    price = (done.energy + done.loss + done.congestion + done.voltage)[hour.bus[held]]
+    surplus = np.where(book.quantity[held] > 0, book.price[held] - price, price - book.price[held])
+    share = hour.pinned[held] / book.quantity[held]
+    off = np.where(share >= 1.0 - LIMIT_TOLERANCE, -surplus, np.where(share <= LIMIT_TOLERANCE, surplus,
+                                                                          np.abs(surplus)))
+    return bool((off <= AC_PRICE_TOLERANCE).all())
+
+
+def _curvature(hour: _Hour, steps: np.ndarray) -> np.ndarray:
+    """The second derivative of the AC losses in the MW of ``steps`` (each with tan(phi) Mvar) at the hour's
+    operating point, steps x steps: sum over lines of 2 r (1 + tan(phi)^2) / U at the line's sending end, for each
+    pair of steps both below the line (MW per MW^2)."""
+    feeder, network = hour.feeder, hour.feeder.network
+    below = network.downstream[:, hour.bus[steps]].astype(float)
+    weight = 2.0 * feeder.ac.r * (1.0 + feeder.tan_phi ** 2) / hour.at.point.u[network.parent]
+    return below.T @ (weight[:, None] * below)
+
+
+def _flow_of(hour: _Hour, cleared: _Cleared, near: OperatingPoint) -> OperatingPoint | None:
+    """The AC flow of the clearing's plan, solved from ``near`` (None where it has none). Constraint generation solved
+    it for the LP's plan: the awards' loads are the LP's but for rounding in a pro-rata share, and where they are
+    the same bits, so is their AC flow."""
+    loads = hour.loads(cleared.step_mw, cleared.shed)
+    known = cleared.flow
+    return known if known is not None and known.of(*loads) else hour.feeder.ac.solve(*loads, near)
+
+
+def _broken(hour: _Hour, point: OperatingPoint) -> float:
+    """How far the AC flow ``point`` breaks the feeder's limits, in tolerances: at most 1 where it keeps them."""
+    return max(_voltage_excess(hour.feeder.network, point.v) / AC_VOLTAGE_TOLERANCE,
+               _overload(hour.feeder, point) / AC_LOADING_TOLERANCE)
+
+
+def _moved(point: OperatingPoint, hour: _Hour) -> float:
+    """How far the loads of the AC flow ``point`` lie from the operating point ``hour`` is linearised at (MW, Mvar)."""
+    at = hour.at.point
+    return float(max(np.abs(point.p - at.p).max(), np.abs(point.q - at.q).max()))
+
+
+def _fairly(hour: _Hour, done: _Cleared, point: OperatingPoint | None,
+            iterations: int) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
+    """``_ac_faithful``'s answer with the awards of ``done`` shared by the rule, and the AC flow of that plan."""
+    if done.solution is None:
+        return hour, done, point, iterations
+    shared = _awarded(hour, done.solution)
+    return hour, shared, None if point is None else _flow_of(hour, shared, point), iterations
 
 
 def _lindistflow(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
