@@ -286,15 +286,3 @@ def untrusted(subject: str, spec: str, naming: str, what: str = "rule", doc: str
     how = f"name it yourself ({naming} {spec}) or pass {TRUST_FLAG}" if naming else f"pass {TRUST_FLAG}"
     return UsageError(f"{subject}, a {what} of the recording's own, which dmosim does not {use} unless you {how} "
                       f"({doc})")
-
-
-def settlement_flag(spec: str | None):
-    """``--settlement``: the rule, loaded and tried on a trial day, or the one-line UsageError; None if not given."""
-    if spec is None:
-        return None
-    from dmo.market.choice import choose  # noqa: PLC0415  (only for the verbs that settle)
-
-    try:
-        return choose(spec)
-    except ValueError as err:
-        raise UsageError(f"--settlement: {err}") from None
