@@ -17,25 +17,20 @@ from __future__ import annotations
 import json
 import re
 
-import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from matplotlib.ticker import FuncFormatter, MultipleLocator
 
-matplotlib.use("Agg")  # files only, never a window: plots are made on headless machines too
+from dmo.replay.resettle import day_messages, rule_named
+from messages.recording import Recording
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-from matplotlib.ticker import FuncFormatter, MultipleLocator  # noqa: E402
-
-from dmo.replay.resettle import day_messages, rule_named  # noqa: E402
-from messages.recording import Recording  # noqa: E402
-
-from . import feeder  # noqa: E402
-from .compact import (COMPACT_AGENTS, agent_axis, colour_bar, deviation_map,  # noqa: E402
+from . import feeder
+from .compact import (COMPACT_AGENTS, agent_axis, colour_bar, deviation_map,
                       frame_islanded, maps_height, mark_missing, mark_restarts, penalty_hours, penalty_map,
                       ranked_bills, stacked)
-from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, short_dates  # noqa: E402
+from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, figure, short_dates
 
 _AWARD, _IMPORT = "black", "#1f77b4"
 WIDTH_IN, ROW_IN, DPI = 10.5, 1.75, 120  # 1,260 px wide at DPI; each agent adds a row of ROW_IN inches
@@ -99,7 +94,7 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "", restarted
     on_feeder = not frames.get("network", pd.DataFrame()).empty
     market_in = TOP_IN + maps_height(len(agents)) if compact else ROW_IN * (1 + len(agents))
     below = (feeder.HEAT_IN, feeder.LOADING_IN) if on_feeder else ()  # the feeder's rows, in the market's grid
-    fig = plt.figure(figsize=(WIDTH_IN, market_in + 1.2 + sum(below)), dpi=DPI, layout="constrained")
+    fig = figure(figsize=(WIDTH_IN, market_in + 1.2 + sum(below)), dpi=DPI, layout="constrained")
     draw = _compact if compact else _per_agent
     price_ax, time_axes, grid = draw(fig, hours, meter, days, agents, start, places, below)
     _price(price_ax, hours, on_feeder)

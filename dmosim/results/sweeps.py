@@ -11,13 +11,11 @@ untrusted one (its verdict is not ok) keeps its rows, with what its DMO settled 
 from __future__ import annotations
 
 import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # files only, never a window
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+from .style import figure
 
 SEED = "seed"  # the swept key whose runs are replications of one setting
 CONFIDENCE = 0.95  # of the interval of a figure across seeds
@@ -92,8 +90,8 @@ def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figur
         keys = [k for k in keys if k != SEED] or ["setting"]
     x_key, others = keys[0], keys[1:]
     groups = list(ok.groupby(others, sort=False)) if others else [((), ok)]
-    fig, axes = plt.subplots(1, len(groups), figsize=(max(6.0, 4.5 * len(groups)), 4.2), squeeze=False,
-                             sharey=True, layout="constrained")
+    fig = figure(figsize=(max(6.0, 4.5 * len(groups)), 4.2), layout="constrained")
+    axes = fig.subplots(1, len(groups), squeeze=False, sharey=True)
     numeric = pd.api.types.is_numeric_dtype(ok[x_key]) and not pd.api.types.is_bool_dtype(ok[x_key])
     agents = sorted(ok["agent"].unique())
     for ax, (key, frame) in zip(axes[0], groups):
