@@ -15,7 +15,6 @@ its settlement rule.
 from __future__ import annotations
 
 import json
-import re
 
 import numpy as np
 import pandas as pd
@@ -30,6 +29,7 @@ from . import feeder
 from .compact import (COMPACT_AGENTS, agent_axis, colour_bar, deviation_map,
                       frame_islanded, maps_height, mark_missing, mark_restarts, penalty_hours, penalty_map,
                       ranked_bills, stacked)
+from .order import natural
 from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, figure, short_dates
 
 _AWARD, _IMPORT = "black", "#1f77b4"
@@ -83,7 +83,7 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "", restarted
     if hours.empty:
         raise ValueError("no settlement statement recorded: nothing to plot")
     market_days = sorted(hours["market_day"].unique())
-    agents = sorted(hours["agent"].unique(), key=_natural)
+    agents = sorted(hours["agent"].unique(), key=natural)
     start = {day: 24 * i for i, day in enumerate(market_days)}  # x: hours from the start of the first day
     hours = hours.assign(t=hours["market_day"].map(start) + hours["hour"] - 1, missing=_missing(hours, meter))
     hours = hours.sort_values(["agent", "t"])
@@ -226,11 +226,6 @@ def _missing(hours: pd.DataFrame, meter: pd.DataFrame) -> np.ndarray:
     reported = meter[["agent", "market_day", "hour"]].drop_duplicates().assign(reported=True)
     merged = hours[["agent", "market_day", "hour"]].merge(reported, on=["agent", "market_day", "hour"], how="left")
     return merged["reported"].isna().to_numpy() | (hours["missing_subperiods"] > 0).to_numpy()
-
-
-def _natural(name: str) -> tuple:
-    """mg2 before mg10: names ordered by their text with their numbers read as numbers."""
-    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name))
 
 
 def days_label(market_days: list[str]) -> str:

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from .order import natural
 from .style import figure
 
 SEED = "seed"  # the swept key whose runs are replications of one setting
@@ -39,7 +40,7 @@ def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: fl
     return [{**head, "agent": agent, **{k: s.get(k) for k in SETTLED},
              **{column: _realised_sum(realised.get(agent), field) for column, field in REALISED.items()},
              "error": "; ".join(found) or None}
-            for agent, s in sorted(result["settlement"].items())]
+            for agent, s in sorted(result["settlement"].items(), key=lambda item: natural(item[0]))]
 
 
 def seed_summary(table: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
@@ -93,7 +94,7 @@ def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figur
     fig = figure(figsize=(max(6.0, 4.5 * len(groups)), 4.2), layout="constrained")
     axes = fig.subplots(1, len(groups), squeeze=False, sharey=True)
     numeric = pd.api.types.is_numeric_dtype(ok[x_key]) and not pd.api.types.is_bool_dtype(ok[x_key])
-    agents = sorted(ok["agent"].unique())
+    agents = sorted(ok["agent"].unique(), key=natural)
     for ax, (key, frame) in zip(axes[0], groups):
         values = list(dict.fromkeys(frame[x_key]))
         for i, agent in enumerate(agents):
