@@ -109,6 +109,24 @@ def test_protocol_md_holds_the_message_reference_the_types_generate():
                                  "paste the output of `dmosim schemas --markdown` between its markers")
 
 
+def test_protocol_md_key_table_has_a_row_for_every_route_of_the_code():
+    """docs/protocol.md's table of key expressions lists each key a message travels on (messages.keys.ROUTES) with
+    the type it carries, and no key the code does not route."""
+    from messages.keys import ROUTES  # noqa: PLC0415
+    from messages.schemas import MODELS  # noqa: PLC0415
+
+    doc = text(ROOT / "docs" / "protocol.md").split("## Key expressions", 1)[1].split("```", 2)[1]
+    rows = {parts[0]: parts[1] for parts in (line.split() for line in doc.splitlines())
+            if parts and parts[0].startswith("dmosim/<run>/") and not parts[0].startswith(("dmosim/<run>/alive/",
+                                                                                          "dmosim/<run>/link/"))}
+    expected = {}
+    for kind, (role, topic, named) in ROUTES.items():
+        key = (f"dmosim/<run>/agent/<agent>/{topic}" if role == "agent" else
+               f"dmosim/<run>/dmo/{topic}" + ("/<agent>" if named else ""))
+        expected[key] = MODELS[kind].__name__
+    assert rows == expected
+
+
 def test_every_protocol_version_the_docs_give_is_the_codes():
     """Wherever a document says which protocol version is current, it says the one the code speaks."""
     from messages.schemas import SCHEMA_VERSION  # noqa: PLC0415
