@@ -127,6 +127,15 @@ def test_protocol_md_key_table_has_a_row_for_every_route_of_the_code():
     assert rows == expected
 
 
+def test_docs_recording_md_gives_the_path_a_run_records_to():
+    """Where docs/recording.md says where `dmosim run` records by default, it names the run directory's recording."""
+    from dmosim.experiment.rundir import RUNS, RunDir  # noqa: PLC0415
+
+    section = text(ROOT / "docs" / "recording.md").split("## `dmosim run` and `dmosim record`", 1)[1]
+    said = " ".join(section.split("`dmosim run` records by default to", 1)[1].split(")", 1)[0].split())
+    assert f"`{RunDir(RUNS / '<run_id>').recording.as_posix()}`" in said, said
+
+
 def test_every_protocol_version_the_docs_give_is_the_codes():
     """Wherever a document says which protocol version is current, it says the one the code speaks."""
     from messages.schemas import SCHEMA_VERSION  # noqa: PLC0415
