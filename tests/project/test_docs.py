@@ -3,6 +3,7 @@ functions that build it, the README lists every verb, and nothing cites a docume
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import inspect
 import re
@@ -10,11 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from dmosim.cli.main import VERBS
+from dmosim.cli.main import VERBS, build_parser
 from messages.reference import BEGIN, END, reference
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
+NOTES = sorted((ROOT / "docs" / "notes").glob("*.md"))
 PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo", "dmosim", "tests", "examples")
 CODE = [p for package in PACKAGES[:5] for p in sorted((ROOT / package).rglob("*.py"))]
 
@@ -23,7 +25,7 @@ def text(path: Path) -> str:
     return path.read_text()
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", DOCS + NOTES, ids=lambda p: p.name)
 def test_every_path_a_document_names_exists(doc):
     # dmosim/RUN/... is a key expression of the wire (docs/protocol.md), not a path: paths are lower case
     named = set(re.findall(r"\b((?:%s)/(?![A-Z])[\w/]*\w(?:\.py|\.toml|/(?=[`\s,.;)])))" % "|".join(PACKAGES), text(doc)))
@@ -33,7 +35,7 @@ def test_every_path_a_document_names_exists(doc):
     assert not missing, f"{doc.name} names {missing}"
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", DOCS + NOTES, ids=lambda p: p.name)
 def test_every_dotted_name_a_document_gives_resolves(doc):
     wrong = []
     # a name the code writes as a string (an MCAP schema or metadata name such as dmosim.any) is not an import
@@ -55,6 +57,16 @@ def test_every_dotted_name_a_document_gives_resolves(doc):
         else:
             wrong.append(name)
     assert not wrong, f"{doc.name} names {wrong}"
+
+
+@pytest.mark.parametrize("note", NOTES, ids=lambda p: p.name)
+def test_every_note_gives_its_date_command_and_decision_and_a_user_document_links_it(note):
+    """docs/notes/ is the design log: each file one decision, dated, with the command that measured it, and reached
+    from the user documents, which keep only the reference."""
+    head = text(note).split("\n\n", 2)[1]
+    assert re.search(r"^- \*\*Date:\*\* \d{4}-\d{2}-\d{2}", head, re.M), note.name
+    assert "- **Measured with:** " in head and "- **Decision:** " in head, note.name
+    assert any(note.name in text(doc) for doc in DOCS), f"no user document links {note.name}"
 
 
 def test_model_md_maps_each_equation_to_functions_that_build_it():
@@ -87,7 +99,23 @@ def test_model_md_maps_each_equation_to_functions_that_build_it():
 def test_the_route_auto_takes_reads_the_same_in_the_docs_as_in_the_code():
     from microgrid_agent.solvers.routes import auto_rule  # noqa: PLC0415
 
-    assert auto_rule() in text(ROOT / "README.md") and auto_rule() in text(ROOT / "docs" / "solver.md")
+    method = next(a for _, a in flags_of(verb_parser("solve"), "solve") if "--method" in a.option_strings)
+    assert auto_rule() in text(ROOT / "docs" / "solver.md") and auto_rule() in " ".join(method.help.split())
+
+
+def flags_of(parser: argparse.ArgumentParser, prog: str):
+    """(where, action) of every argument of ``parser`` and of its sub-verbs (``bench solver``...)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from flags_of(sub, f"{prog} {name}")
+        elif not isinstance(action, argparse._HelpAction):
+            yield prog, action
+
+
+def verb_parser(name: str) -> argparse.ArgumentParser:
+    parser = build_parser(name)
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
 
 
 def test_readme_lists_every_verb():
