@@ -118,6 +118,16 @@ def verb_parser(name: str) -> argparse.ArgumentParser:
     return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
 
 
+def test_every_flag_of_every_verb_is_documented():
+    """The README's table is one line per verb; each flag is explained in the document that verb points to, or
+    another: every option of every verb (and of ``bench``'s sub-verbs) is named somewhere in docs/ or the README."""
+    written = "\n".join(text(doc) for doc in DOCS)
+    missing = [f"{prog} {flag}" for name in VERBS for prog, action in flags_of(verb_parser(name), name)
+               for flag in action.option_strings
+               if flag.startswith("--") and not re.search(re.escape(flag) + r"(?![\w-])", written)]
+    assert not missing, missing
+
+
 def test_readme_lists_every_verb():
     readme = text(ROOT / "README.md")
     missing = [verb for verb in VERBS if f"`dmosim {verb}" not in readme]
