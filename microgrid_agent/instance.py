@@ -27,7 +27,7 @@ class Instance:
         scenario count and resolution); each certifies its gap. ``progress(message)`` hears of each Benders
         iteration (the extensive form reports through HiGHS's own log, ``verbose``). ``start``, a first stage (the
         day before's), is the Benders search's first incumbent if feasible; the other routes do without
-        (docs/solver.md, "Starting from the day before")."""
+        (docs/solver.md, "The decomposition")."""
         route = resolve_method(method, self.scen.S, self.scen.subperiods)
         if route in ("benders", "tree"):
             known = {k: v for k, v in options.items() if k in ("gap", "time_limit")}

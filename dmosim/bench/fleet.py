@@ -7,7 +7,7 @@ every process of the run (the launcher, the DMO, the recorder, the agents' host 
 ``INTERVAL_S`` seconds; the largest sum is the run's memory. The day is split as ``dmosim bench day`` splits it
 (``split_day``): the agents' critical-path computation and the overhead. Whether the recording re-settles to the
 statements the DMO published is the run's own check (``recorded.resettled`` of its result). Definitions in
-docs/benchmarks.md, "Fleets".
+docs/benchmarks.md, "fleet".
 """
 
 from __future__ import annotations

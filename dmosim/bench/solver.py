@@ -4,7 +4,7 @@ For each scenario count and seed, the same instance (paper case, seeded scenario
 the decomposition in one SCIP tree when PySCIPOpt is installed, the extensive form) to the same target gap under the
 same time cap; a route that hits the cap reports the gap it certified by then. Every schedule goes through the
 independent checker. The summary is the median over the seeds: one scenario set's path through the masters is not
-the route's speed (docs/solver.md, "One machine, two paths"). Each run's time is split into the branch-and-bound
+the route's speed (docs/solver.md, "The paper's day"). Each run's time is split into the branch-and-bound
 tree (Benders' MILP masters, SCIP's tree, the extensive form's HiGHS solve), the scenario subproblems and building.
 Beside the seconds, each run's work: simplex iterations and branch-and-bound nodes, in all, and for the decompositions
 per master and per round of subproblems (``trace``), which are the same on every machine where the seconds are not.

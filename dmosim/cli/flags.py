@@ -131,11 +131,11 @@ def announce_run_id(args) -> None:
               flush=True)
 
 
-def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -> None:
+def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool, scratch: Path | None = None) -> None:
     """Secure by default: a router that hosts a run (the DMO, ``dmosim router``, ``replay --as-dmo``) given no
     ``--auth-dir``, or one that does not exist yet, makes the run's credentials there itself (by default
-    ``./dmosim-credentials/<run_id>/``) and says where every process's bundle is; ``args.auth_dir`` then names
-    them. Credentials that are there already are used only if nobody else could have made or changed them
+    ``./dmosim-credentials/<run_id>/``; ``scratch/<run_id>/`` where the caller gives a private directory it removes
+    when it ends) and says where every process's bundle is; ``args.auth_dir`` then names them. Credentials that are there already are used only if nobody else could have made or changed them
     (``check_private``). ``--insecure`` serves an open network instead. A client logs in with the bundle it is
     given, and so does a router that connects to other routers (a mesh, docs/hosts.md): it joins their run, whose
     credentials it must be given."""
@@ -150,7 +150,7 @@ def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -
             raise UsageError("--connect: a router that connects to other routers joins their run; give it the run's "
                              "credentials, --auth-dir DIR --user NAME (docs/hosts.md), or --insecure")
         return
-    where = Path(args.auth_dir) if args.auth_dir else Path(DEFAULT_CREDENTIALS) / run_id
+    where = Path(args.auth_dir) if args.auth_dir else (scratch or Path(DEFAULT_CREDENTIALS)) / run_id
     try:
         if not args.auth_dir:
             private_directory(where.parent)
@@ -169,7 +169,9 @@ def credentials_for(args, run_id: str, agents: list[str], *, dmo_client: bool) -
     print(f"dmosim: made the credentials of run {run_id} in {where}: each process logs in with its bundle "
           f"{where}/<name>/ ({', '.join([*(['dmo'] if dmo_client else []), *READERS, *agents])}), e.g. dmosim "
           f"agent --id {agents[0]} --run-id {run_id} --connect {endpoint} --auth-dir {where}; copy to each host only "
-          "its own bundle (docs/security.md). --insecure serves an open network instead", file=sys.stderr)
+          "its own bundle (docs/security.md)" + ("; they are removed when this process ends" if scratch and
+                                                 where.parent == scratch else "")
+          + ". --insecure serves an open network instead", file=sys.stderr)
 
 
 def check_out(args) -> None:
@@ -286,15 +288,3 @@ def untrusted(subject: str, spec: str, naming: str, what: str = "rule", doc: str
     how = f"name it yourself ({naming} {spec}) or pass {TRUST_FLAG}" if naming else f"pass {TRUST_FLAG}"
     return UsageError(f"{subject}, a {what} of the recording's own, which dmosim does not {use} unless you {how} "
                       f"({doc})")
-
-
-def settlement_flag(spec: str | None):
-    """``--settlement``: the rule, loaded and tried on a trial day, or the one-line UsageError; None if not given."""
-    if spec is None:
-        return None
-    from dmo.market.choice import choose  # noqa: PLC0415  (only for the verbs that settle)
-
-    try:
-        return choose(spec)
-    except ValueError as err:
-        raise UsageError(f"--settlement: {err}") from None

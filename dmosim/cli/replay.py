@@ -11,9 +11,12 @@ replayed day, the agent's messages included, is recorded.
 from __future__ import annotations
 
 import argparse
+import shutil
 import signal
 import sys
+import tempfile
 import threading
+from pathlib import Path
 
 from dmo.market.choice import Trust, UntrustedRule
 from dmo.replay.resettle import ResettleError, recorded_day, recorded_rule
@@ -121,9 +124,7 @@ def _say(args, text: str) -> None:
 def _as_dmo(args, rec: Recording, run_id: str) -> int:
     """``--as-dmo``: the recorded day played to a live agent, the DMO's machine running its market
     (replay/recorded.py)."""
-    from dmo.operator.day import MarketDay  # noqa: PLC0415  (the DMO's machine loads the feeder's clearing)
-    from dmo.operator.machine import NobodyRegistered  # noqa: PLC0415
-    from dmo.replay.recorded import RecordedMarket, render, replay_config, replay_result  # noqa: PLC0415
+    from dmo.replay.recorded import RecordedMarket  # noqa: PLC0415  (the DMO's machine, only for --as-dmo)
 
     try:
         day = recorded_day(rec, args.day)
@@ -144,7 +145,20 @@ def _as_dmo(args, rec: Recording, run_id: str) -> int:
         market = RecordedMarket(rec, day, agent, rule)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    credentials_for(args, run_id, [agent], dmo_client=False)
+    scratch = Path(tempfile.mkdtemp(prefix="dmosim-replay-"))  # credentials it makes live as long as the replay
+    try:
+        credentials_for(args, run_id, [agent], dmo_client=False, scratch=scratch)
+        return _serve(args, rec, day, agent, market, out, run_id)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _serve(args, rec: Recording, day, agent: str, market, out: Path | None, run_id: str) -> int:
+    """The DMO's side of ``--as-dmo`` on the bus, with its own recorder when ``out`` names a file."""
+    from dmo.operator.day import MarketDay  # noqa: PLC0415  (the DMO's machine loads the feeder's clearing)
+    from dmo.operator.machine import NobodyRegistered  # noqa: PLC0415
+    from dmo.replay.recorded import render, replay_config, replay_result  # noqa: PLC0415
+
     config = bus_config(args, "router", run_id=run_id)
     endpoint = (config.listen or config.connect or ("zenoh's default",))[0]
     _say(args, f"playing the DMO of {args.path} ({day.market_day}) under dmosim/{run_id}/ for agent {agent}; start "

@@ -31,6 +31,7 @@ from .placement import add_cluster_flag, check_cluster, check_shared, connected
 from ..launch.local import RoleFailed, run_locally
 from ..launch.mesh import router_names
 from ..launch.roles import fleet_written, resolved, strategy_of
+from ..results.order import natural
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
 from .flags import add_trust_flag, check_out, load_recording, recording_file, recording_path, untrusted
@@ -285,7 +286,7 @@ def summary_table(result: dict) -> str:
     when = (f"market day {days[0]['market_day']}" if len(days) == 1 else
             f"{len(days)} market days, {days[0]['market_day']} to {days[-1]['market_day']} (totals)")
     rows = [f"{when}, run {result['run_id']}", head, "-" * len(head)]
-    for agent, s in sorted(result["settlement"].items()):
+    for agent, s in sorted(result["settlement"].items(), key=lambda item: natural(item[0])):
         rows.append(f"{agent:<8}{s['award_mwh']:>11.2f}{s['import_mwh']:>12.2f}{s['deviation_mwh']:>10.3f}"
                     f"{s['energy_charge']:>12,.2f}{s['deviation_penalty']:>11,.2f}{s['total']:>12,.2f}")
     islanded = "; ".join(f"{d['market_day']}: {', '.join(map(str, d['islanded_hours'])) or 'none'}" for d in days)

@@ -24,6 +24,7 @@ from dmo.replay.resettle import (RecordedDay, ResettleError, compare, gaps, held
 from ..arguments import market_day, nonneg_float
 from ..console import UsageError, print_json
 from ..experiment.rundir import RunDir
+from ..results.order import natural
 from .flags import add_trust_flag, load_recording, recorded_day_flag, untrusted
 
 HELP = "re-settle the market days of recordings, run directories or sweep directories: compare with the recorded statements, or under other settlement rules"
@@ -99,9 +100,9 @@ def _verify(args, rec, trust: Trust) -> dict:
     lacking = gaps(rec) if diffs else []
     lines = sum(r["lines"] for r in results)
     left_out = sum(r["meter_reports_left_out"] for r in results)
-    totals = {a: round(sum(r["totals"].get(a, 0.0) for r in results), 2) for a in sorted(results[-1]["totals"])}
+    totals = {a: round(sum(r["totals"].get(a, 0.0) for r in results), 2) for a in sorted(results[-1]["totals"], key=natural)}
     if args.json:
-        return {"path": rec.path, "complete": rec.complete, "identical": not diffs, "agents": sorted(totals),
+        return {"path": rec.path, "complete": rec.complete, "identical": not diffs, "agents": list(totals),
                 "market_days": [r["market_day"] for r in results], "lines": lines,
                 "meter_reports_left_out": left_out, "differences": diffs, "recording_lacks": lacking,
                 "totals": totals, "days": results}
@@ -179,7 +180,7 @@ def _compare_rules(args, paths: list[Path], rules: list[ChosenRule], trust: Trus
                     for column, value in (("energy_charge", st.energy_charge), ("deviation_penalty",
                                           st.deviation_penalty), ("deviation_credit", st.credit), ("total", st.total)):
                         row[column] += float(value)
-            for agent, row in sorted(sums.items()):
+            for agent, row in sorted(sums.items(), key=lambda item: natural(item[0])):
                 rows.append({"recording": name, "agent": agent, "rule": rule[0].label,
                              **{k: round(v, 2) for k, v in row.items()},
                              "change": round(row["total"] - row["recorded_total"], 2)})

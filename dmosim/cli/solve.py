@@ -84,7 +84,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "reduced): a statistical lower bound of the true optimum, and with --evaluate the "
                         "schedule's optimality gap with a 95%% upper limit (docs/solver.md, \"Out of sample\"); R "
                         f"in 2..{MAX_REPLICATIONS}")
-    p.add_argument("--json", action="store_true", help="print one JSON object (README, \"Commands\")")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (docs/solver.md, \"What a solve reports\")")
     p.add_argument("--verbose", action="store_true", help="show the HiGHS log")
 
 

@@ -488,10 +488,8 @@ class _Watch:
         self.clock = "the start"  # where the DMO's clock stands, as the run's messages say it
         self.recorder_exit: str | None = None  # where it stood when the recorder exited
         self.killed_at: dict[str, str] = {}  # role -> where the clock stood when a fault killed it
-        # day -> role -> its memory as the day's last hour starts, when every agent is still there (at settlement,
-        # forked agents that have their statements are gone within milliseconds); a role already gone when this
-        # process sees that clock (small agents on a loaded machine) keeps its latest sample: of the hour before, or
-        # of the day's first hour (on CI, a shared process of small agents was gone before hour 23 was seen)
+        # day -> role -> its memory as the day's last hour starts, when every agent is still there; a role already
+        # gone by then keeps its latest sample (docs/experiments.md, "The result": `memory_mib`)
         self.memory: dict[int, dict[str, dict]] = {}
 
     def when(self) -> str:

@@ -15,27 +15,22 @@ its settlement rule.
 from __future__ import annotations
 
 import json
-import re
 
-import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+from matplotlib.ticker import FuncFormatter, MultipleLocator
 
-matplotlib.use("Agg")  # files only, never a window: plots are made on headless machines too
+from dmo.replay.resettle import day_messages, rule_named
+from messages.recording import Recording
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
-from matplotlib.ticker import FuncFormatter, MultipleLocator  # noqa: E402
-
-from dmo.replay.resettle import day_messages, rule_named  # noqa: E402
-from messages.recording import Recording  # noqa: E402
-
-from . import feeder  # noqa: E402
-from .compact import (COMPACT_AGENTS, agent_axis, colour_bar, deviation_map,  # noqa: E402
+from . import feeder
+from .compact import (COMPACT_AGENTS, agent_axis, colour_bar, deviation_map,
                       frame_islanded, maps_height, mark_missing, mark_restarts, penalty_hours, penalty_map,
                       ranked_bills, stacked)
-from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, short_dates  # noqa: E402
+from .order import natural
+from .style import CREDIT, DOLLARS, ISLANDED, MISSING, PENALTY, RESTART, figure, short_dates
 
 _AWARD, _IMPORT = "black", "#1f77b4"
 WIDTH_IN, ROW_IN, DPI = 10.5, 1.75, 120  # 1,260 px wide at DPI; each agent adds a row of ROW_IN inches
@@ -88,7 +83,7 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "", restarted
     if hours.empty:
         raise ValueError("no settlement statement recorded: nothing to plot")
     market_days = sorted(hours["market_day"].unique())
-    agents = sorted(hours["agent"].unique(), key=_natural)
+    agents = sorted(hours["agent"].unique(), key=natural)
     start = {day: 24 * i for i, day in enumerate(market_days)}  # x: hours from the start of the first day
     hours = hours.assign(t=hours["market_day"].map(start) + hours["hour"] - 1, missing=_missing(hours, meter))
     hours = hours.sort_values(["agent", "t"])
@@ -99,7 +94,7 @@ def recording_figure(frames: dict[str, pd.DataFrame], title: str = "", restarted
     on_feeder = not frames.get("network", pd.DataFrame()).empty
     market_in = TOP_IN + maps_height(len(agents)) if compact else ROW_IN * (1 + len(agents))
     below = (feeder.HEAT_IN, feeder.LOADING_IN) if on_feeder else ()  # the feeder's rows, in the market's grid
-    fig = plt.figure(figsize=(WIDTH_IN, market_in + 1.2 + sum(below)), dpi=DPI, layout="constrained")
+    fig = figure(figsize=(WIDTH_IN, market_in + 1.2 + sum(below)), dpi=DPI, layout="constrained")
     draw = _compact if compact else _per_agent
     price_ax, time_axes, grid = draw(fig, hours, meter, days, agents, start, places, below)
     _price(price_ax, hours, on_feeder)
@@ -231,11 +226,6 @@ def _missing(hours: pd.DataFrame, meter: pd.DataFrame) -> np.ndarray:
     reported = meter[["agent", "market_day", "hour"]].drop_duplicates().assign(reported=True)
     merged = hours[["agent", "market_day", "hour"]].merge(reported, on=["agent", "market_day", "hour"], how="left")
     return merged["reported"].isna().to_numpy() | (hours["missing_subperiods"] > 0).to_numpy()
-
-
-def _natural(name: str) -> tuple:
-    """mg2 before mg10: names ordered by their text with their numbers read as numbers."""
-    return tuple((0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", name))
 
 
 def days_label(market_days: list[str]) -> str:

@@ -11,13 +11,12 @@ untrusted one (its verdict is not ok) keeps its rows, with what its DMO settled 
 from __future__ import annotations
 
 import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")  # files only, never a window
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+from .order import natural
+from .style import figure
 
 SEED = "seed"  # the swept key whose runs are replications of one setting
 CONFIDENCE = 0.95  # of the interval of a figure across seeds
@@ -41,7 +40,7 @@ def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: fl
     return [{**head, "agent": agent, **{k: s.get(k) for k in SETTLED},
              **{column: _realised_sum(realised.get(agent), field) for column, field in REALISED.items()},
              "error": "; ".join(found) or None}
-            for agent, s in sorted(result["settlement"].items())]
+            for agent, s in sorted(result["settlement"].items(), key=lambda item: natural(item[0]))]
 
 
 def seed_summary(table: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
@@ -92,10 +91,10 @@ def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figur
         keys = [k for k in keys if k != SEED] or ["setting"]
     x_key, others = keys[0], keys[1:]
     groups = list(ok.groupby(others, sort=False)) if others else [((), ok)]
-    fig, axes = plt.subplots(1, len(groups), figsize=(max(6.0, 4.5 * len(groups)), 4.2), squeeze=False,
-                             sharey=True, layout="constrained")
+    fig = figure(figsize=(max(6.0, 4.5 * len(groups)), 4.2), layout="constrained")
+    axes = fig.subplots(1, len(groups), squeeze=False, sharey=True)
     numeric = pd.api.types.is_numeric_dtype(ok[x_key]) and not pd.api.types.is_bool_dtype(ok[x_key])
-    agents = sorted(ok["agent"].unique())
+    agents = sorted(ok["agent"].unique(), key=natural)
     for ax, (key, frame) in zip(axes[0], groups):
         values = list(dict.fromkeys(frame[x_key]))
         for i, agent in enumerate(agents):

@@ -24,6 +24,8 @@ from messages import relative_key
 from messages.recording import Recording, read_recording
 from scenarios.horizon import HOURS
 
+from .order import by_agent
+
 _KEY_TYPES = {"market_day": "string", "agent": "string", "hour": "int64", "subperiod": "int64"}
 _MONEY = {"energy_charge": "float64", "deviation_penalty": "float64", "deviation_credit": "float64",
           "total": "float64"}
@@ -186,7 +188,7 @@ def _hours(statements: list[dict], grid: pd.DataFrame, congestion: pd.DataFrame)
     hours = lines.merge(islanded, on=["market_day", "hour"], how="left")
     hours["islanded"] = hours["islanded"].astype("boolean").fillna(False)  # no grid state recorded: not islanded
     hours = hours.merge(congestion, on=["market_day", "agent", "hour"], how="left")  # no congestion stated: <NA>
-    return _typed("hours", hours.sort_values(["market_day", "agent", "hour"]))
+    return _typed("hours", hours.sort_values(["market_day", "agent", "hour"], key=by_agent))
 
 
 def _days(statements: list[dict], hours: pd.DataFrame) -> pd.DataFrame:
@@ -196,7 +198,7 @@ def _days(statements: list[dict], hours: pd.DataFrame) -> pd.DataFrame:
     energy = (hours.groupby(["market_day", "agent"], as_index=False)
               [["import_mwh", "deviation_mwh", "under_import_mwh", "p_sch_mw"]].sum()
               .rename(columns={"p_sch_mw": "award_mwh"}))  # an award of P_sch MW for 1 h is P_sch MWh
-    return _typed("days", totals.merge(energy, on=["market_day", "agent"]).sort_values(["market_day", "agent"]))
+    return _typed("days", totals.merge(energy, on=["market_day", "agent"]).sort_values(["market_day", "agent"], key=by_agent))
 
 
 def _meter(rec: Recording, grid: pd.DataFrame) -> pd.DataFrame:
@@ -211,7 +213,7 @@ def _meter(rec: Recording, grid: pd.DataFrame) -> pd.DataFrame:
     awards = _numbered(awards.explode("p_sch_mw", ignore_index=True), ["market_day", "agent"], "hour")
     meter = meter.merge(awards, on=["market_day", "agent", "hour"], how="left")
     meter = meter.merge(grid, on=["market_day", "hour", "subperiod"], how="left")  # no grid state: connected NA
-    return _typed("meter", meter.sort_values(["market_day", "agent", "hour", "subperiod"]))
+    return _typed("meter", meter.sort_values(["market_day", "agent", "hour", "subperiod"], key=by_agent))
 
 
 def _bids(rec: Recording) -> pd.DataFrame:
@@ -224,7 +226,7 @@ def _bids(rec: Recording) -> pd.DataFrame:
         return _typed("bids", None)
     steps = _numbered(steps, ["market_day", "agent", "hour"], "step")
     prices = pd.DataFrame(steps["hours"].tolist(), index=steps.index)
-    return _typed("bids", steps.join(prices).sort_values(["market_day", "agent", "hour", "step"]))
+    return _typed("bids", steps.join(prices).sort_values(["market_day", "agent", "hour", "step"], key=by_agent))
 
 
 def _incidents(rec: Recording) -> pd.DataFrame:
@@ -251,7 +253,7 @@ def _schedules(rec: Recording) -> pd.DataFrame:
         return _typed("schedules", None)
     rows = [{"market_day": m.market_day, "agent": m.sender, "status": m.status, "stopped_short": m.stopped_short,
              "mip_gap": m.mip_gap, "scenarios": m.scenarios, "expected_cost": m.expected_cost} for m in last.values()]
-    return _typed("schedules", pd.DataFrame(rows).sort_values(["market_day", "agent"]))
+    return _typed("schedules", pd.DataFrame(rows).sort_values(["market_day", "agent"], key=by_agent))
 
 
 def _agent_days(rec: Recording) -> pd.DataFrame:
@@ -267,7 +269,7 @@ def _agent_days(rec: Recording) -> pd.DataFrame:
     rows = [{**msg.model_dump(exclude={"compute", "messages", "units"}), "agent": msg.sender,
              "wall_s": sum(e.wall_s for e in msg.compute), "cpu_s": sum(e.cpu_s for e in msg.compute),
              "sent_again": msg.messages.sent_again, "asked": msg.messages.asked} for msg in days.values()]
-    return _typed("agent_days", pd.DataFrame(rows).sort_values(["market_day", "agent"]))
+    return _typed("agent_days", pd.DataFrame(rows).sort_values(["market_day", "agent"], key=by_agent))
 
 
 def _network_hours(rec: Recording) -> list[dict]:

@@ -6,15 +6,13 @@ import math
 from pathlib import Path
 
 import matplotlib
+import numpy as np
+import pandas as pd
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
 
-matplotlib.use("Agg")  # files only, never a window: studies run on headless machines
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-from matplotlib.colors import ListedColormap  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
+from dmosim.results.style import figure
 
 COMPONENTS = ("generation", "startup", "curtailment", "penalty")
 _ON_OFF = ListedColormap(["white", "#4c72b0"])
@@ -34,7 +32,6 @@ def component(frame: pd.DataFrame, name: str) -> str:
 
 def save(fig: Figure, path: Path) -> Path:
     fig.savefig(path, dpi=120, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 
@@ -66,7 +63,8 @@ def table2_figure(frames: dict[str, pd.DataFrame], agreement: dict[str, int]) ->
         ("paper, Table II (outlined: printed bold; G4 padded at hours 23-24, see table2_paper.csv)",
          paper.loc["paper"][hours], paper.loc["paper_bold"][hours]),
     ]
-    fig, axes = plt.subplots(3, 1, figsize=(11, 6.8), constrained_layout=True)
+    fig = figure(figsize=(11, 6.8), constrained_layout=True)
+    axes = fig.subplots(3, 1)
     for ax, (title, on, marked) in zip(axes, panels):
         _grid(ax, on.to_numpy(), marked.to_numpy(), units, title)
     diff = (panels[0][1].to_numpy() != panels[1][1].to_numpy()).astype(int)
@@ -93,7 +91,8 @@ def _grid(ax, on: np.ndarray, marked: np.ndarray, units, title: str, cmap=_ON_OF
 
 def islanding_figure(frame: pd.DataFrame, cost_convention: str, subperiods: int) -> Figure:
     """Fig. 2: cost and its components against the number of islanding hours."""
-    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    fig = figure(figsize=(7, 4.5), constrained_layout=True)
+    ax = fig.subplots()
     _cost_lines(ax, frame["island_hours"], frame)
     ax.set_xlabel("islanding hours per scenario, H (h)")
     ax.set_ylabel(cost_label(cost_convention, subperiods))
@@ -110,8 +109,8 @@ def transfer_figure(frame: pd.DataFrame, paper: pd.DataFrame, cost_convention: s
     """Fig. 3: cost and its components against the award scale, one panel per reading of the infinite penalty,
     the paper's printed points overlaid on each."""
     readings = list(dict.fromkeys(frame["award"]))
-    fig, axes = plt.subplots(1, len(readings), figsize=(6 * len(readings), 4.8), sharey=True, constrained_layout=True,
-                             squeeze=False)
+    fig = figure(figsize=(6 * len(readings), 4.8), constrained_layout=True)
+    axes = fig.subplots(1, len(readings), sharey=True, squeeze=False)
     factor = float(paper["factor"].iloc[0])
     if cost_convention == "paper" and math.isclose(factor, 1.0):
         how = "paper (as printed)"
@@ -141,7 +140,8 @@ def dispatch_figure(frame: pd.DataFrame, unit_names) -> Figure:
     k = int(frame.index.get_level_values("subperiod").max())
     t = np.arange(len(frame)) / k  # start of each sub-period, hours since midnight
     islanded = frame["connected"].to_numpy() < 0.5
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True, constrained_layout=True)
+    fig = figure(figsize=(10, 6.5), constrained_layout=True)
+    top, bottom = fig.subplots(2, 1, sharex=True)
     for name in unit_names:
         top.step(np.append(t, 24.0), np.append(frame[name], frame[name].iloc[-1]), where="post", label=name, lw=1.6)
     for series, label in (("p_m", "main grid P_M"), ("storage", "storage (+ discharging)"),
@@ -171,7 +171,8 @@ def _hour_span(frame: pd.DataFrame, islanded: np.ndarray) -> str:
 
 def penalty_figure(frame: pd.DataFrame, cost_convention: str, subperiods: int) -> Figure:
     """Fig. 5: cost against the mismatch penalty, categorical x so that c = 0 and c = inf both have a place."""
-    fig, ax = plt.subplots(figsize=(7, 4.5), constrained_layout=True)
+    fig = figure(figsize=(7, 4.5), constrained_layout=True)
+    ax = fig.subplots()
     x = np.arange(len(frame))
     _cost_lines(ax, x, frame)
     ax.set_xticks(x, ["inf" if math.isinf(c) else f"{c:g}" for c in frame["penalty"]])

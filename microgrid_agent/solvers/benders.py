@@ -184,7 +184,7 @@ _EARLY_GAP = 0.02  # relative gap of the first MILP masters
 _CUTOFF_MARGIN = 1e-6  # relative: how far a master's pruning may trust a bound at its cutoff
 # A search stalls when STALL_MASTERS integer masters in a row find no better schedule and raise the bound by less
 # than STALL_RISE x the target gap in all; it then goes on with one relaxation group per islanding pattern
-# (``Master.regrouped``; docs/solver.md, "A stalled search").
+# (``Master.regrouped``; docs/notes/2026-11-28-stalled-search-regroup.md).
 STALL_MASTERS = 10
 STALL_RISE = 0.1
 

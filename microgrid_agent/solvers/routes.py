@@ -9,9 +9,8 @@ from __future__ import annotations
 import importlib.util
 
 METHODS = ("auto", "extensive", "benders", "tree")
-# From this many scenarios "auto" decomposes, by metering resolution (medians over scenario seeds on the paper's case,
-# docs/solver.md "Every route side by side"): at 10-minute sub-periods Benders is faster from 10 on, the extensive form
-# at 5; hourly, where the extensive form is six times smaller, it is faster up to 60 and Benders from 90.
+# From this many scenarios "auto" decomposes, by metering resolution: where Benders' median over scenario seeds beat
+# the extensive form's on the paper's case (docs/notes/2026-11-27-auto-crossover.md).
 AUTO_BENDERS_SCENARIOS = 10
 AUTO_BENDERS_SCENARIOS_HOURLY = 90
 SCIP_INSTALL = "pip install 'dmosim[scip]'"  # what the tree method needs (an optional dependency)

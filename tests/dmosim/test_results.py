@@ -545,3 +545,23 @@ def test_the_figure_names_the_rule_marks_restarts_and_missing_hours_and_stays_a_
     assert not any("credit" in label for label in labels)
     width, height = Image.open(save(figure, tmp_path / "five.png")).size
     assert width <= 1_400 and height <= 1_600, (width, height)
+
+
+def test_tables_and_the_runs_summary_list_agents_in_natural_order(tmp_path):
+    """mg2 before mg10, in every table with an agent column and in the summary ``dmosim run`` prints, not the text
+    order mg1, mg10, mg11, mg2."""
+    from dmosim.cli.run import summary_table  # noqa: PLC0415
+
+    names = [f"mg{i}" for i in range(1, 12)]
+    run_id = new_run_id()
+    frames = open_recording(write(tmp_path / "day.mcap", run_id, synthetic_day(run_id, len(names), K)))
+    for name, frame in frames.items():
+        if "agent" in frame and not frame.empty:
+            assert list(dict.fromkeys(frame["agent"])) == names, name
+    money = dict.fromkeys(["award_mwh", "import_mwh", "deviation_mwh", "energy_charge", "deviation_penalty",
+                           "total"], 0.0)
+    result = {"days": [{"market_day": DAY, "islanded_hours": []}], "run_id": run_id, "run_dir": str(tmp_path),
+              "settlement": {name: money for name in sorted(names)}, "settlement_rule": "paper",
+              "rejected_messages": 0, "incidents": [], "verdict": {"problems": []}}
+    listed = [line.split()[0] for line in summary_table(result).splitlines() if line.startswith("mg")]
+    assert listed == names

@@ -623,6 +623,22 @@ def test_replay_as_dmo_lets_a_live_agent_take_part_and_settles_it(day, tmp_path,
     assert {a.name for a in mine.attachments} == {"experiment.toml", "paper.toml", "fleet.toml"}
 
 
+@pytest.mark.slow
+def test_replay_as_dmo_keeps_the_credentials_it_makes_only_while_it_runs(tmp_path):
+    """Given no --auth-dir, replay --as-dmo makes the run's credentials in a private temporary directory (the one
+    the agent's --auth-dir names while the replay lasts) and removes them as it ends: nothing is left where it ran,
+    nor in the temporary directory."""
+    path, _ = _small_recording(tmp_path)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    out = subprocess.run(argv("replay", str(path), "--as-dmo", "--timeout", "0.2", "--listen",
+                              f"tcp/127.0.0.1:{free_port()}", "--quiet"),
+                         capture_output=True, text=True, cwd=tmp_path, env={**ENV, "TMPDIR": str(scratch)}, timeout=120)
+    assert out.returncode == 1, out.stderr[-2000:]  # nobody registered within the timeout: a runtime failure
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["small.mcap", "tmp"]
+    assert list(scratch.iterdir()) == []
+
+
 # --- determinism -----------------------------------------------------------------------------------------------
 
 @pytest.mark.slow

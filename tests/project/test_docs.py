@@ -3,6 +3,7 @@ functions that build it, the README lists every verb, and nothing cites a docume
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import inspect
 import re
@@ -10,11 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from dmosim.cli.main import VERBS
+from dmosim.cli.main import VERBS, build_parser
 from messages.reference import BEGIN, END, reference
 
 ROOT = Path(__file__).resolve().parents[2]
 DOCS = sorted((ROOT / "docs").glob("*.md")) + [ROOT / "README.md"]
+NOTES = sorted((ROOT / "docs" / "notes").glob("*.md"))
 PACKAGES = ("scenarios", "messages", "microgrid_agent", "dmo", "dmosim", "tests", "examples")
 CODE = [p for package in PACKAGES[:5] for p in sorted((ROOT / package).rglob("*.py"))]
 
@@ -23,7 +25,7 @@ def text(path: Path) -> str:
     return path.read_text()
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", DOCS + NOTES, ids=lambda p: p.name)
 def test_every_path_a_document_names_exists(doc):
     # dmosim/RUN/... is a key expression of the wire (docs/protocol.md), not a path: paths are lower case
     named = set(re.findall(r"\b((?:%s)/(?![A-Z])[\w/]*\w(?:\.py|\.toml|/(?=[`\s,.;)])))" % "|".join(PACKAGES), text(doc)))
@@ -33,7 +35,7 @@ def test_every_path_a_document_names_exists(doc):
     assert not missing, f"{doc.name} names {missing}"
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+@pytest.mark.parametrize("doc", DOCS + NOTES, ids=lambda p: p.name)
 def test_every_dotted_name_a_document_gives_resolves(doc):
     wrong = []
     # a name the code writes as a string (an MCAP schema or metadata name such as dmosim.any) is not an import
@@ -55,6 +57,16 @@ def test_every_dotted_name_a_document_gives_resolves(doc):
         else:
             wrong.append(name)
     assert not wrong, f"{doc.name} names {wrong}"
+
+
+@pytest.mark.parametrize("note", NOTES, ids=lambda p: p.name)
+def test_every_note_gives_its_date_command_and_decision_and_a_user_document_links_it(note):
+    """docs/notes/ is the design log: each file one decision, dated, with the command that measured it, and reached
+    from the user documents, which keep only the reference."""
+    head = text(note).split("\n\n", 2)[1]
+    assert re.search(r"^- \*\*Date:\*\* \d{4}-\d{2}-\d{2}", head, re.M), note.name
+    assert "- **Measured with:** " in head and "- **Decision:** " in head, note.name
+    assert any(note.name in text(doc) for doc in DOCS), f"no user document links {note.name}"
 
 
 def test_model_md_maps_each_equation_to_functions_that_build_it():
@@ -87,7 +99,33 @@ def test_model_md_maps_each_equation_to_functions_that_build_it():
 def test_the_route_auto_takes_reads_the_same_in_the_docs_as_in_the_code():
     from microgrid_agent.solvers.routes import auto_rule  # noqa: PLC0415
 
-    assert auto_rule() in text(ROOT / "README.md") and auto_rule() in text(ROOT / "docs" / "solver.md")
+    method = next(a for _, a in flags_of(verb_parser("solve"), "solve") if "--method" in a.option_strings)
+    assert auto_rule() in text(ROOT / "docs" / "solver.md") and auto_rule() in " ".join(method.help.split())
+
+
+def flags_of(parser: argparse.ArgumentParser, prog: str):
+    """(where, action) of every argument of ``parser`` and of its sub-verbs (``bench solver``...)."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from flags_of(sub, f"{prog} {name}")
+        elif not isinstance(action, argparse._HelpAction):
+            yield prog, action
+
+
+def verb_parser(name: str) -> argparse.ArgumentParser:
+    parser = build_parser(name)
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[name]
+
+
+def test_every_flag_of_every_verb_is_documented():
+    """The README's table is one line per verb; each flag is explained in the document that verb points to, or
+    another: every option of every verb (and of ``bench``'s sub-verbs) is named somewhere in docs/ or the README."""
+    written = "\n".join(text(doc) for doc in DOCS)
+    missing = [f"{prog} {flag}" for name in VERBS for prog, action in flags_of(verb_parser(name), name)
+               for flag in action.option_strings
+               if flag.startswith("--") and not re.search(re.escape(flag) + r"(?![\w-])", written)]
+    assert not missing, missing
 
 
 def test_readme_lists_every_verb():
@@ -107,6 +145,33 @@ def test_protocol_md_holds_the_message_reference_the_types_generate():
     held = doc[doc.index(BEGIN):doc.index(END) + len(END)]
     assert held == reference(), ("docs/protocol.md's message reference differs from messages/schemas.py: "
                                  "paste the output of `dmosim schemas --markdown` between its markers")
+
+
+def test_protocol_md_key_table_has_a_row_for_every_route_of_the_code():
+    """docs/protocol.md's table of key expressions lists each key a message travels on (messages.keys.ROUTES) with
+    the type it carries, and no key the code does not route."""
+    from messages.keys import ROUTES  # noqa: PLC0415
+    from messages.schemas import MODELS  # noqa: PLC0415
+
+    doc = text(ROOT / "docs" / "protocol.md").split("## Key expressions", 1)[1].split("```", 2)[1]
+    rows = {parts[0]: parts[1] for parts in (line.split() for line in doc.splitlines())
+            if parts and parts[0].startswith("dmosim/<run>/") and not parts[0].startswith(("dmosim/<run>/alive/",
+                                                                                          "dmosim/<run>/link/"))}
+    expected = {}
+    for kind, (role, topic, named) in ROUTES.items():
+        key = (f"dmosim/<run>/agent/<agent>/{topic}" if role == "agent" else
+               f"dmosim/<run>/dmo/{topic}" + ("/<agent>" if named else ""))
+        expected[key] = MODELS[kind].__name__
+    assert rows == expected
+
+
+def test_docs_recording_md_gives_the_path_a_run_records_to():
+    """Where docs/recording.md says where `dmosim run` records by default, it names the run directory's recording."""
+    from dmosim.experiment.rundir import RUNS, RunDir  # noqa: PLC0415
+
+    section = text(ROOT / "docs" / "recording.md").split("## `dmosim run` and `dmosim record`", 1)[1]
+    said = " ".join(section.split("`dmosim run` records by default to", 1)[1].split(")", 1)[0].split())
+    assert f"`{RunDir(RUNS / '<run_id>').recording.as_posix()}`" in said, said
 
 
 def test_every_protocol_version_the_docs_give_is_the_codes():

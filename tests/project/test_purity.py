@@ -34,3 +34,21 @@ def test_the_command_line_loads_no_feeder_machinery():
             "print(','.join(m for m in ('dmo.market.distflow', 'pandapower') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "", f"starting the command line loads {out.stdout.strip()}"
+
+
+def test_the_plotting_modules_leave_the_users_matplotlib_backend_alone():
+    """A notebook user who imports our figures keeps the backend they chose: the modules draw through Agg canvases
+    of their own (dmosim.results.style.figure), never through pyplot's backend, and still write PNGs."""
+    code = ("import io, matplotlib\n"
+            "matplotlib.use('svg')\n"
+            "import dmosim.results.figures, dmosim.results.sweeps, dmosim.studies.figures, dmosim.cli.plot\n"
+            "print(matplotlib.get_backend(), flush=True)\n"
+            "from dmosim.results.style import figure\n"
+            "fig = figure(figsize=(2, 1))\n"
+            "fig.subplots().plot([0, 1])\n"
+            "png = io.BytesIO()\n"
+            "fig.savefig(png, format='png')\n"
+            "print(png.getvalue()[:8] == b'\\x89PNG\\r\\n\\x1a\\n')")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert out.stdout.split()[:1] == ["svg"], "importing the plotting modules switched matplotlib's backend"
+    assert out.returncode == 0 and out.stdout.split() == ["svg", "True"], out.stderr
