@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import ipaddress
+import signal
 import socket
 import threading
 from importlib.resources import files
@@ -132,7 +133,12 @@ def serve(sock: socket.socket, asgi, closing: threading.Event) -> None:
         original(sig, frame)
 
     server.handle_exit = handle_exit
+    # uvicorn raises the signal that stopped it again once it has stopped, with the handlers it found: these, so that
+    # Ctrl-C or SIGTERM, the way to end a page, ends it with exit 0
+    previous = {sig: signal.signal(sig, lambda *_: None) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         server.run(sockets=[sock])
     finally:
         closing.set()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
