@@ -16,7 +16,7 @@ from .flags import RECORDING_HELP, add_bus_flags, bus_config, load_recording, se
 
 HELP = "the live page of a run (or of a recording played into it), served on localhost"
 log = logging.getLogger("dmosim.view")
-MAX_RATE = 10_000.0  # a replay's rate, at most: a week's recording in a minute
+MAX_REPLAY_RATE = 10_000.0  # a replay's rate, at most: a week's recording in a minute
 
 
 def add_arguments(p) -> None:
@@ -31,8 +31,8 @@ def add_arguments(p) -> None:
     p.add_argument("--expose", action="store_true",
                    help="serve on a --host other than loopback: whoever reaches it sees the run's data "
                         "(docs/view.md)")
-    p.add_argument("--rate", type=number(0.0, MAX_RATE, above=True), default=1.0,
-                   help=f"a recording plays at this many times its recorded speed (default: 1, at most {MAX_RATE:g})")
+    p.add_argument("--rate", type=number(0.0, MAX_REPLAY_RATE, above=True), default=1.0,
+                   help=f"a recording plays at this many times its recorded speed (default: 1, at most {MAX_REPLAY_RATE:g})")
     p.add_argument("--paused", action="store_true", help="a recording starts paused (the page plays it)")
     p.add_argument("--url-file", metavar="PATH", help="write the page's URL and a newline to this file once it serves")
     p.add_argument("--quiet", action="store_true", help="log warnings only")
@@ -64,13 +64,13 @@ def run(args) -> int:
 
 
 def _replay(args, board, stop: threading.Event, server) -> int:
-    from ..view.player import Player, playable  # noqa: PLC0415
+    from ..view.player import PagePlayer, playable  # noqa: PLC0415
 
     rec = load_recording(args.recording)  # not a recording: one line, exit 2
     items = playable(rec)
     if not items:
         raise UsageError(f"{args.recording}: holds no message of a run to play")
-    player = Player(items, board, args.rate, args.paused)
+    player = PagePlayer(items, board, args.rate, args.paused)
     board.note(run_id=rec.run_id, recording=str(rec.path))
     sock = _bound(args, server)
     board.render()

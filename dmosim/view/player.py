@@ -36,7 +36,7 @@ def marks(items: list[tuple[str, object, int]]) -> list[dict]:
     return out
 
 
-class Player:
+class PagePlayer:
     """Plays ``items`` into ``board`` on a thread of its own (``start``), as ``pause``, ``play``, ``rate`` and
     ``seek`` say (each from the page, through server.py)."""
 

@@ -18,7 +18,7 @@ KEPT_INCIDENTS = 200  # the incidents kept (the latest): a page, not the recordi
 
 
 @dataclass
-class Feeder:
+class SeenFeeder:
     """A feeder's day as the DMO's network hours say it: per (hour, stage) what the page draws."""
 
     network: str
@@ -46,11 +46,11 @@ class Day:
     connected: dict[int, tuple[bool, ...]] = field(default_factory=dict)
     statements: dict[str, dict] = field(default_factory=dict)  # agent -> its statement's totals and lines
     summary: dict | None = None
-    feeder: Feeder | None = None
+    feeder: SeenFeeder | None = None
 
 
 @dataclass
-class Clock:
+class SeenClock:
     phase: str
     hour: int | None
     day: int
@@ -65,7 +65,7 @@ class Observed:
 
     def __init__(self):
         self.run_token: str | None = None
-        self.clock: Clock | None = None
+        self.clock: SeenClock | None = None
         self.agents: dict[str, dict] = {}  # id -> {"incarnation", "bus", "strategy"}, in order of registration
         self.day: Day | None = None
         self.days_done: list[str] = []
@@ -115,7 +115,7 @@ class Observed:
 
     def _clock(self, msg, at_ns: int) -> None:
         self._day(msg.market_day)
-        self.clock = Clock(msg.phase, msg.hour, msg.day, msg.days, msg.deadline_s, at_ns)
+        self.clock = SeenClock(msg.phase, msg.hour, msg.day, msg.days, msg.deadline_s, at_ns)
 
     def _call_for_bids(self, day: Day, msg, at_ns: int) -> None:
         day.iso_price = list(msg.iso_price_per_mwh)
@@ -153,7 +153,7 @@ class Observed:
 
     def _network_hour(self, day: Day, msg, at_ns: int) -> None:
         if day.feeder is None:
-            day.feeder = Feeder(msg.network, tuple(msg.buses), tuple(msg.lines))
+            day.feeder = SeenFeeder(msg.network, tuple(msg.buses), tuple(msg.lines))
         if (msg.hour, msg.stage) in day.feeder.hours:
             return
         binding = msg.limit_loading

@@ -14,7 +14,7 @@ import pytest
 from dmosim.results.tables import tables
 from dmosim.view.board import MAX_BYTES_PER_S, Board
 from dmosim.view.page import DETAIL_AGENTS, RANKED_BILLS, accrued, page
-from dmosim.view.player import Player, playable
+from dmosim.view.player import PagePlayer, playable
 from dmosim.view.state import Observed
 from messages.recording import read_recording
 
@@ -138,7 +138,7 @@ def test_a_replay_moves_to_the_start_of_any_phase_or_hour_and_plays_on_from_ther
     rec = read_recording(TWO_DAYS)
     items = playable(rec)
     board = Board()
-    player = Player(items, board, rate=1.0, paused=True)
+    player = PagePlayer(items, board, rate=1.0, paused=True)
     labels = [m["label"] for m in player.marks]
     noon = labels.index("2026-07-06 realtime hour 12")
     player.control(seek=noon)
