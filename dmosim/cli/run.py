@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import re
 import sys
 from pathlib import Path
@@ -267,12 +268,9 @@ def _check_view(args, experiment: Experiment) -> None:
     if experiment.agents.hosting == IN_PROCESS:
         raise UsageError(f"--view: hosting \"{IN_PROCESS}\" runs the market with no network, which the page watches; "
                          "run the roles as processes")
-    try:
-        import starlette  # noqa: F401, PLC0415
-        import uvicorn  # noqa: F401, PLC0415
-    except ImportError as exc:
-        raise UsageError(f"--view needs the extra 'view' ({exc.name} is missing): pip install 'dmosim[view]'") \
-            from None
+    missing = [name for name in ("starlette", "uvicorn") if importlib.util.find_spec(name) is None]
+    if missing:
+        raise UsageError(f"--view needs the extra 'view' ({missing[0]} is missing): pip install 'dmosim[view]'")
     if args.view_port:
         from ..view.server import BindError, bind  # noqa: PLC0415
 

@@ -151,7 +151,7 @@ function drawAwards(p) {
 function heat(canvas, rows, color) {
   const n = rows.length;
   canvas.width = HOURS; canvas.height = Math.max(1, n);
-  canvas.style.height = `${Math.min(400, Math.max(60, 2 * n))}px`;
+  canvas.style.height = `${Math.min(400, Math.max(120, 4 * n))}px`;
   const ctx = canvas.getContext("2d");
   rows.forEach((r, j) => r.forEach((v, i) => { ctx.fillStyle = color(v); ctx.fillRect(i, j, 1, 1); }));
 }
