@@ -15,7 +15,7 @@ from scenarios.case import CaseError
 
 from ..console import UsageError, last_words
 from . import (agent, bench, cat, credentials, dmo, export, fleet, info, plot, record, replay, router, run, schemas,
-               settle, solve, study, sweep)
+               settle, solve, study, sweep, view)
 
 DESCRIPTION = ("A distribution market operator and its microgrid agents as processes over Zenoh: run market days, "
                "solve a microgrid's stochastic schedule, record, replay and re-settle days (README.md).")
@@ -25,7 +25,7 @@ EXIT_FAILURE = 1
 # In the order `dmosim --help` lists them: the whole day, its roles, the scheduling model, recordings, benchmarks.
 VERBS = {"run": run, "sweep": sweep, "fleet": fleet, "dmo": dmo, "agent": agent, "record": record, "router": router,
          "credentials": credentials, "solve": solve, "study": study, "info": info, "replay": replay, "settle": settle, "cat": cat,
-         "export": export, "plot": plot, "schemas": schemas, "bench": bench}
+         "export": export, "plot": plot, "schemas": schemas, "view": view, "bench": bench}
 
 
 class _Version(argparse.Action):

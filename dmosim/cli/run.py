@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import re
 import sys
 from pathlib import Path
@@ -21,6 +22,7 @@ from scenarios.case import load_case, parse_toml
 from scenarios.fleet import FleetError
 from scenarios.network import NETWORKS
 
+from ..arguments import integer
 from ..console import Progress, UsageError, print_json, stop_on_terminate
 from ..experiment.rundir import RunDir, RunDirError
 from ..experiment.spec import (FLAGS, IN_PROCESS, Experiment, ExperimentError, load_experiment, parse_experiment,
@@ -31,6 +33,7 @@ from .placement import add_cluster_flag, check_cluster, check_shared, connected
 from ..launch.local import RoleFailed, run_locally
 from ..launch.mesh import router_names
 from ..launch.roles import fleet_written, resolved, strategy_of
+from ..launch.viewing import Viewing
 from ..results.order import natural
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
@@ -65,6 +68,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     record.add_argument("--no-record", action="store_true", help="run without a recorder")
     out.add_argument("--json", action="store_true", help="print one JSON object (docs/experiments.md, \"The result\")")
     out.add_argument("--quiet", action="store_true", help="no progress bar or lines on stderr")
+    out.add_argument("--view", action="store_true",
+                     help="serve the run's live page on localhost and print its URL; the page stays up after the run "
+                          "until Ctrl-C (docs/view.md; pip install 'dmosim[view]')")
+    out.add_argument("--view-port", type=integer(0, 65535), default=0, metavar="PORT",
+                     help="with --view: the page's port (default: 0, a free port)")
+    out.add_argument("--view-url-file", metavar="PATH",
+                     help="with --view: write the page's URL and a newline to this file once it serves")
     out.add_argument("--check", action="store_true",
                      help="check the inputs (experiment, cases, fleet, faults, paths, --out) and exit without running")
     add_trust_flag(p)
@@ -180,6 +190,7 @@ def run(args) -> int:
     if args.no_record and recorder_faults:
         raise UsageError(f"--fault {recorder_faults[0]}: there is no recorder to kill with --no-record")
     _check_placement(args, experiment, fleet)
+    _check_view(args, experiment)
     if args.check:
         check_out(args)
         rule = settled_by(experiment.market, load_case(experiment.market.case).grid.penalty)
@@ -212,29 +223,62 @@ def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Clust
     bar = None if args.quiet else Progress("hours")
     say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
     stop_on_terminate()  # a terminated run stops its roles like Ctrl-C does
-    try:
-        if cluster:
-            check_shared(cluster, rundir.root)
-        repeat_of = recording_file(args.source) if args.source else None  # a run directory's recording.mcap
-        result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=repeat_of, say=say,
-                             tick=tick, cluster=cluster)
-    except RoleFailed as exc:
-        if bar:
-            bar.close()
-        for name in exc.names:
-            _tail(rundir.logs / f"{name}.log")
-        raise
-    finally:
-        if bar:
-            bar.close()
-    if args.json:
-        print_json(result)
-    else:
-        print(summary_table(result))
-    if not result["verdict"]["ok"]:  # the run is over and its files are written, but its results are not to be trusted
-        print(f"failed: {one_line(result['verdict']['problems'])}", file=sys.stderr)
-        return 1  # as a runtime failure: the same exit as any run that went wrong
-    return 0
+    # the page's process outlives the run (its end stays on the page until Ctrl-C), so it is stopped last
+    with Viewing(args.view_port, args.view_url_file, _printed) if args.view else contextlib.nullcontext() as view:
+        try:
+            if cluster:
+                check_shared(cluster, rundir.root)
+            repeat_of = recording_file(args.source) if args.source else None  # a run directory's recording.mcap
+            result = run_locally(experiment, run_id, rundir, record=record, tls=args.tls, repeat_of=repeat_of,
+                                 say=say, tick=tick, cluster=cluster, view=view)
+        except RoleFailed as exc:
+            if bar:
+                bar.close()
+            for name in exc.names:
+                _tail(rundir.logs / f"{name}.log")
+            raise
+        finally:
+            if bar:
+                bar.close()
+        if args.json:
+            print_json(result)
+        else:
+            print(summary_table(result))
+        ok = result["verdict"]["ok"]
+        if not ok:  # the run is over and its files are written, but its results are not to be trusted
+            print(f"failed: {one_line(result['verdict']['problems'])}", file=sys.stderr)
+        if view is not None:
+            sys.stdout.flush()
+            view.linger()
+    return 0 if ok else 1  # a run whose results are not to be trusted: the same exit as any run that went wrong
+
+
+def _printed(text: str) -> None:
+    """A line about the run's page on stderr, even with --quiet: the URL is what --view asks for."""
+    print(text, file=sys.stderr, flush=True)
+
+
+def _check_view(args, experiment: Experiment) -> None:
+    """``--view`` and its flags, before anything starts: the page watches roles over Zenoh (not in-process), on a
+    port that is free, with the extra 'view' installed."""
+    if not args.view:
+        given = [f for f, v in (("--view-port", args.view_port), ("--view-url-file", args.view_url_file)) if v]
+        if given:
+            raise UsageError(f"{given[0]} goes with --view")
+        return
+    if experiment.agents.hosting == IN_PROCESS:
+        raise UsageError(f"--view: hosting \"{IN_PROCESS}\" runs the market with no network, which the page watches; "
+                         "run the roles as processes")
+    missing = [name for name in ("starlette", "uvicorn") if importlib.util.find_spec(name) is None]
+    if missing:
+        raise UsageError(f"--view needs the extra 'view' ({missing[0]} is missing): pip install 'dmosim[view]'")
+    if args.view_port:
+        from ..view.server import BindError, bind  # noqa: PLC0415
+
+        try:
+            bind("127.0.0.1", args.view_port).close()
+        except BindError as exc:
+            raise UsageError(f"--view-port: {exc}") from None
 
 
 def _check_placement(args, experiment: Experiment, fleet) -> None:

@@ -46,6 +46,7 @@ from .faults import Fault, parse_fault
 from .mesh import router_names, spread, start_routers
 from .processes import Roles, dmosim_command, free_port, memory_mib, wait_listening
 from .roles import fleet_of, fleet_written, hosting_of, resolved
+from .viewing import Viewing
 
 OBSERVER = "run"  # the name this process watches the run's clock under
 DMO_KILL_AFTER_S = 0.5  # a DMO restart fires mid-hour: the agents' answers are on their way when it dies
@@ -118,8 +119,10 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
 
 def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
                 repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None,
-                tick: Callable[[int, int, str], None] | None = None, cluster: Cluster | None = None) -> dict:
+                tick: Callable[[int, int, str], None] | None = None, cluster: Cluster | None = None,
+                view: Viewing | None = None) -> dict:
     """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
+    ``view``, the run's page (viewing.py), started before the DMO's first message (not with hosting in-process);
     with ``cluster``, the agents run on its workers (no process fault may name one: they are not signalled from
     here), which must see the run directory;
     ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
@@ -142,12 +145,13 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         result.update(wall_s=round(time.monotonic() - began, 3), run_dir=str(rundir.root.resolve()),
                       logs=str(rundir.logs.resolve()), recording=str(record.resolve()) if record else None)
         return concluded(result, e, fleet, run_id, rundir, record, repeat_of=repeat_of, say=say)
-    return _as_processes(e, fleet, run_id, rundir, record, tls, repeat_of, say, tick, cluster, began)
+    return _as_processes(e, fleet, run_id, rundir, record, tls, repeat_of, say, tick, cluster, began, view)
 
 
 def _as_processes(e: Experiment, fleet: list[FleetMember], run_id: str, rundir: RunDir, record: Path | None,
                   tls: bool, repeat_of: str | Path | None, say: Callable[[str], None],
-                  tick: Callable[[int, int, str], None] | None, cluster: Cluster | None, began: float) -> dict:
+                  tick: Callable[[int, int, str], None] | None, cluster: Cluster | None, began: float,
+                  view: Viewing | None = None) -> dict:
     """The run as processes over Zenoh (``run_locally``)."""
     parsed = [parse_fault(f) for f in e.faults]
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
@@ -173,7 +177,8 @@ def _as_processes(e: Experiment, fleet: list[FleetMember], run_id: str, rundir: 
     # directory goes once every role has stopped (the context managers end in reverse order).
     with tempfile.TemporaryDirectory(prefix=f"dmosim-{run_id}-") as private, Roles() as roles, \
             _remote(cluster, run_id, roles) as remote:
-        auth = create_auth_dir(Path(private) / "auth", run_id, [m.id for m in fleet], readers=("recorder", OBSERVER),
+        readers = ("recorder", OBSERVER, *([view.name] if view else []))
+        auth = create_auth_dir(Path(private) / "auth", run_id, [m.id for m in fleet], readers=readers,
                                tls=tls, valid_days=2, dmo_client=bool(names), routers=tuple(names[1:]),
                                hosts=tuple(dict.fromkeys([*DEFAULT_HOSTS, *([cluster.host] if cluster else [])])))
         login = ["--auth-dir", str(auth)]
@@ -191,6 +196,8 @@ def _as_processes(e: Experiment, fleet: list[FleetMember], run_id: str, rundir: 
             wait_listening(port, starting_s, lambda: roles.roles["dmo"].process.poll() is None)
         if cluster:
             cluster.check_reaches(port)
+        if view is not None:  # before the DMO's first message, which waits for the recorder started below
+            view.start(run_id, local, auth, logs, Path(private))
         observer_config = BusConfig(mode="client", connect=(local,), overrides=bundle_settings(auth, OBSERVER))
         with Bus(run_id, OBSERVER, observer_config, announce=False) as observer:
             watch = _Watch(roles, faults, say, tick)
