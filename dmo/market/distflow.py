@@ -608,8 +608,7 @@ class _Solution:
 class _Cleared:
     """One hour's outcome: the energy price, the label, the steps' awards, the shed load, the bus prices with
     their components, the limits its LP held at their bounds (ids) with their duals as relief (>= 0), and the AC
-    flow of its plan where the clearing solved it (``_Solution.flow``). ``solution``: the LP whose own plan the
-    awards are, not yet shared by the rule (``_awarded`` with ``fair=False``); None once they are."""
+    flow of its plan where the clearing solved it (``_Solution.flow``)."""
 
     energy: float
     congested: str
@@ -623,7 +622,32 @@ class _Cleared:
     relief: np.ndarray
     rows: np.ndarray  # the limits its LP had (none on the copper plate)
     flow: OperatingPoint | None = None
-    solution: _Solution | None = None
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """An hour's LP as solved, its own plan taken as it stands: no prices worked out, no awards decided from them
+    (``_awarded`` does both). What an AC-faithful clearing linearises at until a plan is its own operating point."""
+
+    solution: _Solution
+    shed: np.ndarray
+
+    @property
+    def step_mw(self) -> np.ndarray:
+        return self.solution.step_mw
+
+    @property
+    def rows(self) -> np.ndarray:
+        return self.solution.rows
+
+    @property
+    def flow(self) -> OperatingPoint | None:
+        return self.solution.flow
+
+    @property
+    def energy(self) -> float:
+        """The energy price from the LP's duals."""
+        return float(self.solution.res.eqlin.marginals[0])
 
 
 def _plate(hour: _Hour) -> _Cleared | None:
@@ -789,21 +813,20 @@ def _significant(a: np.ndarray, digits: int) -> np.ndarray:
     return np.round(a * scale) / scale
 
 
-def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int), fair: bool = True) -> _Cleared:
+def _on_feeder(hour: _Hour, rows: np.ndarray = np.zeros(0, int), priced: bool = True) -> _Cleared | _Plan:
     """Clear one hour: the copper plate where it holds, else the LP and prices per bus, its limits found from
-    ``rows`` on (those of a clearing of the same hour at another operating point: most hold again); the awards
-    shared by the rule, or with ``fair=False`` the LP's own plan (``_awarded``)."""
+    ``rows`` on (those of a clearing of the same hour at another operating point: most hold again); with
+    ``priced=False``, the LP's own plan alone (``_Plan``)."""
     cleared, broken = _copper_plate(hour)
     if cleared is not None:
         return cleared
-    return _awarded(hour, hour.solve(np.union1d(broken, rows)), fair)
+    sol = hour.solve(np.union1d(broken, rows))
+    return _awarded(hour, sol) if priced else _Plan(sol, sol.shed(len(hour.fixed_p)))
 
 
-def _awarded(hour: _Hour, sol: _Solution, fair: bool = True) -> _Cleared:
+def _awarded(hour: _Hour, sol: _Solution) -> _Cleared:
     """The hour's outcome from its LP ``sol``: the prices from its duals and the awards from the prices, the steps
-    at their bus prices shared by the rule (``_shared``); with ``fair=False``, the LP's own plan, kept with its LP
-    (``_Cleared.solution``) to be shared later: what an AC-faithful clearing linearises at until it has converged,
-    one LP fewer per corrected clearing."""
+    at their bus prices shared by the rule (``_shared``)."""
     energy, loss, congestion, voltage = _prices(hour, sol)
     x = sol.res.x
     if hour.pinned is not None:  # a settled hour: its plan holds the steps the LP may leave elsewhere on its face
@@ -815,10 +838,7 @@ def _awarded(hour: _Hour, sol: _Solution, fair: bool = True) -> _Cleared:
         loss = np.where(bus_price == raw, loss, bus_price - energy - congestion - voltage)
     _, _, _, a_ub, b_ub, _, _ = sol.lp
     at_bound = b_ub - exact.matvec(a_ub, x) <= LIMIT_TOLERANCE * np.maximum(1.0, np.abs(b_ub))
-    if fair:
-        step_mw, shed, p0, flow = _shared(hour, sol, bus_price, at_bound)
-    else:
-        step_mw, shed, p0, flow = sol.step_mw, sol.shed(len(hour.fixed_p)), sol.p0, sol.flow
+    step_mw, shed, p0, flow = _shared(hour, sol, bus_price, at_bound)
     order = np.argsort(sol.rows[at_bound], kind="stable")
     held, relief = sol.rows[at_bound][order], (-sol.ub_dual[at_bound] + 0.0)[order]
     lines = held < 8 * hour.feeder.network.n_lines
@@ -829,7 +849,7 @@ def _awarded(hour: _Hour, sol: _Solution, fair: bool = True) -> _Cleared:
     else:
         congested = "line" if lines.any() else "voltage" if held.size else "none"
     return _Cleared(energy, congested, step_mw, shed, bus_price, loss, congestion, voltage, held, relief, sol.rows,
-                    flow, None if fair else sol)
+                    flow)
 
 
 def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
@@ -853,30 +873,30 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, i
     the plan kept, its clearing, the AC flow of its plan (None where it has none) and how many linearised clearings
     were made."""
     solve, base = hour.feeder.ac.solve, hour
-    done = _plate(hour) or _on_feeder(hour, fair=False)  # the copper plate's plan, with the limits it breaks
+    done = _plate(hour) or _on_feeder(hour, priced=False)  # the copper plate's plan, with the limits it breaks
     point = solve(*hour.loads(done.step_mw, done.shed))
     if point is None:  # the copper plate's plan has no AC solution: LinDistFlow's, which keeps its limits, may
         done = _on_feeder(hour)
         point = solve(*hour.loads(done.step_mw, done.shed))
         if point is None:
             return hour, done, None, 0
-    # The clearings linearise at their LPs' own plans until one is its own operating point; only then are its awards
-    # shared by the rule, and where the shares move the plan, every clearing from there on shares its awards.
-    fair = False
+    # The clearings linearise at their LPs' own plans until one is its own operating point; only then are its prices
+    # worked out and its awards decided from them, and where that moves the plan, every clearing from there on is.
+    priced = False
     # each linearised clearing, how far its plan's AC flow breaks the limits, and that flow
-    tried: list[tuple[float, _Hour, _Cleared, OperatingPoint]] = []
+    tried: list[tuple[float, _Hour, _Cleared | _Plan, OperatingPoint]] = []
     for iteration in range(1, MAX_AC_ITERATIONS + 1):
         linearised = dataclasses.replace(hour, at=hour.feeder.linearised(point, done.rows))
         try:
-            cleared = _on_feeder(linearised, done.rows, fair)
+            cleared = _on_feeder(linearised, done.rows, priced)
         except ValueError:  # no plan meets the limits linearised there: the last one that did, or LinDistFlow's
-            return _fairly(hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
+            return _answered(hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
         flow = _flow_of(linearised, cleared, point)
         if flow is None:  # a plan the AC flow cannot carry: the last linearised one that it could, or LinDistFlow's
-            return _fairly(hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
+            return _answered(hour, done, point, iteration - 1) if hour.at is not None else _lindistflow(hour)
         hour, done, point, broken, moved = linearised, cleared, flow, _broken(linearised, flow), _moved(flow, linearised)
         if broken <= 1.0 and moved <= AC_PLAN_TOLERANCE:
-            if done.solution is None:
+            if isinstance(done, _Cleared):
                 break
             done = _awarded(hour, done.solution)
             point = _flow_of(hour, done, point)
@@ -884,7 +904,7 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, i
                 return hour, done, None, iteration
             if _broken(hour, point) <= 1.0 and _moved(point, hour) <= AC_PLAN_TOLERANCE:
                 break
-            fair = True
+            priced = True
         tried.append((broken, hour, done, point))
         if len(tried) >= 3 and np.abs(tried[-3][2].step_mw - done.step_mw).max(initial=0.0) <= AC_CYCLE_TOLERANCE:
             settled = _settle(base, tried[-2][2], done, point)
@@ -893,10 +913,10 @@ def _ac_faithful(hour: _Hour) -> tuple[_Hour, _Cleared, OperatingPoint | None, i
                 return hour, done, point, iteration + more
             _, hour, done, point = min(tried[-2:], key=lambda t: t[0])
             break
-    return _fairly(hour, done, point, iteration)
+    return _answered(hour, done, point, iteration)
 
 
-def _settle(hour: _Hour, one: _Cleared, other: _Cleared,
+def _settle(hour: _Hour, one: _Cleared | _Plan, other: _Cleared | _Plan,
             near: OperatingPoint) -> tuple[_Hour, _Cleared, OperatingPoint, int] | None:
     """Settle an hour whose linearised clearings alternate between the plans ``one`` and ``other`` (docs/market.md,
     "Plans that alternate"): a step whose own losses move its bus's price across its bid (or steps that trade one
@@ -973,7 +993,7 @@ def _curvature(hour: _Hour, steps: np.ndarray) -> np.ndarray:
     return below.T @ (weight[:, None] * below)
 
 
-def _flow_of(hour: _Hour, cleared: _Cleared, near: OperatingPoint) -> OperatingPoint | None:
+def _flow_of(hour: _Hour, cleared: _Cleared | _Plan, near: OperatingPoint) -> OperatingPoint | None:
     """The AC flow of the clearing's plan, solved from ``near`` (None where it has none). Constraint generation solved
     it for the LP's plan: the awards' loads are the LP's but for rounding in a pro-rata share, and where they are
     the same bits, so is their AC flow."""
@@ -994,10 +1014,10 @@ def _moved(point: OperatingPoint, hour: _Hour) -> float:
     return float(max(np.abs(point.p - at.p).max(), np.abs(point.q - at.q).max()))
 
 
-def _fairly(hour: _Hour, done: _Cleared, point: OperatingPoint | None,
+def _answered(hour: _Hour, done: _Cleared | _Plan, point: OperatingPoint | None,
             iterations: int) -> tuple[_Hour, _Cleared, OperatingPoint | None, int]:
-    """``_ac_faithful``'s answer with the awards of ``done`` shared by the rule, and the AC flow of that plan."""
-    if done.solution is None:
+    """``_ac_faithful``'s answer: ``done`` priced and awarded (``_awarded``), and the AC flow of that plan."""
+    if isinstance(done, _Cleared):
         return hour, done, point, iterations
     shared = _awarded(hour, done.solution)
     return hour, shared, None if point is None else _flow_of(hour, shared, point), iterations
