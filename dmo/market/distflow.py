@@ -213,7 +213,7 @@ class Proximal:
     def objective(self, c: np.ndarray) -> tuple[np.ndarray, sp.sparray]:
         """The QP's linear term and Hessian for an LP of objective ``c`` (its first columns the book's steps)."""
         linear = c.copy()
-        linear[self.steps] -= self.hessian @ self.centre
+        linear[self.steps] -= exact.matvec(self.hessian, self.centre)
         i, j = np.meshgrid(self.steps, self.steps, indexing="ij")
         return linear, sp.coo_array((self.hessian.ravel(), (i.ravel(), j.ravel())), shape=(len(c), len(c)))
 
@@ -990,7 +990,7 @@ def _curvature(hour: _Hour, steps: np.ndarray) -> np.ndarray:
     feeder, network = hour.feeder, hour.feeder.network
     below = network.downstream[:, hour.bus[steps]].astype(float)
     weight = 2.0 * feeder.ac.r * (1.0 + feeder.tan_phi ** 2) / hour.at.point.u[network.parent]
-    return below.T @ (weight[:, None] * below)
+    return exact.weighted(below.T, weight[:, None] * below, axis=0)
 
 
 def _flow_of(hour: _Hour, cleared: _Cleared | _Plan, near: OperatingPoint) -> OperatingPoint | None:
