@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from microgrid_agent.usercode import CodeKind, check_target, code_of, load, params_text, split_spec
 from scenarios.horizon import HOURS
 
-from .rules import BUILT_IN, DeviationRule, Rule
+from .rules import BUILT_IN, DeviationRule, GridHour, Rule
 from .settlement import RULES, DayTotals, RuleError, Statement, settle_day, settlement_day
 
 RULE = CodeKind("settlement rule", "function", "path/to/rules.py", "dmosim_rule_")
@@ -158,17 +158,25 @@ class Trust:
         return choose(spec)
 
 
+# The trial day's grid: islanded in hour index 17, and in the second sub-period of hour index 18.
+TRIAL_ISLANDED = {17: (False, False), 18: (True, False)}
+
+
 def trial_day():
     """A small day that exercises what a rule must handle: an importer and an exporter, two sub-periods, readings
-    above and below the award, a negative price, a missing sub-period, a missing hour and an agent with no meter data
-    at all."""
+    above and below the award, a negative price, a missing sub-period, a missing hour, an agent with no meter data
+    at all, and the grid's states: an islanded hour and an hour islanded in one sub-period (P_M = 0 there)."""
     prices = [20.0 + 2.5 * h for h in range(HOURS)]
     prices[3] = -5.0
     awards = {"mg1": [3.0] * HOURS, "mg2": [-2.0] * HOURS, "mg3": [1.5] * HOURS}
     meter = {"mg1": {h: [3.0 + (h % 5 - 2) * 0.75, 3.0 - (h % 3) * 0.5] for h in range(HOURS) if h != 7},
              "mg2": {h: [-2.0 + (h % 4 - 1) * 0.5, None if h == 11 else -2.5] for h in range(HOURS)}}
+    grid = [GridHour(TRIAL_ISLANDED.get(h, (True, True))) for h in range(HOURS)]
+    for readings in meter.values():
+        for h, connected in TRIAL_ISLANDED.items():
+            readings[h] = [p if up else 0.0 for p, up in zip(readings[h], connected)]
     return settlement_day(awards, prices, meter, subperiods=2, p_m_max={"mg1": 6.0, "mg2": 4.0, "mg3": 3.0},
-                          p_m_min={"mg1": 6.0, "mg2": 4.0, "mg3": 3.0})
+                          p_m_min={"mg1": 6.0, "mg2": 4.0, "mg3": 3.0}, grid=grid)
 
 
 def check(chosen: ChosenRule) -> None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from fractions import Fraction
 from functools import cached_property
 
@@ -37,12 +37,39 @@ MAX_PRICE_FACTOR = 100.0
 
 
 @dataclass(frozen=True)
+class GridHour:
+    """One hour's grid state as the DMO published it (its ``grid_state`` message): ``connected`` K booleans, one per
+    sub-period, False where the grid islanded the microgrids (U = 0, P_M = 0); on a feeder the hour's operating
+    envelope, ``import_room_mw`` and ``export_room_mw`` (MW) at each bus of ``buses`` (empty on the copper plate)."""
+
+    connected: tuple[bool, ...]
+    buses: tuple[str, ...] = ()
+    import_room_mw: tuple[float, ...] = ()
+    export_room_mw: tuple[float, ...] = ()
+
+    @property
+    def islanded(self) -> bool:
+        """Whether the grid islanded the hour in any of its sub-periods."""
+        return not all(self.connected)
+
+    def room(self, bus: str) -> tuple[float, float]:
+        """(import room, export room) MW at ``bus``; KeyError on the copper plate or at a bus not on the feeder."""
+        if bus not in self.buses:
+            raise KeyError(f"no operating envelope at bus {bus!r}")
+        i = self.buses.index(bus)
+        return self.import_room_mw[i], self.export_room_mw[i]
+
+
+@dataclass(frozen=True)
 class SettlementDay:
     """What a rule settles, checked by ``settlement.settlement_day``: ``awards`` agent -> 24 P_sch (MW, + import),
     ``prices`` the 24 clearing prices ($/MWh) on a copper plate, the substation's (energy) prices on a feeder,
     ``agent_prices`` agent -> the 24 prices at its own bus (``price_of``: on a copper plate ``prices``), ``meter``
     agent -> {hour index 0..23: K readings of P_M (MW), None for a missing sub-period} (an absent hour is missing), ``subperiods`` K (dt = 1/K h), and each agent's
-    registered ``max_import`` and ``max_export`` (MW): its readings lie in [-max_export, max_import]."""
+    registered ``max_import`` and ``max_export`` (MW): its readings lie in [-max_export, max_import]. ``grid`` is the
+    24 hours' grid states as the DMO published them (hour index 0..23), None where they are not known (a recording
+    cut before its last grid state, or a day settled by hand without them); ``bus`` agent -> its bus on a feeder
+    (empty on the copper plate)."""
 
     awards: Mapping[str, tuple[float, ...]]
     prices: tuple[float, ...]
@@ -51,6 +78,8 @@ class SettlementDay:
     max_import: Mapping[str, float]
     max_export: Mapping[str, float]
     agent_prices: Mapping[str, tuple[float, ...]] | None = None
+    grid: tuple[GridHour, ...] | None = None
+    bus: Mapping[str, str] = field(default_factory=dict)
 
     def price_of(self, agent: str) -> tuple[float, ...]:
         """The 24 prices the agent's energy is settled at: its bus's on a feeder, the clearing prices otherwise."""

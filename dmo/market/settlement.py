@@ -16,11 +16,11 @@ from dataclasses import dataclass
 from decimal import Decimal
 from fractions import Fraction
 
-from messages.schemas import Registration
+from messages.schemas import GridState, Registration
 from scenarios.horizon import HOURS, hourly
 
 from .money import dollars, exact, exact_amount, money_sum, to_cents
-from .rules import BUILT_IN, Charges, DeviationRule, Meter, Rule, SettlementDay
+from .rules import BUILT_IN, Charges, DeviationRule, GridHour, Meter, Rule, SettlementDay
 
 # The version of the statement's form, announced in every award: a recording names it, and ``dmosim settle``
 # refuses a version it does not implement. The rule itself is named beside it (docs/settlement.md).
@@ -205,10 +205,12 @@ def _check_meter(meter: Meter, day: SettlementDay) -> None:
 def settlement_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *,
                    subperiods: int, p_m_max: float | Mapping[str, float],
                    p_m_min: float | Mapping[str, float] | None = None,
-                   agent_prices: Mapping[str, Sequence[float]] | None = None) -> SettlementDay:
+                   agent_prices: Mapping[str, Sequence[float]] | None = None,
+                   grid: Sequence[GridHour] | None = None, bus: Mapping[str, str] | None = None) -> SettlementDay:
     """The day a rule settles, checked: ValueError with a one-line reason for invalid input (``settle``).
     ``agent_prices`` (agent -> 24 $/MWh, on a feeder: each agent's bus price) settles each agent's energy at its
-    own prices; without it every agent's are ``prices``."""
+    own prices; without it every agent's are ``prices``. ``grid``: the 24 hours' grid states (None: not known);
+    ``bus``: agent -> its bus on a feeder."""
     if not isinstance(awards, Mapping):
         raise ValueError("awards must map agent id to 24 hourly MW values")
     agents = sorted(awards)
@@ -222,9 +224,28 @@ def settlement_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float
                         prices=hourly(prices, "clearing price"), meter=meter, subperiods=subperiods,
                         max_import=max_import,
                         max_export=max_import if p_m_min is None else _limits("p_m_min", p_m_min, agents),
-                        agent_prices=None if agent_prices is None else _agent_prices(agent_prices, agents))
+                        agent_prices=None if agent_prices is None else _agent_prices(agent_prices, agents),
+                        grid=None if grid is None else _grid(grid, subperiods), bus=dict(bus or {}))
     _check_meter(meter, day)
     return day
+
+
+def _grid(grid: Sequence[GridHour], subperiods: int) -> tuple[GridHour, ...]:
+    grid = tuple(grid)
+    if len(grid) != HOURS or not all(isinstance(g, GridHour) for g in grid):
+        raise ValueError(f"grid must be {HOURS} GridHours, one per hour")
+    for h, g in enumerate(grid):
+        if len(g.connected) != subperiods:
+            raise ValueError(f"grid state of hour index {h}: {len(g.connected)} sub-periods, expected {subperiods}")
+    return grid
+
+
+def grid_hours(states: Sequence[GridState] | None) -> tuple[GridHour, ...] | None:
+    """The DMO's 24 grid_state messages (hours 1..24, in order) as the ``grid`` a rule reads; None stays None."""
+    if states is None:
+        return None
+    return tuple(GridHour(connected=tuple(g.connected), buses=tuple(g.buses), import_room_mw=tuple(g.import_room_mw),
+                          export_room_mw=tuple(g.export_room_mw)) for g in states)
 
 
 def _agent_prices(agent_prices, agents: list[str]) -> dict[str, tuple[float, ...]]:
@@ -235,16 +256,20 @@ def _agent_prices(agent_prices, agents: list[str]) -> dict[str, tuple[float, ...
 
 def accepted_day(awards: Mapping[str, Sequence[float]], prices: Sequence[float], meter: Meter, *, subperiods: int,
                  registered: Mapping[str, Registration],
-                 agent_prices: Mapping[str, Sequence[float]] | None = None) -> SettlementDay:
+                 agent_prices: Mapping[str, Sequence[float]] | None = None,
+                 grid: Sequence[GridState] | None = None, bus: Mapping[str, str] | None = None) -> SettlementDay:
     """The day the DMO settles, from what it accepted: each awarded agent's P_sch (MW) and the clearing prices, the
     meter reports it took (agent -> {hour index 0..23: K readings}; an absent hour is missing) and each agent's
     registration, whose limits bound its readings and price its missing sub-periods. The live DMO
     (operator/machine.py), re-settlement (replay/resettle.py) and the replayed DMO (replay/recorded.py) all settle this
     day, so a recorded day re-settles identically. On a feeder, ``prices`` are the substation's and
-    ``agent_prices`` each agent's bus prices, its award's clearing prices."""
+    ``agent_prices`` each agent's bus prices, its award's clearing prices, and ``bus`` each agent's bus. ``grid`` is
+    the 24 grid_state messages the DMO published (None where a recording lacks them), which a rule reads as
+    ``SettlementDay.grid``."""
     return settlement_day(awards, prices, meter, subperiods=subperiods,
                           p_m_max={a: r.max_import_mw for a, r in registered.items()},
-                          p_m_min={a: r.max_export_mw for a, r in registered.items()}, agent_prices=agent_prices)
+                          p_m_min={a: r.max_export_mw for a, r in registered.items()}, agent_prices=agent_prices,
+                          grid=grid_hours(grid), bus=bus)
 
 
 def settle_day(day: SettlementDay, rule: Rule, name: str, **params) -> tuple[dict[str, Statement], DayTotals]:

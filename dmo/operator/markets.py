@@ -99,11 +99,13 @@ class LiveMarket:
         return [outbox.grid_state(c, state.day, hour, rooms) for hour in range(1, HOURS + 1)]
 
     def settle(self, state: DayState, clearing: Clearing) -> tuple[dict[str, Statement], DayTotals]:
-        """On a feeder each agent's energy at its own bus's prices."""
+        """On a feeder each agent's energy at its own bus's prices; the rule sees the day's grid states as they were
+        published (``grid_states``, a pure function of the day and its clearing)."""
         own = dict(clearing.agent_price) if isinstance(clearing, NetworkClearing) else None
         return self.config.rule.settle(accepted_day(clearing.awards, clearing.price, state.meter,
                                                     subperiods=self.config.subperiods, registered=state.registered,
-                                                    agent_prices=own))
+                                                    agent_prices=own, grid=self.grid_states(state, clearing),
+                                                    bus=feeder.sites(self.config, state)))
 
     def statement(self, state: DayState, st: Statement) -> SettlementStatement:
         c = self.config

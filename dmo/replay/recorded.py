@@ -81,7 +81,8 @@ class RecordedMarket:
         prices, own = self.day.prices([self.agent])
         return self.rule.settle(accepted_day(clearing.awards, prices, state.meter,
                                              subperiods=self.award_msg.subperiods, registered=state.registered,
-                                             agent_prices=own))
+                                             agent_prices=own, grid=self.grids,
+                                             bus={} if self.award_msg.bus is None else {self.agent: self.award_msg.bus}))
 
     def statement(self, state: DayState, st: Statement) -> SettlementStatement:
         return as_message(self.day, st)

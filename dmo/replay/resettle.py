@@ -17,10 +17,11 @@ import hashlib
 from dataclasses import dataclass, field
 from typing import Iterator
 
-from messages import (Award, MeterReport, Registration, SettlementStatement, encode, relative_key,
+from messages import (Award, GridState, MeterReport, Registration, SettlementStatement, encode, relative_key,
                       sender_matches_key)
 from messages.recording import RecordedMessage, Recording
 from scenarios.days import market_days as scenario_days
+from scenarios.horizon import HOURS
 
 from ..market.choice import ChosenRule, Trust, UntrustedRule, paper_rule
 from ..market.settlement import RULES_VERSION, Statement, accepted_day
@@ -45,6 +46,7 @@ class RecordedDay:
     statements: dict[str, SettlementStatement]
     summary_totals: dict[str, dict] | None
     left_out: int = 0                      # meter reports left out because the DMO refused them
+    grid: list[GridState] | None = None     # the 24 hours' grid states, None if the recording lacks one
     notes: list[str] = field(default_factory=list)
 
     @property
@@ -185,7 +187,11 @@ def recorded_day(rec: Recording, day: str | None = None) -> RecordedDay:
         statements.setdefault(msg.agent, msg)
     summaries = list(decoded("day_summary"))
     totals = {a: t.model_dump() for a, t in summaries[-1][1].totals.items()} if summaries else None
-    return RecordedDay(first.market_day, awards, registered, meter, statements, totals, left_out)
+    grids: dict[int, GridState] = {}
+    for _, msg in decoded("grid_state"):
+        grids.setdefault(msg.hour, msg)  # the DMO sends each hour's once (a copy is the same)
+    grid = [grids[h] for h in range(1, HOURS + 1)] if len(grids) == HOURS else None
+    return RecordedDay(first.market_day, awards, registered, meter, statements, totals, left_out, grid=grid)
 
 
 def accepted_messages(rec: Recording, kind: str,
@@ -277,7 +283,8 @@ def resettle(day: RecordedDay, rule: ChosenRule | None = None) -> dict[str, Stat
     is held fixed: their readings are what they were."""
     prices, own = day.prices()
     settled = accepted_day({a: aw.p_sch_mw for a, aw in day.awards.items()}, prices, day.meter,
-                           subperiods=day.terms.subperiods, registered=day.registered, agent_prices=own)
+                           subperiods=day.terms.subperiods, registered=day.registered, agent_prices=own,
+                           grid=day.grid, bus={a: aw.bus for a, aw in day.awards.items() if aw.bus is not None})
     statements, _ = (rule or recorded_rule(day)).settle(settled)
     return statements
 

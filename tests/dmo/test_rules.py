@@ -221,3 +221,19 @@ def test_the_paper_rule_settles_a_recording_made_before_rules_existed_exactly_as
     assert main(["settle", str(V2_RECORDING), "--rule", "paper", "--json"]) == 0
     rows = json.loads(capsys.readouterr().out)["rows"]
     assert [r["change"] for r in rows] == [0.0, 0.0] and {r["rule"] for r in rows} == {"paper:penalty=150,credit=0"}
+
+
+def test_the_islanding_rule_differs_from_the_paper_rule_only_in_islanded_sub_periods():
+    """On the trial day, hour by hour: the same energy charge everywhere, the same penalty and credit in every hour
+    the grid left connected, and in an islanded sub-period nothing beyond what its connected sub-periods cost."""
+    day = trial_day()
+    paper, _ = choose("paper").settle(day)
+    exempt, _ = choose("examples/islanding_rule.py:islanding_exempt").settle(day)
+    for agent, statement in exempt.items():
+        for own, theirs in zip(statement.lines, paper[agent].lines):
+            assert own.energy_charge == theirs.energy_charge
+            if not day.grid[own.hour].islanded:
+                assert (own.penalty, own.credit) == (theirs.penalty, theirs.credit)
+            elif all(not up for up in day.grid[own.hour].connected):
+                assert own.penalty == own.credit == 0
+    assert exempt["mg2"].deviation_penalty < paper["mg2"].deviation_penalty  # mg2 exports: islanding was charged

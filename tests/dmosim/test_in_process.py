@@ -13,6 +13,7 @@ import pytest
 from dmosim.cli import main
 from dmosim.experiment.spec import parse_experiment
 from dmosim.launch.local import run_experiment
+from dmosim.results.tables import open_recording
 from messages.recording import read_recording
 
 TINY = {"seed": 3, "market_day": "2026-07-01", "agents": {"count": 2, "hosting": "in-process"},
@@ -81,3 +82,33 @@ def test_what_needs_processes_or_a_network_is_refused_in_one_line(flags, says, c
     assert main(["run", "--in-process", *flags, "--check"]) == 2
     err = capsys.readouterr().err
     assert says in err and err.count("\n") == 1, err
+
+
+@pytest.fixture(scope="module")
+def exporting_day(tmp_path_factory):
+    """TINY on a seed whose islanded hour (hour 18) the agents were awarded exports in: P_M = 0 there is above the
+    award, and the paper rule charges it."""
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        on_cores(monkeypatch, 1)
+        return run_experiment(parse_experiment({**TINY, "seed": 11}), tmp_path_factory.mktemp("islanded") / "run")
+
+
+def test_a_rule_that_reads_the_grid_exempts_exactly_the_islanded_hours_penalties(exporting_day, cli):
+    """examples/islanding_rule.py re-settles the recorded day: each agent's bill is the paper rule's less the penalties
+    its recorded statement charged in the hours the recorded grid states islanded (the recording's tables, summed
+    here), and nothing else changes."""
+    day = exporting_day
+    hours = open_recording(day["recording"])["hours"]
+    assert hours["islanded"].any() and (hours[hours.islanded].deviation_penalty > 0).any()
+    exempt = hours[hours.islanded].groupby("agent")[["deviation_penalty", "deviation_credit"]].sum()
+    rule = "examples/islanding_rule.py:islanding_exempt"
+    said = cli("settle", day["recording"], "--rule", "paper", "--rule", rule, "--json")
+    assert said.returncode == 0, said.stderr
+    rows = {(r["agent"], r["rule"].split(":")[0] == "paper"): r for r in json.loads(said.stdout)["rows"]}
+    for agent in ("mg1", "mg2"):
+        paper, own = rows[agent, True], rows[agent, False]
+        assert paper["change"] == 0 and own["energy_charge"] == paper["energy_charge"]
+        assert own["deviation_penalty"] == pytest.approx(
+            paper["deviation_penalty"] - exempt.loc[agent, "deviation_penalty"], abs=1e-9)
+        assert own["total"] == pytest.approx(paper["total"] - exempt.loc[agent, "deviation_penalty"]
+                                             + exempt.loc[agent, "deviation_credit"], abs=1e-9)

@@ -61,3 +61,9 @@ def test_strategy_bids_its_own_way_is_registered_by_name_and_a_rerun_must_trust_
             "the recording's own, which dmosim does not run unless you name it yourself (--strategy") in refused.stderr
     trusted = rerun("--trust-rules")  # naming it yourself (--strategy) is tests/dmosim/test_strategy_choice.py's
     assert trusted.returncode == 0 and "inputs are valid" in trusted.stdout, trusted.stderr
+
+
+def test_islanding_rule_waives_only_the_islanded_sub_periods_on_the_trial_day():
+    lines = run_example("islanding_rule.py").stdout.splitlines()
+    assert lines[0].startswith("paper ") and "islanding_exempt" in lines[1]
+    assert "mg1 $1181.25" in lines[1]  # mg1 imports: P_M = 0 below its award costs nothing under the paper rule either
