@@ -12,7 +12,9 @@ import stat
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, TextIO
 
@@ -146,10 +148,12 @@ class Progress:
             self.stream.flush()
             self._draw(bar)
 
-    def update(self, done: int, total: int, note: str = "") -> None:
-        """``done`` of ``total`` units are done; ``note`` says what is under way."""
+    def update(self, done: int, total: int, note: str = "", left: str | None = None) -> None:
+        """``done`` of ``total`` units are done; ``note`` says what is under way; ``left`` the time left in words
+        (None: as the pace so far gives it, ``left``)."""
         with self.lock:
-            line = f"{done}/{total} {self.unit} ({100 * done // max(total, 1)}%), {self.left(done, total)}"
+            left = "done" if done >= total else left or self.left(done, total)
+            line = f"{done}/{total} {self.unit} ({100 * done // max(total, 1)}%), {left}"
             if self.tty:
                 self._draw(f"dmosim: {line}" + (f"; {note}" if note else ""))
             elif (step := self.STEPS * done // max(total, 1)) > self.step:
@@ -182,6 +186,63 @@ class Progress:
         self.stream.write("\r" + bar[:width] + "\x1b[K")
         self.stream.flush()
         self.shown = bar
+
+
+@dataclass(frozen=True)
+class Mark:
+    """A clock message of a run as the launcher saw it: when (``t``, s), the day (1..), the phase starting and, in
+    real time, the hour (1..24)."""
+
+    t: float
+    day: int
+    phase: str
+    hour: int | None = None
+
+
+def run_time_left(marks: Sequence[Mark], days: int, now: float) -> float | None:
+    """Seconds a run of ``days`` market days has left at ``now``, from the work its phases took so far (``marks``,
+    in order), or None while nothing measured covers the work ahead. A day is its front (from the previous day's
+    settlement, or the run's first mark, to its hour 1: bidding, clearing and the agents' solves, most of a day's
+    time) and its 24 real-time hours, each priced at the mean of those measured; the time already spent in the
+    current phase or hour is taken off its share. The pace of hours done over time spent, which a front of solves
+    skews, is not used: the first hours of a run would predict the rest at the solves' pace."""
+    from scenarios.horizon import HOURS  # noqa: PLC0415  (imported after the check that no file shadows scenarios)
+
+    if not marks:
+        return None
+    fronts, hours, start, last = [], [], marks[0].t, None
+    for mark in marks:
+        if mark.phase == "realtime" and mark.hour == 1:
+            fronts.append(mark.t - start)
+        elif mark.phase == "settlement":
+            start = mark.t
+        if last is not None and last.phase == "realtime":
+            hours.append(mark.t - last.t)
+        last = mark
+    front = sum(fronts) / len(fronts) if fronts else None
+    hour = sum(hours) / len(hours) if hours else None
+    since = now - last.t
+    if last.phase == "realtime":
+        if hour is None:
+            return None
+        here = max((HOURS - last.hour + 1) * hour - since, 0.0)
+    elif last.phase == "settlement":
+        here = 0.0
+    else:  # in the day's front: its solves
+        if front is None or hour is None:
+            return None
+        here = max(front - (now - start), 0.0) + HOURS * hour
+    ahead = days - last.day
+    if ahead and (front is None or hour is None):
+        return None
+    return here + ahead * ((front or 0.0) + HOURS * (hour or 0.0))
+
+
+def left_words(seconds: float | None) -> str:
+    """The time left as ``Progress`` says it: an estimate is "about"; none is said to be not known yet."""
+    if seconds is None:
+        return "time left not known yet"
+    return "under a second left" if seconds < 0.5 else f"about {duration(seconds)} left"
 
 
 def duration(seconds: float) -> str:

@@ -23,7 +23,7 @@ from scenarios.fleet import FleetError
 from scenarios.network import NETWORKS
 
 from ..arguments import integer
-from ..console import Progress, UsageError, print_json, stop_on_terminate
+from ..console import Mark, Progress, UsageError, left_words, print_json, run_time_left, stop_on_terminate
 from ..experiment.rundir import RunDir, RunDirError
 from ..experiment.spec import (FLAGS, IN_PROCESS, Experiment, ExperimentError, load_experiment, parse_experiment,
                                settled_by, with_settings)
@@ -221,7 +221,7 @@ def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Clust
     experiment = fleet_written(experiment, rundir.fleet)  # a generated fleet: every role reads the run's own file
     record = None if args.no_record else (record_to or rundir.recording)
     bar = None if args.quiet else Progress("hours")
-    say, tick = (bar.say, bar.update) if bar else (lambda text: None, lambda done, total, text: None)
+    say, tick = (bar.say, _estimating(bar, experiment.days)) if bar else (lambda text: None, lambda *_: None)
     stop_on_terminate()  # a terminated run stops its roles like Ctrl-C does
     # the page's process outlives the run (its end stays on the page until Ctrl-C), so it is stopped last
     with Viewing(args.view_port, args.view_url_file, _printed) if args.view else contextlib.nullcontext() as view:
@@ -251,6 +251,18 @@ def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Clust
             sys.stdout.flush()
             view.linger()
     return 0 if ok else 1  # a run whose results are not to be trusted: the same exit as any run that went wrong
+
+
+def _estimating(bar: Progress, days: int):
+    """``bar.update`` with the time left from the work of the run's phases so far (``run_time_left``): each clock
+    message (its ``mark``) is noted when seen."""
+    marks: list[Mark] = []
+
+    def tick(done: int, total: int, text: str, mark: tuple | None = None) -> None:
+        if mark is not None:
+            marks.append(Mark(bar.clock(), *mark))
+        bar.update(done, total, text, left_words(run_time_left(marks, days, bar.clock())))
+    return tick
 
 
 def _printed(text: str) -> None:

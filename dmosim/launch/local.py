@@ -126,7 +126,8 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
     with ``cluster``, the agents run on its workers (no process fault may name one: they are not signalled from
     here), which must see the run directory;
     ``repeat_of``, the recording the experiment came from (``--from``), whose statements the run's are compared
-    with before its result is written. ``tick(hours done, hours in all, where the clock is)`` follows the DMO's
+    with before its result is written. ``tick(hours done, hours in all, where the clock is[, (day, phase, hour)])``
+    follows the DMO's
     clock (``dmosim.console.Progress.update``); without it, ``say`` gets a line per clock message."""
     e = experiment
     fleet = fleet_of(e)
@@ -139,7 +140,7 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
 
         say(f"run {run_id}: DMO and {len(fleet)} agents in this process, {e.days} day(s) from {e.market_day}; "
             f"writing to {rundir.root}" + ("" if record else "; not recording"))
-        tick = tick or (lambda done, total, text: say(text))
+        tick = tick or (lambda done, total, text, mark=None: say(text))
         result = run_in_process(e, fleet, run_id, record, recording_inputs(e, fleet, rundir),
                                 rundir.logs / IN_PROCESS_LOG, lambda clock: tick(*progress_of(clock)))
         result.update(wall_s=round(time.monotonic() - began, 3), run_dir=str(rundir.root.resolve()),
@@ -469,11 +470,13 @@ def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Ite
     return []
 
 
-def progress_of(clock: Clock) -> tuple[int, int, str]:
-    """Where a clock message says the run is: hours done, hours in all, and in words."""
+def progress_of(clock: Clock) -> tuple[int, int, str, tuple[int, str, int | None]]:
+    """Where a clock message says the run is: hours done, hours in all, in words, and as (day, phase, hour), which
+    ``dmosim.console.Mark`` takes with the time it was seen."""
     done = HOURS * clock.day if clock.phase == "settlement" else HOURS * (clock.day - 1) + (clock.hour or 1) - 1
     day = f"day {clock.day}/{clock.days}, " if clock.days > 1 else ""
-    return done, HOURS * clock.days, f"{day}phase {clock.phase}" + (f", hour {clock.hour}/24" if clock.hour else "")
+    return (done, HOURS * clock.days, f"{day}phase {clock.phase}" + (f", hour {clock.hour}/24" if clock.hour else ""),
+            (clock.day, clock.phase, clock.hour))
 
 
 class _Watch:
@@ -485,7 +488,7 @@ class _Watch:
     def __init__(self, roles: Roles, faults: list[Fault], say: Callable[[str], None],
                  tick: Callable[[int, int, str], None] | None = None):
         self.roles, self.faults, self.say = roles, faults, say
-        self.tick = tick or (lambda done, total, text: say(text))
+        self.tick = tick or (lambda done, total, text, mark=None: say(text))
         self.hours = (0, 1)  # hours of the run done, and in all, as the DMO's clock last said
         self.started = threading.Event()
         self.lock = threading.Lock()
@@ -509,9 +512,9 @@ class _Watch:
             self.day = f"day {msg.day}/{msg.days}, " if msg.days > 1 else ""
             self.clock = f"day {msg.day} {msg.phase}" + (f" hour {msg.hour}" if msg.hour else "")
             self.scheduling_since = time.monotonic() if msg.phase == "scheduling" else None
-            done, total, text = progress_of(msg)
+            done, total, text, mark = progress_of(msg)
             self.hours = (done, total)
-            self.tick(done, total, text)
+            self.tick(done, total, text, mark)
             for f in self.faults:
                 if msg.phase == "realtime" and (msg.day, msg.hour) == (f.day, f.hour) and f not in self.fired:
                     self.fired.add(f)
