@@ -116,7 +116,7 @@ def run(args) -> int:
         seed_summary(table, keys).to_csv(seeds, index=False)
     figure = None
     if (table["status"] == "ok").any():
-        figure = save(sweep_figure(table, keys, f"{experiment.name}: each agent's bill over the run"),
+        figure = save(sweep_figure(table, keys, f"{experiment.name}: each agent's bill and penalty over the run"),
                       root / "sweep.png")
     status = table.drop_duplicates("label").set_index("label")["status"]
     summary = {"sweep": str(root.resolve()), "table": str((root / "sweep.csv").resolve()),

@@ -76,47 +76,89 @@ def _cell(value):
     return ",".join(map(str, value)) if isinstance(value, list) else value
 
 
+# The unit of each setting a sweep may vary, for its figure's x-axis (docs/experiments.md gives every setting's).
+UNITS = {"market.penalty": "$/MWh", "market.credit": "$/MWh", "market.import_limit": "MW", "market.export_limit": "MW",
+         "market.island_hours": "islanded hours a day", "market.subperiods": "sub-periods an hour",
+         "schedule.scenarios": "scenarios", "schedule.gap": "relative MIP gap", "schedule.time_limit": "s",
+         "schedule.workers": "threads", "profiles.load_scale": "x the case's load",
+         "profiles.renewable_scale": "x the case's renewables", "agents.count": "agents", "days": "days",
+         "network.load_scale": "x the feeder's load", "network.voltage_margin": "p.u.",
+         "network.spill_price": "$/MWh", "deadlines.registration": "s", "deadlines.bid": "s",
+         "deadlines.schedule": "s", "deadlines.hour": "s"}
+PANELS = (("total", "bill over the run, $"), ("deviation_penalty", "deviation penalty over the run, $"))
+MAX_AGENTS_DRAWN = 8  # past this, the agents' mean is drawn: a line or bar per agent would not be told apart
+
+
+def axis_label(key: str) -> str:
+    """A swept setting with its unit, as its axis names it."""
+    return f"{key} ({UNITS[key]})" if key in UNITS else key
+
+
+def _agents_mean(table: pd.DataFrame) -> pd.DataFrame:
+    """Each run's rows that ended ok as one row, the mean over its agents, named ``mean of N agents``."""
+    ok = table[table["status"] == "ok"]
+    figures = [c for c in (*SETTLED, *REALISED) if c in ok]
+    heads = [c for c in ok.columns if c not in (*figures, "agent", "error")]
+    out = ok.groupby("label", sort=False).agg({**{c: "first" for c in heads}, **dict.fromkeys(figures, "mean")})
+    return out.reset_index(drop=True).assign(agent=f"mean of {ok['agent'].nunique()} agents", error=None)
+
+
 def sweep_figure(table: pd.DataFrame, keys: list[str], title: str = "") -> Figure:
-    """Each agent's total bill against the first swept setting, one panel per combination of the others; a
-    numeric setting on a line, any other as grouped bars. A sweep of ``seed`` shows, per setting of the other
-    keys, the mean over the seeds with its 95% interval as a bar (``seed_summary``); of the seed alone, one bar
-    per agent."""
+    """What a sweep varies against what it gives: each agent's bill (top) and deviation penalty (bottom) over the run
+    against the first swept setting (its unit on the axis), one column of panels per combination of the others; a
+    numeric setting on a line, the agents' points set apart so that their intervals do not overlap, any other as
+    grouped bars. A sweep of ``seed`` shows, per setting of the other keys, the mean over the seeds with its 95%
+    interval (``seed_summary``). Past 8 agents, their mean."""
     ok = table[table["status"] == "ok"]
     if ok.empty:
         raise ValueError("no run of the sweep finished: nothing to plot")
+    if ok["agent"].nunique() > MAX_AGENTS_DRAWN:
+        table = ok = _agents_mean(table)
     seeds = SEED in keys
     if seeds:
-        ok = seed_summary(table, keys).assign(setting=f"mean of {ok[SEED].nunique()} seeds").rename(
-            columns={"total_mean": "total"})
+        n_seeds = ok[SEED].nunique()
+        ok = seed_summary(table, keys).assign(setting=f"mean of {n_seeds} seeds").rename(
+            columns={f"{c}_mean": c for c, _ in PANELS})
         keys = [k for k in keys if k != SEED] or ["setting"]
     x_key, others = keys[0], keys[1:]
     groups = list(ok.groupby(others, sort=False)) if others else [((), ok)]
-    fig = figure(figsize=(max(6.0, 4.5 * len(groups)), 4.2), layout="constrained")
-    axes = fig.subplots(1, len(groups), squeeze=False, sharey=True)
+    fig = figure(figsize=(max(6.0, 4.5 * len(groups)), 7.0), layout="constrained")
+    axes = fig.subplots(len(PANELS), len(groups), squeeze=False, sharex="col", sharey="row")
     numeric = pd.api.types.is_numeric_dtype(ok[x_key]) and not pd.api.types.is_bool_dtype(ok[x_key])
     agents = sorted(ok["agent"].unique(), key=natural)
-    for ax, (key, frame) in zip(axes[0], groups):
+    for col, (key, frame) in enumerate(groups):
         values = list(dict.fromkeys(frame[x_key]))
-        for i, agent in enumerate(agents):
-            own = frame[frame["agent"] == agent].set_index(x_key).reindex(values)
-            y = own["total"].to_numpy(dtype=float)
-            spread = np.abs([y - own["total_low"].to_numpy(dtype=float),
-                             own["total_high"].to_numpy(dtype=float) - y]) if seeds else None
-            if numeric:
-                ax.errorbar(values, y, yerr=spread, fmt="o-", capsize=4, label=agent)
-            else:
-                width = 0.8 / len(agents)
-                ax.bar(np.arange(len(values)) + (i - (len(agents) - 1) / 2) * width, y, width=width, yerr=spread,
-                       capsize=4, label=agent)
-        if not numeric:
-            ax.set_xticks(np.arange(len(values)), [str(v) for v in values])
-        ax.axhline(0, color="0.5", lw=0.6)
-        ax.set_xlabel(x_key)
-        ax.grid(alpha=0.3)
+        if numeric:
+            values.sort()
+            gaps = np.diff(np.asarray(values, dtype=float))
+            step = 0.3 * (gaps.min() if len(gaps) else max(abs(float(values[0])), 1.0)) / len(agents)
+        for row, (column, label) in enumerate(PANELS):
+            ax = axes[row][col]
+            for i, agent in enumerate(agents):
+                own = frame[frame["agent"] == agent].set_index(x_key).reindex(values)
+                y = own[column].to_numpy(dtype=float)
+                spread = np.abs([y - own[f"{column}_low"].to_numpy(dtype=float),
+                                 own[f"{column}_high"].to_numpy(dtype=float) - y]) if seeds else None
+                offset = i - (len(agents) - 1) / 2
+                if numeric:
+                    ax.errorbar(np.asarray(values, dtype=float) + offset * step, y, yerr=spread, fmt="o-",
+                                capsize=3, label=agent)
+                else:
+                    width = 0.8 / len(agents)
+                    ax.bar(np.arange(len(values)) + offset * width, y, width=width, yerr=spread, capsize=3,
+                           label=agent)
+            if not numeric:
+                ax.set_xticks(np.arange(len(values)), [str(v) for v in values])
+            elif len(values) <= 12:  # the settings swept, not round numbers between them
+                ax.set_xticks(np.asarray(values, dtype=float), [f"{v:g}" for v in values])
+            ax.axhline(0, color="0.5", lw=0.6)
+            ax.grid(alpha=0.3)
+            ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:,.0f}"))
+            if col == 0:
+                ax.set_ylabel(label + (f"\n(mean of {n_seeds} seeds, 95% interval)" if seeds else ""))
+        axes[-1][col].set_xlabel(axis_label(x_key))
         key = key if isinstance(key, tuple) else (key,)
-        ax.set_title(", ".join(f"{k}={v}" for k, v in zip(others, key)) or "", loc="left", fontsize=10)
-        ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda y, _: f"{y:,.0f}"))
-    axes[0][0].set_ylabel("total bill over the run, $" + (" (mean, 95% interval)" if seeds else ""))
-    axes[0][-1].legend(fontsize=8, frameon=False)
-    fig.suptitle(title or f"each agent's bill against {x_key}", fontsize=12)
+        axes[0][col].set_title(", ".join(f"{k}={v}" for k, v in zip(others, key)) or "", loc="left", fontsize=10)
+    fig.legend(*axes[0][0].get_legend_handles_labels(), loc="outside right upper", fontsize=8, frameon=False)
+    fig.suptitle(title or f"each agent's bill and penalty against {axis_label(x_key)}", fontsize=12)
     return fig

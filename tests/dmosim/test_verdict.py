@@ -170,7 +170,7 @@ def test_a_sweep_of_seeds_gives_per_setting_the_mean_and_95_percent_interval_of_
     for keys in (["market.penalty", "seed"], ["seed"]):
         figure = sweep_figure(table if "market.penalty" in keys else table[table["market.penalty"] == 100], keys)
         bars = [c for ax in figure.axes for c in ax.containers if getattr(c, "has_yerr", False)]
-        assert len(bars) == 2, keys  # an interval per agent
+        assert len(bars) == 2 * 2, keys  # an interval per agent, of the bill and of the penalty
         assert save(figure, tmp_path / "sweep.png").stat().st_size > 10_000
 
 
@@ -248,3 +248,28 @@ def test_a_recorder_fault_it_cannot_apply_is_one_line_and_exit_2(argv, says, cap
     err = capsys.readouterr().err
     assert says in err and err.count("\n") == 1, err
     assert main(["run", "--fault", "kill:recorder:3", "--check"]) == 0
+
+
+def test_the_sweep_figure_plots_bills_and_penalties_against_the_setting_with_its_unit_intervals_apart():
+    """A numeric setting swept over seeds: the bill and the penalty each in a row of panels, the setting and its unit
+    on the x-axis, and each agent's interval at an x of its own, so that no two agents' intervals overlap."""
+    import pandas as pd  # noqa: PLC0415
+
+    from dmosim.results.sweeps import sweep_figure  # noqa: PLC0415
+
+    rows = []
+    for penalty in (50, 150, 300):
+        for seed in (1, 2, 3):
+            settled = {agent: {"total": 1000.0 + seed, "deviation_penalty": penalty + 10.0 * seed}
+                       for agent in ("mg1", "mg2", "mg3")}
+            rows += sweep_rows({"market.penalty": penalty, "seed": seed}, f"{penalty}-{seed}", "r", 1.0,
+                               {"settlement": settled, "verdict": verdict([])})
+    figure = sweep_figure(pd.DataFrame(rows), ["market.penalty", "seed"])
+    top, bottom = figure.axes[:2]
+    assert bottom.get_xlabel() == "market.penalty ($/MWh)" and "$" in top.get_ylabel() and "$" in bottom.get_ylabel()
+    assert "penalty" in bottom.get_ylabel() and "bill" in top.get_ylabel()
+    penalties = [line for line in bottom.get_lines() if line.get_marker() == "o"]
+    assert [list(line.get_ydata()) for line in penalties] == [[70.0, 170.0, 320.0]] * 3  # the penalty, not the bill
+    for ax in (top, bottom):
+        xs = sorted(x for line in ax.get_lines() if line.get_marker() == "o" for x in line.get_xdata())
+        assert len(xs) == len(set(xs)) == 9  # 3 agents at 3 settings, none at another's x
