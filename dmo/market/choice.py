@@ -9,6 +9,8 @@ docs/settlement.md, "Choosing a rule" and "Rules named by recordings").
 
 from __future__ import annotations
 
+import inspect
+import numbers
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -36,8 +38,11 @@ class ChosenRule:
 
     @property
     def parameters(self) -> dict[str, float]:
-        """Every parameter the rule settles with: a built-in's defaults with those given over them."""
-        return self.built_in.parameters(self.params) if self.built_in else dict(self.params)
+        """Every parameter the rule settles with: a built-in's defaults, or the numbers a rule of one's own defaults
+        its keyword parameters to, with those given over them."""
+        if self.built_in:
+            return self.built_in.parameters(self.params)
+        return {**_defaults(self.rule), **self.params}
 
     @property
     def label(self) -> str:
@@ -65,6 +70,16 @@ class ChosenRule:
     def settle(self, day) -> tuple[dict[str, Statement], DayTotals]:
         """Settle a ``SettlementDay``; RuleError, one line, when the rule fails."""
         return settle_day(day, self.rule, self.name, **self.params)
+
+
+def _defaults(rule: Rule) -> dict[str, float]:
+    """The numeric defaults of a function's parameters after its first (the day), in the signature's order."""
+    try:
+        params = list(inspect.signature(rule).parameters.values())[1:]
+    except (TypeError, ValueError):  # a callable whose signature Python cannot read: no defaults to show
+        return {}
+    return {p.name: p.default for p in params
+            if isinstance(p.default, numbers.Real) and not isinstance(p.default, bool)}
 
 
 def paper_rule(penalty: float, credit: float = 0.0) -> ChosenRule:

@@ -321,7 +321,8 @@ def test_the_award_announces_the_rule_and_its_rates():
     assert band.deviation_cost[0] == ((0.0, 0.0), (0.0, 0.0), (150.0, -75.0))
     own = outbox.award(config(settlement=choose("examples/settlement_rule.py:capped_penalty:cap=9")), 1, clearing,
                        "mg1")
-    assert own.deviation_cost is None and own.rules.startswith("examples/settlement_rule.py:capped_penalty:cap=9: The")
+    assert own.deviation_cost is None and own.rules.startswith(
+        "examples/settlement_rule.py:capped_penalty:penalty=150,credit=0,cap=9: The")
     for msg in (paper, band, own):
         assert decode(encode(msg)) == msg
 

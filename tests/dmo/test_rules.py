@@ -237,3 +237,13 @@ def test_the_islanding_rule_differs_from_the_paper_rule_only_in_islanded_sub_per
             elif all(not up for up in day.grid[own.hour].connected):
                 assert own.penalty == own.credit == 0
     assert exempt["mg2"].deviation_penalty < paper["mg2"].deviation_penalty  # mg2 exports: islanding was charged
+
+
+def test_a_rule_of_ones_own_is_named_with_the_defaults_it_settles_by():
+    """Its full name, as ``dmosim settle`` prints it and the award announces it, lists every parameter the function
+    settles with, as a built-in's does: those given over the numeric defaults of its signature."""
+    assert choose("examples/settlement_rule.py:capped_penalty:cap=200").label == (
+        "examples/settlement_rule.py:capped_penalty:penalty=150,credit=0,cap=200")
+    assert choose("examples/settlement_rule.py:capped_penalty:penalty=90").label == (
+        "examples/settlement_rule.py:capped_penalty:penalty=90,credit=0,cap=500")
+    assert choose("deadband:rate=100").label == "deadband:rate=100,below_rate=0,band_mw=0,band_share=0.1"
