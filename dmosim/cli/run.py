@@ -174,7 +174,10 @@ def experiment_in_recording(path: str) -> Experiment:
                 raise UsageError(f"{path}: its experiment.toml cannot be read: {exc}") from None
             except ExperimentError as exc:
                 raise UsageError(str(exc)) from None
-    raise UsageError(f"{path}: holds no experiment.toml (it was not recorded by dmosim run)")
+    raise UsageError(f"{path}: holds no experiment.toml, the resolved experiment --from repeats: a recording made by "
+                     "hand (dmosim record beside dmosim dmo and agent) has it only if attached (dmosim record --attach "
+                     "experiment.toml, the experiment its roles ran); run that experiment file instead "
+                     "(docs/experiments.md, \"Roles started by hand\")")
 
 
 def run(args) -> int:

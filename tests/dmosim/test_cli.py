@@ -305,3 +305,27 @@ def test_a_scenarios_py_in_the_current_directory_is_named_not_imported(tmp_path)
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr == f"error: {SHADOWED.format(tmp_path / 'scenarios.py')}\n"
 
+
+
+def test_run_from_a_recording_made_by_hand_without_its_experiment_says_what_is_missing(cli, tmp_path):
+    """``dmosim record`` beside roles started by hand keeps no experiment unless one is attached: ``run --from`` says
+    so in one line, exit 2, and repeats the recording once its experiment.toml is attached."""
+    from dmosim.bench.recording import synthetic_day  # noqa: PLC0415
+    from messages.keys import new_run_id  # noqa: PLC0415
+    from messages.recording import RecordingWriter  # noqa: PLC0415
+    from messages.recording.writer import read_attachments  # noqa: PLC0415
+
+    def recording(name: str, attach=()) -> str:
+        run_id = new_run_id()
+        with RecordingWriter(tmp_path / name, run_id) as writer:
+            writer.start({}, read_attachments(attach))
+            for key, payload in synthetic_day(run_id, 1, 1)[:5]:
+                writer.write(key, payload, 1_800_000_000_000_000_000)
+        return str(tmp_path / name)
+
+    said = cli("run", "--from", recording("by-hand.mcap"), "--check")
+    assert said.returncode == 2 and said.stderr.count("\n") == 1
+    assert "holds no experiment.toml" in said.stderr and "--attach experiment.toml" in said.stderr
+    (tmp_path / "experiment.toml").write_text('seed = 4\n[agents]\ncount = 2\n')
+    said = cli("run", "--from", recording("attached.mcap", [tmp_path / "experiment.toml"]), "--check")
+    assert said.returncode == 0, said.stderr
