@@ -28,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
-from ..console import stopping_on_terminate
+from ..console import UsageError, stopping_on_terminate
 from ..experiment.spec import HOSTINGS, IN_PROCESS, Agents
 from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
 
@@ -48,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=nonneg_float, default=1800.0,
                         help="seconds one day may take before the bench stops it (default: 1800)")
     parser.add_argument("--experiment", action="append", default=[], metavar="FILE",
-                        help="also run this experiment file as processes and in one process, side by side "
-                             "(repeatable; e.g. examples/week.toml)")
+                        help="also run this experiment file, as processes and (unless --no-in-process) in one "
+                             "process, side by side (repeatable; e.g. examples/week.toml)")
     parser.add_argument("--in-process", action=argparse.BooleanOptionalAction, default=True,
                         help="also run each day in one process, for speedup (default: yes; --no-in-process: "
                              "as processes only)")
@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args) -> dict:
     if not args.agents and not args.experiment:
-        raise SystemExit("dmosim bench day: nothing to run: give --agents N... or --experiment FILE")
+        raise UsageError("--agents: no N and no --experiment FILE: nothing to run")
     cores = os.cpu_count() or 1
     rows, phases, notes, files = [], [], [], []
     for n in args.agents:

@@ -193,8 +193,7 @@ def test_an_experiment_alone_is_split_over_all_its_days_and_run_as_processes_onl
     assert row["day_s"] == 20.0 and row["startup_s"] == 3.0 and row["compute_s"] == 9.0
     assert row["solving_pct"] == pytest.approx(45.0) and row["stopped_short"] == 1 and "speedup" not in row
     assert {p["phase"]: p["wall_s"] for p in out["phases"]} == {"bidding": 2.0, "scheduling": 12.0, "realtime": 6.0}
-    with pytest.raises(SystemExit):
-        day.run(argparse.Namespace(**{**vars(args), "experiment": []}))
+    assert main(["bench", "day", "--agents"]) == 2  # nothing to run: one line, before anything starts
 
 
 def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
