@@ -8,7 +8,9 @@ which the DMO's result gives under ``realised``). The split is ``split_day``: th
 computed is the agents' computation, and the rest of the day, when none did and the day waited on messages and the
 DMO, is the overhead (definition in docs/benchmarks.md). The same day then runs in one process, and ``speedup`` is
 the command's wall time as processes over its wall time in one process; ``--experiment FILE`` measures an
-experiment file the same two ways (e.g. examples/week.toml).
+experiment file the same two ways (e.g. examples/week.toml), with the same split of its days. ``--agents`` with no N
+runs the experiment files alone, and ``--no-in-process`` runs each day as processes only (a long experiment, e.g.
+examples/stochastic-day.toml, measured once).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
-from ..console import stopping_on_terminate
+from ..console import UsageError, stopping_on_terminate
 from ..experiment.spec import HOSTINGS, IN_PROCESS, Agents
 from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
 
@@ -36,8 +38,8 @@ STEP_PHASE = {"call_for_bids": "bidding", "award": "scheduling", "grid_state": "
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--agents", type=positive_int, nargs="+", default=[1, 5, 10], metavar="N",
-                        help="fleet sizes, one day each (default: 1 5 10)")
+    parser.add_argument("--agents", type=positive_int, nargs="*", default=[1, 5, 10], metavar="N",
+                        help="fleet sizes, one day each (default: 1 5 10; none: only the --experiment files)")
     parser.add_argument("--scenarios", type=positive_int, default=2, help="scenarios per agent schedule (default: 2)")
     parser.add_argument("--subperiods", type=positive_int, default=1, help="sub-periods per hour (default: 1)")
     parser.add_argument("--gap", type=gap, default=0.01,
@@ -46,34 +48,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timeout", type=nonneg_float, default=1800.0,
                         help="seconds one day may take before the bench stops it (default: 1800)")
     parser.add_argument("--experiment", action="append", default=[], metavar="FILE",
-                        help="also run this experiment file as processes and in one process, side by side "
-                             "(repeatable; e.g. examples/week.toml)")
+                        help="also run this experiment file, as processes and (unless --no-in-process) in one "
+                             "process, side by side (repeatable; e.g. examples/week.toml)")
+    parser.add_argument("--in-process", action=argparse.BooleanOptionalAction, default=True,
+                        help="also run each day in one process, for speedup (default: yes; --no-in-process: "
+                             "as processes only)")
 
 
 def run(args) -> dict:
+    if not args.agents and not args.experiment:
+        raise UsageError("--agents: no N and no --experiment FILE: nothing to run")
     cores = os.cpu_count() or 1
     rows, phases, notes, files = [], [], [], []
     for n in args.agents:
         flags = ["--agents", str(n), "--scenarios", str(args.scenarios), "--subperiods", str(args.subperiods),
                  "--gap", repr(args.gap), "--time-limit", repr(args.time_limit), "--no-record"]
-        day = run_and_read(flags, args.timeout)
-        one = run_and_read([*flags, "--hosting", IN_PROCESS], args.timeout)
-        split = split_day(day["result"]["phase_s"], day["compute"], cores)
-        incidents = day["result"].get("incidents", [])
-        rows.append({"agents": n, "process_s": day["process_s"], "in_process_s": one["process_s"],
-                     "speedup": day["process_s"] / one["process_s"], **split["totals"], "incidents": len(incidents)})
-        phases += [{"agents": n, **row} for row in split["phases"]]
-        if incidents:
-            notes.append(f"N={n}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
-                         "every agent answered every step")
-        if one["result"]["settlement"] != day["result"]["settlement"]:
-            notes.append(f"N={n}: the statements in one process differ from those of the processes")
+        row, split, note = _measured(f"N={n}", flags, args, cores)
+        rows.append({"agents": n, **row})
+        phases += [{"agents": n, **p} for p in split["phases"]]
+        notes += note
     for path in args.experiment:
-        day, one = run_and_read([path], args.timeout), run_and_read([path, "--hosting", IN_PROCESS], args.timeout)
-        files.append({"experiment": path, "process_s": day["process_s"], "in_process_s": one["process_s"],
-                      "speedup": day["process_s"] / one["process_s"],
-                      "same_statements": one["result"]["settlement"] == day["result"]["settlement"]})
-    largest = max(rows, key=lambda r: r["agents"])
+        row, split, note = _measured(path, [path], args, cores)
+        files.append({"experiment": path, **row})
+        phases += [{"experiment": path, **p} for p in split["phases"]]
+        notes += note
+    largest = max(rows, key=lambda r: r["agents"]) if rows else None
     return {
         "setup": {"agents": "paper case, fleet of dmosim run (scaled and shifted copies)",
                   "scenarios": args.scenarios, "subperiods": args.subperiods, "gap": args.gap,
@@ -84,10 +83,38 @@ def run(args) -> dict:
         "days": rows,
         **({"experiments": files} if files else {}),
         "phases": phases,
-        "goal": {"agents": largest["agents"], "overhead_pct": largest["overhead_pct"], "target_pct": GOAL_PCT,
-                 "met": largest["overhead_pct"] <= GOAL_PCT},
+        "goal": ({"agents": largest["agents"], "overhead_pct": largest["overhead_pct"], "target_pct": GOAL_PCT,
+                  "met": largest["overhead_pct"] <= GOAL_PCT} if largest else {}),
         **({"notes": "; ".join(notes)} if notes else {}),
     }
+
+
+def _measured(label: str, flags: list[str], args, cores: int) -> tuple[dict, dict, list[str]]:
+    """One ``dmosim run FLAGS`` as processes (and in one process unless ``--no-in-process``): its row (the
+    command's wall time, the split of its days summed over them, ``solving_pct`` the share of the days in which an
+    agent computed), the split, and notes on what makes the split or the comparison doubtful."""
+    day = run_and_read(flags, args.timeout)
+    phase_s: dict[str, float] = {}  # summed over the run's days (a run of several has no phase_s of its own)
+    for d in day["result"]["days"]:
+        for phase, seconds in d["phase_s"].items():
+            phase_s[phase] = phase_s.get(phase, 0.0) + seconds
+    split = split_day(phase_s, day["compute"], cores)
+    incidents = day["result"].get("incidents", [])
+    totals = split["totals"]
+    row = {"process_s": day["process_s"], **totals,
+           "solving_pct": 100.0 * totals["compute_s"] / totals["day_s"] if totals["day_s"] else float("nan"),
+           "stopped_short": len(day["result"].get("schedules_stopped_short", [])), "incidents": len(incidents)}
+    notes = []
+    if incidents:
+        notes.append(f"{label}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
+                     "every agent answered every step")
+    if args.in_process:
+        one = run_and_read([*flags, "--hosting", IN_PROCESS], args.timeout)
+        same = one["result"]["settlement"] == day["result"]["settlement"]
+        row.update(in_process_s=one["process_s"], speedup=day["process_s"] / one["process_s"], same_statements=same)
+        if not same:
+            notes.append(f"{label}: the statements in one process differ from those of the processes")
+    return row, split, notes
 
 
 def split_day(phase_s: dict[str, float], compute: dict[str, list[dict]], cores: int) -> dict:

@@ -167,6 +167,35 @@ def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_w
     assert report["ratios"]["recording bytes per agent-day"] == 10_000
 
 
+def test_an_experiment_alone_is_split_over_all_its_days_and_run_as_processes_only(monkeypatch):
+    """``bench day --agents --experiment FILE --no-in-process``: no fleet-size day, no day in one process, the
+    experiment's phases summed over its days (a run of several has no ``phase_s`` of its own) and its solving share."""
+    from dmosim.bench import day
+
+    phase_s = {"registration": 3.0, "bidding": 1.0, "scheduling": 6.0, "realtime": 3.0}
+    entry = lambda d, kind, at, wall: {"kind": kind, "hour": None, "day": d, "wall_s": wall, "cpu_s": wall,  # noqa: E731
+                                       "started_at": int(at * 1e9), "turn_s": 0.0}
+    result = {"days": [{"phase_s": phase_s}, {"phase_s": {**phase_s, "registration": 0.0}}], "settlement": {},
+              "schedules_stopped_short": [{"agent": "mg1", "status": "time_limit", "mip_gap": 0.02}]}
+    compute = {"mg1": [entry(1, "award", 100.0, 5.0), entry(2, "award", 200.0, 4.0)]}
+    calls = []
+
+    def fake(flags, timeout_s):
+        calls.append(flags)
+        return {"result": result, "compute": compute, "process_s": 30.0}
+
+    monkeypatch.setattr(day, "run_and_read", fake)
+    args = argparse.Namespace(agents=[], experiment=["x.toml"], in_process=False, timeout=60.0, scenarios=2,
+                              subperiods=1, gap=0.01, time_limit=120.0)
+    out = day.run(args)
+    assert calls == [["x.toml"]] and out["days"] == [] and out["goal"] == {}
+    (row,) = out["experiments"]
+    assert row["day_s"] == 20.0 and row["startup_s"] == 3.0 and row["compute_s"] == 9.0
+    assert row["solving_pct"] == pytest.approx(45.0) and row["stopped_short"] == 1 and "speedup" not in row
+    assert {p["phase"]: p["wall_s"] for p in out["phases"]} == {"bidding": 2.0, "scheduling": 12.0, "realtime": 6.0}
+    assert main(["bench", "day", "--agents"]) == 2  # nothing to run: one line, before anything starts
+
+
 def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
     """What the agents reported in their agent_day messages, as the DMO's result gives it: never a log line."""
     counts = lambda n: {"published": 9, "received": 9, "rejected": {}, "handler_errors": 0, "ignored": {},  # noqa: E731

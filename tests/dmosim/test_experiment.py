@@ -26,6 +26,18 @@ def test_every_key_has_a_default_and_the_resolved_file_reads_back_the_same():
     assert (swept.seed, swept.market.penalty, swept.schedule.method) == (2, 50.0, "benders")
 
 
+
+def test_the_stochastic_day_example_is_the_feeder_fleet_at_paper_fidelity_and_checks(capsys):
+    """Validated, not run: its day of 10 agents at 20 scenarios and 10-minute resolution takes tens of minutes on two
+    cores (docs/benchmarks.md, "day"); tests/system/test_logical_time.py runs the same fleet on the same feeder
+    shrunk to 1 scenario, hourly."""
+    e = load_experiment(EXAMPLES / "stochastic-day.toml")
+    assert (e.days, e.schedule.scenarios, e.market.subperiods, e.network.feeder) == (1, 20, 6, "ieee33")
+    assert e.schedule.time_limit is None and e.deadlines.clock == "logical"  # the gap alone ends every solve
+    assert Path(e.agents.fleet).samefile(EXAMPLES / "feeder-fleet.toml")
+    assert main(["run", str(EXAMPLES / "stochastic-day.toml"), "--check"]) == 0
+    assert "10 agents" in capsys.readouterr().out
+
 @pytest.mark.parametrize("data, message", [
     ({"days": 0}, "days: Input should be greater than or equal to 1"),
     ({"market": {"mode": "auction"}}, "market.mode: Input should be 'bids' or 'fixed'"),
