@@ -70,7 +70,7 @@ def run(args) -> int:
 
         result = MarketDay(bus, config, progress).run(before_start)
         transport = bus.stats() | ({"faults_injected": bus.faults_injected()} if bus.faults else {})
-    text = json.dumps(result.report(run_id, transport), indent=2)
+    text = json.dumps(result.report(run_id, transport).model_dump(mode="json"), indent=2)
     if args.result:
         Path(args.result).write_text(text + "\n")
     else:
