@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import shutil
 import subprocess
@@ -26,9 +25,12 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ..arguments import gap, nonneg_float, positive_int
-from ..console import stopping_on_terminate
+from dmo.operator.report import DmoReport
+
+from ..console import UsageError, stopping_on_terminate
 from ..experiment.spec import HOSTINGS, IN_PROCESS, Agents
 from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
+from ..results.report import RunReport, parse_result
 
 GOAL_PCT = 5.0
 # The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
@@ -58,21 +60,21 @@ def run(args) -> dict:
                  "--gap", repr(args.gap), "--time-limit", repr(args.time_limit), "--no-record"]
         day = run_and_read(flags, args.timeout)
         one = run_and_read([*flags, "--hosting", IN_PROCESS], args.timeout)
-        split = split_day(day["result"]["phase_s"], day["compute"], cores)
-        incidents = day["result"].get("incidents", [])
+        split = split_day(day["result"].phase_s, day["compute"], cores)
+        incidents = day["result"].incidents
         rows.append({"agents": n, "process_s": day["process_s"], "in_process_s": one["process_s"],
                      "speedup": day["process_s"] / one["process_s"], **split["totals"], "incidents": len(incidents)})
         phases += [{"agents": n, **row} for row in split["phases"]]
         if incidents:
-            notes.append(f"N={n}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
+            notes.append(f"N={n}: {len(incidents)} incident(s), e.g. {incidents[0].reason}; the split assumes "
                          "every agent answered every step")
-        if one["result"]["settlement"] != day["result"]["settlement"]:
+        if one["result"].settlement != day["result"].settlement:
             notes.append(f"N={n}: the statements in one process differ from those of the processes")
     for path in args.experiment:
         day, one = run_and_read([path], args.timeout), run_and_read([path, "--hosting", IN_PROCESS], args.timeout)
         files.append({"experiment": path, "process_s": day["process_s"], "in_process_s": one["process_s"],
                       "speedup": day["process_s"] / one["process_s"],
-                      "same_statements": one["result"]["settlement"] == day["result"]["settlement"]})
+                      "same_statements": one["result"].settlement == day["result"].settlement})
     largest = max(rows, key=lambda r: r["agents"])
     return {
         "setup": {"agents": "paper case, fleet of dmosim run (scaled and shifted copies)",
@@ -182,26 +184,25 @@ def failure_line(err: str, limit: int = 600) -> str:
     return line if len(line) <= limit else f"{line[:limit - 150]} ... {line[-145:]}"
 
 
-def _result(out: str) -> dict | None:
+def _result(out: str) -> RunReport | None:
     """The result ``dmosim run --json`` printed, or None if it printed none."""
     try:
-        result = json.loads(out)
-    except ValueError:
+        return parse_result(out, "the run's output")
+    except UsageError:
         return None
-    return result if isinstance(result, dict) and "verdict" in result else None
 
 
-def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict]]:
+def agents_reported(result: DmoReport) -> tuple[dict[str, list[dict]], dict[str, dict]]:
     """What each agent reported of its days (``realised`` of the run's result: its ``agent_day`` messages, as the
     DMO received them): its ``compute`` entries of every day, each with its ``day``, and the message counts of its
     last day (its process's, since it started). An agent that reported no day stops the bench."""
-    realised = result.get("realised", {})
-    missing = [agent for agent in result["agents"] if not realised.get(agent)]
+    realised = result.realised
+    missing = [agent for agent in result.agents if not realised.get(agent)]
     if missing:
         raise RuntimeError(f"no realised day from {', '.join(missing)}: did the agents finish their days?")
-    compute = {agent: [{**entry, "day": day["day"]} for day in realised[agent] for entry in day["compute"]]
-               for agent in result["agents"]}
-    return compute, {agent: realised[agent][-1]["messages"] for agent in result["agents"]}
+    compute = {agent: [{**entry.model_dump(), "day": day.day} for day in realised[agent] for entry in day.compute]
+               for agent in result.agents}
+    return compute, {agent: realised[agent][-1].messages.model_dump() for agent in result.agents}
 
 
 @contextlib.contextmanager
@@ -255,7 +256,7 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
     if result is None:
         raise RuntimeError(f"dmosim run {' '.join(flags)} exited {code}: {failure_line(err)} "
                            f"(run directory: {rundir})")
-    if not result["verdict"]["ok"]:  # measured all the same, and said on stderr (the bench's rows show it too)
+    if not result.verdict.ok:  # measured all the same, and said on stderr (the bench's rows show it too)
         print(f"dmosim run {' '.join(flags)}: {err.strip()}", file=sys.stderr)
     compute, messages = agents_reported(result)
     if keep is None:
