@@ -12,7 +12,7 @@ import jsonschema
 import pytest
 
 from dmo.operator.finished import ENVELOPE
-from dmo.operator.report import DayReport, ReportedDay
+from dmo.operator.report import DayReport, DmoReport, ReportedDay
 from dmo.operator.results import RunResult
 from dmosim.cli.main import main
 from dmosim.console import UsageError
@@ -63,6 +63,13 @@ def test_the_result_table_of_experiments_md_names_every_key_of_the_result():
     section = section[:section.index("\n## ", 1)]
     named = {name for row in re.findall(r"^\| ([^|]+) \|", section, re.M) for name in re.findall(r"`(\w+)`", row)}
     assert named == set(RunReport.model_fields)
+
+
+def test_experiments_md_names_the_keys_dmosim_run_adds_to_the_dmo_s_result():
+    text = " ".join((ROOT / "docs" / "experiments.md").read_text().split())
+    said = text[text.index("(`DmoReport`: every key"):]
+    said = said[:said.index(")")]
+    assert set(re.findall(r"`(\w+)`", said)) - {"DmoReport"} == set(RunReport.model_fields) - set(DmoReport.model_fields)
 
 
 def test_a_realised_day_has_the_fields_of_an_agent_day_without_its_envelope_and_with_the_run_s_day():
