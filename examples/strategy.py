@@ -55,11 +55,11 @@ if __name__ == "__main__":
         "market": {"subperiods": 1, "island_hours": 0}, "schedule": {"scenarios": 1, "gap": 0.05},
     })
     result = run_experiment(experiment, sys.argv[1] if len(sys.argv) > 1 else None)
-    rec = read_recording(result["recording"])
+    rec = read_recording(result.recording)
     for _, msg in rec.decoded("registration"):
         print(f"{msg.sender} registered, bidding with {msg.strategy}")
     for _, msg in rec.decoded("bid"):
         prices = sorted({step.price_per_mwh for hour in msg.hours for step in hour})
         print(f"{msg.market_day}: {msg.sender} bid {sum(map(len, msg.hours))} steps at "
               f"{prices[0]:.2f}..{prices[-1]:.2f} $/MWh")
-    print(f"run {result['run_id']}: {result['run_dir']}")
+    print(f"run {result.run_id}: {result.run_dir}")

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 from messages import Message
 from messages.schemas import AgentDay
 
+from .report import DayReport
+
 
 @dataclass(frozen=True)
 class Publish:
@@ -28,7 +30,7 @@ class Journaled:
 class Settled:
     """A day's report (``DayResult.report``), for the run's result: the driver keeps it (on disk: finished.py)."""
 
-    report: dict
+    report: DayReport
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,8 @@ import tempfile
 
 from messages.schemas import AgentDay, Envelope
 
+from .report import DayReport
+
 ENVELOPE = frozenset(Envelope.model_fields)  # what a realised day is reported without: the run's result says whose
 
 
@@ -26,25 +28,25 @@ class FinishedDays:
     def __init__(self):
         self._file = tempfile.TemporaryFile("w+", encoding="utf-8")  # noqa: SIM115  (closed by read)
 
-    def day(self, report: dict) -> None:
+    def day(self, report: DayReport) -> None:
         """A settled day, as ``DayResult.report`` gives it."""
-        self._write({"day": report})
+        self._write({"day": report.model_dump(mode="json")})
 
     def realised(self, msg: AgentDay) -> None:
         """A realised day the DMO accepted."""
         self._write({"realised": msg.sender, "market_day": msg.market_day,
                      "reported": msg.model_dump(exclude=set(ENVELOPE))})
 
-    def read(self) -> tuple[list[dict], dict[str, dict[str, dict]]]:
+    def read(self) -> tuple[list[DayReport], dict[str, dict[str, dict]]]:
         """Every day's report in the order written, and agent -> market day -> its realised day as reported (without
         the envelope); the file is closed."""
-        days: list[dict] = []
+        days: list[DayReport] = []
         realised: dict[str, dict[str, dict]] = {}
         self._file.seek(0)
         for line in self._file:
             entry = json.loads(line)
             if "day" in entry:
-                days.append(entry["day"])
+                days.append(DayReport.model_validate(entry["day"]))
             else:
                 realised.setdefault(entry["realised"], {})[entry["market_day"]] = entry["reported"]
         self._file.close()

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import shutil
 import subprocess
@@ -27,10 +26,13 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+from dmo.operator.report import DmoReport
+
 from ..arguments import gap, nonneg_float, positive_int
 from ..console import UsageError, stopping_on_terminate
 from ..experiment.spec import HOSTINGS, IN_PROCESS, Agents
 from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
+from ..results.report import RunReport, parse_result
 
 GOAL_PCT = 5.0
 # The message an agent handles in each step of the day, and the DMO phase that waits for its answer.
@@ -95,22 +97,22 @@ def _measured(label: str, flags: list[str], args, cores: int) -> tuple[dict, dic
     agent computed), the split, and notes on what makes the split or the comparison doubtful."""
     day = run_and_read(flags, args.timeout)
     phase_s: dict[str, float] = {}  # summed over the run's days (a run of several has no phase_s of its own)
-    for d in day["result"]["days"]:
-        for phase, seconds in d["phase_s"].items():
+    for d in day["result"].days:
+        for phase, seconds in d.phase_s.items():
             phase_s[phase] = phase_s.get(phase, 0.0) + seconds
     split = split_day(phase_s, day["compute"], cores)
-    incidents = day["result"].get("incidents", [])
+    incidents = day["result"].incidents
     totals = split["totals"]
     row = {"process_s": day["process_s"], **totals,
            "solving_pct": 100.0 * totals["compute_s"] / totals["day_s"] if totals["day_s"] else float("nan"),
-           "stopped_short": len(day["result"].get("schedules_stopped_short", [])), "incidents": len(incidents)}
+           "stopped_short": len(day["result"].schedules_stopped_short), "incidents": len(incidents)}
     notes = []
     if incidents:
-        notes.append(f"{label}: {len(incidents)} incident(s), e.g. {incidents[0]['reason']}; the split assumes "
+        notes.append(f"{label}: {len(incidents)} incident(s), e.g. {incidents[0].reason}; the split assumes "
                      "every agent answered every step")
     if args.in_process:
         one = run_and_read([*flags, "--hosting", IN_PROCESS], args.timeout)
-        same = one["result"]["settlement"] == day["result"]["settlement"]
+        same = one["result"].settlement == day["result"].settlement
         row.update(in_process_s=one["process_s"], speedup=day["process_s"] / one["process_s"], same_statements=same)
         if not same:
             notes.append(f"{label}: the statements in one process differ from those of the processes")
@@ -209,26 +211,25 @@ def failure_line(err: str, limit: int = 600) -> str:
     return line if len(line) <= limit else f"{line[:limit - 150]} ... {line[-145:]}"
 
 
-def _result(out: str) -> dict | None:
+def _result(out: str) -> RunReport | None:
     """The result ``dmosim run --json`` printed, or None if it printed none."""
     try:
-        result = json.loads(out)
-    except ValueError:
+        return parse_result(out, "the run's output")
+    except UsageError:
         return None
-    return result if isinstance(result, dict) and "verdict" in result else None
 
 
-def agents_reported(result: dict) -> tuple[dict[str, list[dict]], dict[str, dict]]:
+def agents_reported(result: DmoReport) -> tuple[dict[str, list[dict]], dict[str, dict]]:
     """What each agent reported of its days (``realised`` of the run's result: its ``agent_day`` messages, as the
     DMO received them): its ``compute`` entries of every day, each with its ``day``, and the message counts of its
     last day (its process's, since it started). An agent that reported no day stops the bench."""
-    realised = result.get("realised", {})
-    missing = [agent for agent in result["agents"] if not realised.get(agent)]
+    realised = result.realised
+    missing = [agent for agent in result.agents if not realised.get(agent)]
     if missing:
         raise RuntimeError(f"no realised day from {', '.join(missing)}: did the agents finish their days?")
-    compute = {agent: [{**entry, "day": day["day"]} for day in realised[agent] for entry in day["compute"]]
-               for agent in result["agents"]}
-    return compute, {agent: realised[agent][-1]["messages"] for agent in result["agents"]}
+    compute = {agent: [{**entry.model_dump(), "day": day.day} for day in realised[agent] for entry in day.compute]
+               for agent in result.agents}
+    return compute, {agent: realised[agent][-1].messages.model_dump() for agent in result.agents}
 
 
 @contextlib.contextmanager
@@ -282,7 +283,7 @@ def run_and_read(flags: list[str], timeout_s: float, keep: Path | None = None, w
     if result is None:
         raise RuntimeError(f"dmosim run {' '.join(flags)} exited {code}: {failure_line(err)} "
                            f"(run directory: {rundir})")
-    if not result["verdict"]["ok"]:  # measured all the same, and said on stderr (the bench's rows show it too)
+    if not result.verdict.ok:  # measured all the same, and said on stderr (the bench's rows show it too)
         print(f"dmosim run {' '.join(flags)}: {err.strip()}", file=sys.stderr)
     compute, messages = agents_reported(result)
     if keep is None:

@@ -96,21 +96,21 @@ def _one_fleet(args, n: int, per_process: int, keep: Path, cores: int) -> dict:
     memory = TreeMemory()
     day = run_and_read(flags, args.timeout, keep=keep, watch=memory.watching)
     result = day["result"]
-    split = split_day(result["phase_s"], day["compute"], cores)["totals"]
-    again = result["recorded"]["resettled"]
-    differences = again.get("differences", []) or ([again["error"]] if again.get("error") else [])
+    split = split_day(result.phase_s, day["compute"], cores)["totals"]
+    again = result.recorded.resettled
+    differences = again.differences or ([again.error] if again.error else [])
     others = {role: round(mib, 1) for role, mib in memory.peak_by_role.items() if role != "agents"}
     return {"agents": n, "total_gib": round(memory.peak_mib / 1024, 2),
             "per_agent_mib": round(memory.peak_mib / n, 1),
             "agents_mib": round(memory.peak_by_role.get("agents", 0.0), 1), **others,
-            "registration_s": round(result["phase_s"]["registration"], 2),
-            "clearing_s": round(result["phase_s"].get("clearing", 0.0), 3),
+            "registration_s": round(result.phase_s["registration"], 2),
+            "clearing_s": round(result.phase_s.get("clearing", 0.0), 3),
             "day_s": round(split["day_s"], 1), "wall_s": round(day["process_s"], 1),
             "solving_pct": round(100.0 * split["compute_s"] / split["day_s"], 1) if split["day_s"] else None,
             "overhead_pct": round(split["overhead_pct"], 2), "cpu_wait_s": round(split["cpu_wait_s"], 1),
-            "incidents": len(result.get("incidents", [])), "resettled_identically": again["identical"],
+            "incidents": len(result.incidents), "resettled_identically": again.identical,
             **({"differences": "; ".join(differences[:3])} if differences else {}),
-            "verdict_ok": result["verdict"]["ok"]}
+            "verdict_ok": result.verdict.ok}
 
 
 class TreeMemory:

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import zenoh
 
+from dmo.operator.report import DmoReport
 from messages import Bid, MeterReport, Registration, Schedule, decode, encode
 from messages.codec import MAX_PAYLOAD_BYTES, MessageError
 from messages.keys import new_run_id
@@ -57,6 +58,7 @@ from ..experiment.spec import Agents, Deadlines, Experiment, Market, ScheduleSet
 from ..launch.processes import (COMMAND_STOP_S, ROLE_STOP_S, Command, Roles, dmosim_command, free_port,
                                 interrupts_held, memory_mib, proc_stat, role_env, stop_processes, wait_listening)
 from ..launch.roles import fleet_of
+from ..results.report import read_result
 from .day import bench_root
 
 FLOOD_S = 60.0  # how long the flooder floods, unless the DMO is gone first
@@ -169,7 +171,7 @@ def run_day(experiment: Experiment, rundir: Path, args, flood: float | None) -> 
         if watch.capped:
             raise RuntimeError(f"the DMO passed {args.dmo_cap_mib:g} MiB of resident memory and was stopped "
                                f"(run directory: {rundir})")
-    result = json.loads(files["result.json"].read_text()) if files["result.json"].is_file() else None
+    result = read_result(files["result.json"], DmoReport) if files["result.json"].is_file() else None
     if result is None:
         raise RuntimeError(f"the DMO left no result (exit {exits.get('dmo')}; its log: {rundir / 'dmo.log'})")
     counts = json.loads(files["flood.json"].read_text()) if files["flood.json"].is_file() else None
@@ -366,8 +368,8 @@ def report(experiment: Experiment, args, runs: dict[str, dict], verbs: list[dict
                   "link_closed": counts["link_closed"],
                   "reached_dmo": reached(honest["result"], flooded["result"]),
                   "patterns": flood_rows(counts), "history": history_rows(counts)},
-        "dmo_refused": {"by_code": flooded["result"].get("rejected_by_code", {}),
-                        "transport": flooded["result"].get("transport", {})},
+        "dmo_refused": {"by_code": flooded["result"].rejected_by_code,
+                        "transport": flooded["result"].transport},
         "verbs": verbs,
         "bills": bills,
         "ratios": {"wall flooded / honest": round(wall_ratio, 3),
@@ -393,16 +395,16 @@ def report(experiment: Experiment, args, runs: dict[str, dict], verbs: list[dict
 def _row(name: str, run: dict) -> dict:
     """One run's figures: wall time, the DMO's phases, memory and CPU, what it wrote and refused, the recording."""
     result, samples = run["result"], run["samples"]
-    days = result["days"]
+    days = result.days
     return {"run": name, "wall_s": run["wall_s"],
-            "registration_s": round(sum(d["phase_s"].get("registration", 0.0) for d in days), 2),
-            "day_s": round(sum(v for d in days for k, v in d["phase_s"].items() if k != "registration"), 2),
+            "registration_s": round(sum(d.phase_s.get("registration", 0.0) for d in days), 2),
+            "day_s": round(sum(v for d in days for k, v in d.phase_s.items() if k != "registration"), 2),
             "dmo_peak_mib": samples["peak_rss_mib"].get("dmo"), "dmo_hwm_mib": samples["hwm_mib"].get("dmo"),
             "dmo_cpu_s": samples["cpu_s"].get("dmo"),
             "recorder_peak_mib": samples["peak_rss_mib"].get("recorder"),
             "journal_mib": _mib(run["journal_bytes"]),
             "dmo_log_mib": _mib(run["dmo_log_bytes"]), "recording_mib": _mib(run["recording_bytes"]),
-            "rejected": result["rejected_messages"], "incidents": len(result["incidents"]),
+            "rejected": result.rejected_messages, "incidents": len(result.incidents),
             "agents_exit": ",".join(str(run["exits"].get(a)) for a in run["agents"]),
             "recorder_exit": run["recorder_exit"]}
 
@@ -425,27 +427,27 @@ def history_rows(counts: dict | None) -> list[dict]:
             for selector, c in counts["patterns"]["history"]["selectors"].items()]
 
 
-def reached(honest: dict, flooded: dict) -> int:
+def reached(honest: DmoReport, flooded: DmoReport) -> int:
     """How many of the flooder's messages reached the DMO: every one is refused (it never registers) or dropped
     unread by the DMO's gate (``transport.dropped``, where there is one), less what the honest run refused."""
-    return (flooded["rejected_messages"] + flooded["transport"].get("dropped", 0)
-            - honest["rejected_messages"] - honest["transport"].get("dropped", 0))
+    return (flooded.rejected_messages + flooded.transport.get("dropped", 0)
+            - honest.rejected_messages - honest.transport.get("dropped", 0))
 
 
-def compare_bills(honest: dict, flooded: dict, agents: list[str]) -> dict:
+def compare_bills(honest: DmoReport, flooded: DmoReport, agents: list[str]) -> dict:
     """The honest agents' settlements (every figure of the DMO's result) in the two runs, to the cent; a differing
     figure is listed as agent.figure: honest -> flooded."""
     differences = []
     for agent in agents:
-        a, b = honest["settlement"].get(agent), flooded["settlement"].get(agent)
+        a, b = honest.settlement.get(agent), flooded.settlement.get(agent)
         if a is None or b is None:
             differences.append(f"{agent}: {'settled' if a else 'not settled'} honest, "
                                f"{'settled' if b else 'not settled'} flooded")
             continue
-        differences += [f"{agent}.{k}: {a[k]} -> {b.get(k)}" for k in a
-                        if not math.isclose(a[k], b.get(k, math.nan), abs_tol=0.005)]
-    totals = {a: [honest["settlement"].get(a, {}).get("total"), flooded["settlement"].get(a, {}).get("total")]
-              for a in agents}
+        differences += [f"{agent}.{k}: {getattr(a, k)} -> {getattr(b, k)}" for k in type(a).model_fields
+                        if not math.isclose(getattr(a, k), getattr(b, k), abs_tol=0.005)]
+    totals = {a: [s.total if (s := honest.settlement.get(a)) else None,
+                  s.total if (s := flooded.settlement.get(a)) else None] for a in agents}
     return {"same": not differences, "totals honest, flooded": totals, **({"differences": differences[:20]}
                                                                            if differences else {})}
 

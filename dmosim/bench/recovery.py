@@ -64,9 +64,9 @@ def _row(name: str, run: dict) -> dict:
     the agents sent again, times they asked the DMO, copies the DMO received again. (A run the DMO's verdict does
     not trust, e.g. with an agent locked out, exits 1 and stops the bench in ``run_and_read``.)"""
     result, messages = run["result"], run["messages"].values()
-    dmo_drops = result["transport"].get("faults_injected", {}).get("drop", 0)
+    dmo_drops = result.transport.get("faults_injected", {}).get("drop", 0)
     return {"run": name, "wall_s": round(run["process_s"], 1),
             "dropped_by_dmo": dmo_drops,
             "dropped_by_agents": sum(m["faults_injected"].get("drop", 0) for m in messages),
             "sent_again": sum(m["sent_again"] for m in messages), "asked": sum(m["asked"] for m in messages),
-            "received_again": result["received_again"], "rejected": result["rejected_messages"]}
+            "received_again": result.received_again, "rejected": result.rejected_messages}

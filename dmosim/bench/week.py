@@ -14,6 +14,7 @@ import argparse
 import os
 
 from ..arguments import nonneg_float
+from ..results.report import RunReport
 from .day import add_run_flags, run_and_read, run_flags, split_day
 
 
@@ -37,21 +38,21 @@ def run(args) -> dict:
     return {"setup": report.pop("setup"), **report}
 
 
-def summarise(result: dict, compute: dict[str, list[dict]], cores: int) -> dict:
+def summarise(result: RunReport, compute: dict[str, list[dict]], cores: int) -> dict:
     """Per day the split of ``split_day``; per role its memory on the first and the last day; the ratios."""
     days = []
-    for day in result["days"]:
-        own = {agent: [e for e in entries if e.get("day", 1) == day["day"]] for agent, entries in compute.items()}
-        totals = split_day(day["phase_s"], own, cores)["totals"]
-        days.append({"day": day["day"], "market_day": day["market_day"], "day_s": round(totals["day_s"], 2),
+    for day in result.days:
+        own = {agent: [e for e in entries if e.get("day", 1) == day.day] for agent, entries in compute.items()}
+        totals = split_day(day.phase_s, own, cores)["totals"]
+        days.append({"day": day.day, "market_day": day.market_day, "day_s": round(totals["day_s"], 2),
                      "compute_s": round(totals["compute_s"], 2), "overhead_pct": round(totals["overhead_pct"], 2),
-                     "per_hour_ms": round(totals["per_hour_ms"], 1), "incidents": len(day["incidents"])})
-    memory = result.get("memory_mib", {})
+                     "per_hour_ms": round(totals["per_hour_ms"], 1), "incidents": len(day.incidents)})
+    memory = {day: {role: m.model_dump() for role, m in roles.items()} for day, roles in (result.memory_mib or {}).items()}
     by_day = [memory.get(str(d["day"]), {}) for d in days]
     roles = [role_memory(name, [m.get(name, {}) for m in by_day])
              for name in sorted(set(by_day[0]) & set(by_day[-1]))]
-    recorded = result.get("recorded", {})
-    agent_days = len(result["agents"]) * len(days)
+    recorded = result.recorded
+    agent_days = len(result.agents) * len(days)
     return {
         "days": days,
         "memory": roles,
@@ -62,7 +63,8 @@ def summarise(result: dict, compute: dict[str, list[dict]], cores: int) -> dict:
             "max rss_mib last / second day (any role)": max((r["rss_ratio_from_day_2"] for r in roles
                                                               if "rss_ratio_from_day_2" in r), default=None),
             "max peak_mib last / first day (any role)": max((r["peak_ratio"] for r in roles), default=None),
-            "recording bytes per agent-day": round(recorded.get("bytes", 0) / agent_days) if agent_days else None,
+            "recording bytes per agent-day": round(((recorded and recorded.bytes) or 0) / agent_days) if agent_days
+            else None,
         },
     }
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import logging
 import threading
 from pathlib import Path
@@ -17,6 +16,7 @@ from ..arguments import budget, wait
 from ..console import UsageError
 from ..experiment.spec import Experiment
 from ..launch.roles import day_config, fleet_of
+from ..results.report import result_text
 from .flags import (add_bus_flags, add_fault_flags, announce_run_id, bus_config, check_bus_flags, check_fault_flags,
                     credentials_for, message_faults, run_id_of, setup_logging)
 from .settings import DMO_SETTINGS, add_experiment_flag, role_experiment
@@ -70,7 +70,7 @@ def run(args) -> int:
 
         result = MarketDay(bus, config, progress).run(before_start)
         transport = bus.stats() | ({"faults_injected": bus.faults_injected()} if bus.faults else {})
-    text = json.dumps(result.report(run_id, transport), indent=2)
+    text = result_text(result.report(run_id, transport))
     if args.result:
         Path(args.result).write_text(text + "\n")
     else:

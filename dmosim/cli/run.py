@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from dmo.market.choice import Trust, UntrustedRule, choose
+from dmo.operator.report import StoppedShort
 from messages.keys import new_run_id
 from microgrid_agent.agent.strategies import strategy_name
 from scenarios.case import load_case, parse_toml
@@ -35,6 +36,7 @@ from ..launch.mesh import router_names
 from ..launch.roles import fleet_written, resolved, strategy_of
 from ..launch.viewing import Viewing
 from ..results.order import natural
+from ..results.report import RunReport
 from ..results.verdict import one_line
 from .checks import Checked, agent_list, check_inputs, strategy_source
 from .flags import add_trust_flag, check_out, load_recording, recording_file, recording_path, untrusted
@@ -244,12 +246,12 @@ def _launch(args, experiment: Experiment, record_to: Path | None, cluster: Clust
             if bar:
                 bar.close()
         if args.json:
-            print_json(result)
+            print_json(result.model_dump(mode="json"))
         else:
             print(summary_table(result))
-        ok = result["verdict"]["ok"]
+        ok = result.verdict.ok
         if not ok:  # the run is over and its files are written, but its results are not to be trusted
-            print(f"failed: {one_line(result['verdict']['problems'])}", file=sys.stderr)
+            print(f"failed: {one_line(result.verdict.problems)}", file=sys.stderr)
         if view is not None:
             sys.stdout.flush()
             view.linger()
@@ -330,49 +332,49 @@ def _tail(path: Path, lines: int = 15) -> None:
             print(f"    {line}", file=sys.stderr)
 
 
-def _stopped(schedule: dict) -> str:
+def _stopped(schedule: StoppedShort) -> str:
     """One schedule stopped short, as the summary names it: agent, market day (of a run of several), status and
     certified gap."""
-    day = f" {schedule['market_day']}" if "market_day" in schedule else ""
-    gap = "" if schedule["mip_gap"] is None else f" at gap {100 * schedule['mip_gap']:.2f}%"
-    return f"{schedule['agent']}{day} {schedule['status']}{gap}"
+    day = f" {schedule.market_day}" if schedule.market_day is not None else ""
+    gap = "" if schedule.mip_gap is None else f" at gap {100 * schedule.mip_gap:.2f}%"
+    return f"{schedule.agent}{day} {schedule.status}{gap}"
 
 
-def summary_table(result: dict) -> str:
+def summary_table(result: RunReport) -> str:
     """Per agent: award energy, realised import, deviation energy, energy charge, penalty and total."""
     head = f"{'agent':<8}{'award MWh':>11}{'import MWh':>12}{'dev. MWh':>10}{'energy $':>12}{'penalty $':>11}{'total $':>12}"
-    days = result["days"]
-    when = (f"market day {days[0]['market_day']}" if len(days) == 1 else
-            f"{len(days)} market days, {days[0]['market_day']} to {days[-1]['market_day']} (totals)")
-    rows = [f"{when}, run {result['run_id']}", head, "-" * len(head)]
-    for agent, s in sorted(result["settlement"].items(), key=lambda item: natural(item[0])):
-        rows.append(f"{agent:<8}{s['award_mwh']:>11.2f}{s['import_mwh']:>12.2f}{s['deviation_mwh']:>10.3f}"
-                    f"{s['energy_charge']:>12,.2f}{s['deviation_penalty']:>11,.2f}{s['total']:>12,.2f}")
-    islanded = "; ".join(f"{d['market_day']}: {', '.join(map(str, d['islanded_hours'])) or 'none'}" for d in days)
-    rows.append(f"settled by: {result['settlement_rule']}")
-    rows.append(f"rejected messages: {result['rejected_messages']}; islanded hours: {islanded}")
-    short = result.get("schedules_stopped_short", [])
+    days = result.days
+    when = (f"market day {days[0].market_day}" if len(days) == 1 else
+            f"{len(days)} market days, {days[0].market_day} to {days[-1].market_day} (totals)")
+    rows = [f"{when}, run {result.run_id}", head, "-" * len(head)]
+    for agent, s in sorted(result.settlement.items(), key=lambda item: natural(item[0])):
+        rows.append(f"{agent:<8}{s.award_mwh:>11.2f}{s.import_mwh:>12.2f}{s.deviation_mwh:>10.3f}"
+                    f"{s.energy_charge:>12,.2f}{s.deviation_penalty:>11,.2f}{s.total:>12,.2f}")
+    islanded = "; ".join(f"{d.market_day}: {', '.join(map(str, d.islanded_hours)) or 'none'}" for d in days)
+    rows.append(f"settled by: {result.settlement_rule}")
+    rows.append(f"rejected messages: {result.rejected_messages}; islanded hours: {islanded}")
+    short = result.schedules_stopped_short
     if short:
         rows.append(f"schedules stopped short of their gap: {len(short)} ({', '.join(map(_stopped, short))})")
-    recorded = result.get("recorded") or {}
-    if result.get("recording"):
-        rows.append(f"recording: {result['recording']}" + (
-            f" ({recorded['messages']} messages on {recorded['channels']} channels, {recorded['bytes']:,} bytes"
-            f"{'' if recorded['complete'] else ', INCOMPLETE'})" if "messages" in recorded else
-            f" ({recorded.get('error', 'unreadable')})"))
-        if recorded.get("recorder"):
-            rows.append(f"recorder: {recorded['recorder']}")
-        if recorded.get("tables_from") == "journal":
+    recorded = result.recorded
+    if result.recording:
+        rows.append(f"recording: {result.recording}" + (
+            f" ({recorded.messages} messages on {recorded.channels} channels, {recorded.bytes:,} bytes"
+            f"{'' if recorded.complete else ', INCOMPLETE'})" if recorded and recorded.messages is not None else
+            f" ({(recorded and recorded.error) or 'unreadable'})"))
+        if recorded and recorded.recorder:
+            rows.append(f"recorder: {recorded.recorder}")
+        if recorded and recorded.tables_from == "journal":
             rows.append("tables and figure: from the DMO's journal, which holds every message it sent or received")
     else:
         rows.append("recording: none (--no-record)")
-    rows.append(f"run directory: {result['run_dir']}" + (" (experiment.toml, result.json, tables/, run.png, logs/)"
-                                                         if result.get("figure") else ""))
-    for incident in result["incidents"]:
-        where = incident["phase"] + (f" hour {incident['hour']}" if incident["hour"] else "")
-        where = f"{incident['market_day']} {where}" if "market_day" in incident else where
-        rows.append(f"incident [{where}] {incident['agent'] or '-'}: {incident['reason']}")
-    problems = result["verdict"]["problems"]
+    rows.append(f"run directory: {result.run_dir}" + (" (experiment.toml, result.json, tables/, run.png, logs/)"
+                                                      if result.figure else ""))
+    for incident in result.incidents:
+        where = incident.phase + (f" hour {incident.hour}" if incident.hour else "")
+        where = f"{incident.market_day} {where}" if incident.market_day is not None else where
+        rows.append(f"incident [{where}] {incident.agent or '-'}: {incident.reason}")
+    problems = result.verdict.problems
     rows.append("verdict: ok" if not problems else f"verdict: NOT OK, {len(problems)} problem(s):")
     rows += [f"  {line}" for line in problems]
     return "\n".join(rows)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import sys
 import time
@@ -29,6 +28,7 @@ from ..experiment.sweep import MAX_VARIANTS, Variant, parse_setting, variants
 from ..launch.cluster import Commands
 from ..launch.processes import COMMAND_STOP_S, Command, dmosim_command, interrupts_held, stop_processes
 from ..launch.roles import resolved, strategy_of
+from ..results.report import RunReport, parse_result
 from .checks import Checked, check_inputs, strategy_source
 from .flags import check_out
 from .placement import add_cluster_flag, check_cluster, check_shared, connected
@@ -200,7 +200,7 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, commands: LocalComm
                 done += 1
                 seconds = time.monotonic() - started
                 result = _result(out)
-                if code and (result or {}).get("verdict", {}).get("ok", True):
+                if code and (result is None or result.verdict.ok):
                     result = None  # it went wrong otherwise than by its verdict: nothing of it to table
                 rows[label] = sweep_rows(v.settings, label, str((root / label).resolve()), seconds, result,
                                          (err.strip().splitlines() or [f"exit {code}"])[-1])
@@ -218,14 +218,13 @@ def _run_all(runs: list[Variant], root: Path, parallel: int, commands: LocalComm
     return [row for v in runs for row in rows[v.label]], failed
 
 
-def _result(out: str) -> dict | None:
+def _result(out: str) -> RunReport | None:
     """The result a run printed (``dmosim run --json``), also when its verdict made it exit 1; None if it printed
     none (it failed before its result was written)."""
     try:
-        result = json.loads(out)
-    except ValueError:
+        return parse_result(out, "the run's output")
+    except UsageError:
         return None
-    return result if isinstance(result, dict) and "settlement" in result else None
 
 
 def _render(table, keys: list[str]) -> str:

@@ -31,6 +31,7 @@ from dmo.operator.config import DayConfig
 from dmo.operator.events import Dropped, Left, Present, Received, TimedOut
 from dmo.operator.finished import FinishedDays
 from dmo.operator.machine import DmoMachine
+from dmo.operator.report import DmoReport
 from dmo.operator.results import RunResult
 from messages import DMO, Clock, Keys, decode, sha256
 from messages.recording import RecordingWriter, read_attachments
@@ -267,10 +268,9 @@ class InProcessMarket:
 
 
 def run_in_process(e: Experiment, fleet: list[FleetMember], run_id: str, record: Path | None,
-                   recording: tuple[dict, list[str]], log_file: Path, on_clock: Callable[[Clock], None]) -> dict:
+                   recording: tuple[dict, list[str]], log_file: Path, on_clock: Callable[[Clock], None]) -> DmoReport:
     """The (resolved) experiment, whose agents are ``fleet``, run in this process (``agents.hosting =
-    "in-process"``): the DMO's result as its process writes it (``RunResult.report``), with what the launcher adds of
-    a run; ``record`` is where the recording goes (None: none), ``recording`` its metadata and the files it attaches,
+    "in-process"``): the DMO's result as its process writes it (``RunResult.report``); ``record`` is where the recording goes (None: none), ``recording`` its metadata and the files it attaches,
     ``log_file`` where the roles' logs go."""
     from microgrid_agent.agent.strategies import choose_strategy  # noqa: PLC0415  (the solver stack)
 
@@ -292,7 +292,7 @@ def run_in_process(e: Experiment, fleet: list[FleetMember], run_id: str, record:
     finally:
         if writer is not None:
             writer.close()
-    return {**result, "experiment": e.name, "faults": [], "restarts": {}}
+    return result
 
 
 @contextlib.contextmanager

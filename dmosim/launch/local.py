@@ -26,6 +26,7 @@ from typing import Callable, Iterable
 
 from dmo.market.choice import Trust, UntrustedRule
 from dmo.operator.config import LOGICAL, WALL
+from dmo.operator.report import DmoReport
 from dmo.replay.resettle import resettled_differences
 from dmo.replay.reproduce import differences, statements_of
 from messages import HOURS, Clock, Schedule
@@ -40,6 +41,8 @@ from scenarios.fleet import FleetMember
 from ..experiment.rundir import RunDir
 from ..experiment.spec import IN_PROCESS, MAX_SECONDS, Experiment, load_experiment, to_toml
 from ..results.journaled import journal_recording
+from ..results.report import (Placement, Recorded, Reproduced, Resettled, Routers, RunReport, read_result,
+                              result_text)
 from ..results.verdict import problems, verdict
 from .cluster import Cluster, RemoteAgents, endpoint
 from .faults import Fault, parse_fault
@@ -106,7 +109,7 @@ class RoleFailed(RuntimeError):
 
 
 def run_experiment(experiment: Experiment | str | Path, out: str | Path | None = None, *, overwrite: bool = False,
-                   record: bool = True, say: Callable[[str], None] = lambda text: None) -> dict:
+                   record: bool = True, say: Callable[[str], None] = lambda text: None) -> RunReport:
     """A whole experiment (an ``Experiment`` or its file) run on this machine, as ``dmosim run EXPERIMENT`` runs it,
     into the run directory ``out`` (default ``runs/<run_id>``); its result (docs/experiments.md, "The result").
     Bad input raises ``ExperimentError`` or ``RunDirError``; a role that fails, ``RoleFailed``."""
@@ -120,7 +123,7 @@ def run_experiment(experiment: Experiment | str | Path, out: str | Path | None =
 def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: Path | None, tls: bool = False,
                 repeat_of: str | Path | None = None, say: Callable[[str], None] = lambda text: None,
                 tick: Callable[[int, int, str], None] | None = None, cluster: Cluster | None = None,
-                view: Viewing | None = None) -> dict:
+                view: Viewing | None = None) -> RunReport:
     """Run ``experiment`` (resolved) as processes; ``record`` is where the recording goes (None: no recorder);
     ``view``, the run's page (viewing.py), started before the DMO's first message (not with hosting in-process);
     with ``cluster``, the agents run on its workers (no process fault may name one: they are not signalled from
@@ -143,16 +146,17 @@ def run_locally(experiment: Experiment, run_id: str, rundir: RunDir, *, record: 
         tick = tick or (lambda done, total, text, mark=None: say(text))
         result = run_in_process(e, fleet, run_id, record, recording_inputs(e, fleet, rundir),
                                 rundir.logs / IN_PROCESS_LOG, lambda clock: tick(*progress_of(clock)))
-        result.update(wall_s=round(time.monotonic() - began, 3), run_dir=str(rundir.root.resolve()),
-                      logs=str(rundir.logs.resolve()), recording=str(record.resolve()) if record else None)
-        return concluded(result, e, fleet, run_id, rundir, record, repeat_of=repeat_of, say=say)
+        launched = {"experiment": e.name, "faults": [], "restarts": {}, "wall_s": round(time.monotonic() - began, 3),
+                    "run_dir": str(rundir.root.resolve()), "logs": str(rundir.logs.resolve()),
+                    "recording": str(record.resolve()) if record else None}
+        return concluded(result, launched, e, fleet, run_id, rundir, record, repeat_of=repeat_of, say=say)
     return _as_processes(e, fleet, run_id, rundir, record, tls, repeat_of, say, tick, cluster, began, view)
 
 
 def _as_processes(e: Experiment, fleet: list[FleetMember], run_id: str, rundir: RunDir, record: Path | None,
                   tls: bool, repeat_of: str | Path | None, say: Callable[[str], None],
                   tick: Callable[[int, int, str], None] | None, cluster: Cluster | None, began: float,
-                  view: Viewing | None = None) -> dict:
+                  view: Viewing | None = None) -> RunReport:
     """The run as processes over Zenoh (``run_locally``)."""
     parsed = [parse_fault(f) for f in e.faults]
     faults = [f for f in parsed if isinstance(f, Fault)]  # the roles read the message faults from the experiment
@@ -234,48 +238,49 @@ def _as_processes(e: Experiment, fleet: list[FleetMember], run_id: str, rundir: 
             raise RoleFailed(failed, roles, logs)
         recorder = _stop_recorder(roles, watch, faults, record) if record else None
         restarts = {name: r.restarts for name, r in roles.roles.items() if r.restarts}
-    result = json.loads(rundir.result.read_text())
-    result.update(wall_s=round(time.monotonic() - began, 3),
-                  memory_mib={str(day): roles_memory for day, roles_memory in sorted(watch.memory.items())})
-    result.update(experiment=e.name, run_dir=str(rundir.root.resolve()), logs=str(logs.resolve()),
-                  recording=str(record.resolve()) if record else None, faults=[str(f) for f in parsed],
-                  restarts=restarts)
+    result = read_result(rundir.result, DmoReport)  # the DMO's, as its process wrote it
+    launched = {"wall_s": round(time.monotonic() - began, 3),
+                "memory_mib": {str(day): roles_memory for day, roles_memory in sorted(watch.memory.items())},
+                "experiment": e.name, "run_dir": str(rundir.root.resolve()), "logs": str(logs.resolve()),
+                "recording": str(record.resolve()) if record else None, "faults": [str(f) for f in parsed],
+                "restarts": restarts}
     if routers:  # which router each role was told to connect to
-        result["routers"] = {"endpoints": dict(zip(names, routers)), "roles": {
+        launched["routers"] = Routers(endpoints=dict(zip(names, routers)), roles={
             "dmo": names[0], **({"recorder": names[0]} if record else {}),
-            **{m.id: names[router_of[m.id]] for m in fleet}}}
+            **{m.id: names[router_of[m.id]] for m in fleet}})
     if remote is not None:
-        result["cluster"] = {"scheduler": cluster.address, "dmo": reach, "agents": remote.placed}
-    return concluded(result, e, fleet, run_id, rundir, record, recorder, repeat_of, say)
+        launched["cluster"] = Placement(scheduler=cluster.address, dmo=reach, agents=remote.placed)
+    return concluded(result, launched, e, fleet, run_id, rundir, record, recorder, repeat_of, say)
 
 
-def concluded(result: dict, e: Experiment, fleet: list[FleetMember], run_id: str, rundir: RunDir,
-              record: Path | None, recorder: str | None = None, repeat_of: str | Path | None = None,
-              say: Callable[[str], None] = lambda text: None) -> dict:
-    """The run's ``result`` (the DMO's, with what the launcher adds) concluded: what the recording holds, its
-    tables and figure, its re-settlement, the comparison with the run it repeats, and the verdict, written to the
-    run directory. ``recorder``: how the recorder failed (None: it did not)."""
+def concluded(result: DmoReport, launched: dict, e: Experiment, fleet: list[FleetMember], run_id: str,
+              rundir: RunDir, record: Path | None, recorder: str | None = None, repeat_of: str | Path | None = None,
+              say: Callable[[str], None] = lambda text: None) -> RunReport:
+    """The DMO's ``result`` with what the launcher adds (``launched``: the fields of ``RunReport`` it knows), concluded:
+    what the recording holds, its tables and figure, its re-settlement, the comparison with the run it repeats, and
+    the verdict, written to the run directory. ``recorder``: how the recorder failed (None: it did not)."""
     # What the run said, as a recording: the recording itself when it is complete, else the DMO's journal.
-    rec, complete = None, False
+    rec, complete, recorded, reproduced, written = None, False, None, None, {}
     if record:
-        rec, result["recorded"] = _recorded(record, recorder)
-        complete = result["recorded"]["complete"]
+        rec, recorded = _recorded(record, recorder)
+        complete = recorded.complete
     if record or repeat_of is not None:
         said = rec if complete else journal_recording(rundir.logs / "dmo.journal", run_id, _run_metadata(e, fleet))
         if repeat_of is not None:
-            result["reproduced"] = reproduction(repeat_of, said, say)
+            reproduced = reproduction(repeat_of, said, say)
         if record and said.messages:
-            result["recorded"]["tables_from"] = "recording" if complete else "journal"
+            recorded = recorded.model_copy(update={"tables_from": "recording" if complete else "journal"})
             say("writing the run's tables and figure" + ("" if complete else " from the DMO's journal (the "
                                                                                "recording is incomplete)"))
-            result.update(_write_results(said, rundir, run_id))
+            written = _write_results(said, rundir, run_id)
     if complete:
-        result["recorded"]["resettled"] = resettled(rec, [d["market_day"] for d in result.get("days", [])], e)
+        recorded = recorded.model_copy(update={"resettled": resettled(rec, [d.market_day for d in result.days], e)})
     found = problems(result, agents=[m.id for m in fleet], days=e.days,
-                     recorded=set(statements_of(rec)) if complete else None)
-    result["verdict"] = verdict(found)
-    rundir.result.write_text(json.dumps(result, indent=2) + "\n")
-    return result
+                     recorded=set(statements_of(rec)) if complete else None, recording=recorded, reproduced=reproduced)
+    report = RunReport.model_validate({**dict(result), **launched, "recorded": recorded, "reproduced": reproduced,
+                                       **written, "verdict": verdict(found)})
+    rundir.result.write_text(result_text(report) + "\n")
+    return report
 
 
 def _remote(cluster: Cluster | None, run_id: str, roles: Roles) -> RemoteAgents | contextlib.nullcontext:
@@ -283,14 +288,14 @@ def _remote(cluster: Cluster | None, run_id: str, roles: Roles) -> RemoteAgents 
     return RemoteAgents(cluster, run_id, roles.exits) if cluster else contextlib.nullcontext()
 
 
-def reproduction(source: str | Path, again: Recording, say: Callable[[str], None] = lambda text: None) -> dict:
+def reproduction(source: str | Path, again: Recording, say: Callable[[str], None] = lambda text: None) -> Reproduced:
     """Whether the run (``again``: what it said) settled every agent as the recording ``source`` it was repeated
     from; where not, which agent, day and hour differ (a fault, a missed deadline or a solve cut by its time limit
     can make a run differ)."""
     try:
         before = read_recording(source)
     except RecordingError as exc:
-        return {"source": str(source), "identical": False, "differences": [], "error": str(exc)}
+        return Reproduced(source=str(source), identical=False, differences=[], error=str(exc))
     diffs = differences(before, again)
     if diffs:
         say(f"{len(diffs)} statement line(s) differ from {source}:")
@@ -298,7 +303,7 @@ def reproduction(source: str | Path, again: Recording, say: Callable[[str], None
             say(f"  {line}")
     else:
         say(f"every statement is the same as in {source}, to the cent")
-    return {"source": str(source), "identical": not diffs, "differences": diffs}
+    return Reproduced(source=str(source), identical=not diffs, differences=diffs)
 
 
 def _run_metadata(experiment: Experiment, fleet: list[FleetMember]) -> dict[str, str]:
@@ -407,18 +412,18 @@ def _exit_status(code: int, log: Path | None = None) -> str:
     return f"exit {code}" + (f": {last[:300]}" if last else "")
 
 
-def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, dict]:
+def _recorded(path: Path, recorder: str | None) -> tuple[Recording | None, Recorded]:
     """The recording read back, and what the result says of it: its counts, whether it is ``complete`` (the file
     whole and the recorder never failed) and the ``recorder``'s failure (None if none)."""
     try:
         rec = read_recording(path)
     except RecordingError as exc:
-        return None, {"error": str(exc), "complete": False, "recorder": recorder}
-    return rec, {"messages": len(rec.messages), "channels": len(rec.channels), "bytes": rec.size,
-                 "complete": rec.complete and recorder is None, "recorder": recorder}
+        return None, Recorded(error=str(exc), complete=False, recorder=recorder)
+    return rec, Recorded(messages=len(rec.messages), channels=len(rec.channels), bytes=rec.size,
+                         complete=rec.complete and recorder is None, recorder=recorder)
 
 
-def resettled(rec: Recording, days: list[str], e: Experiment) -> dict:
+def resettled(rec: Recording, days: list[str], e: Experiment) -> Resettled:
     """The settled ``days`` re-settled from the recording alone, as ``dmosim settle`` would, and compared with the
     statements the DMO published: ``identical`` and the ``differences`` (one line each, after the market day), or
     the ``error`` that kept a day from being re-settled. The rule the experiment named is trusted; no other is."""
@@ -426,10 +431,10 @@ def resettled(rec: Recording, days: list[str], e: Experiment) -> dict:
     try:
         found = resettled_differences(rec, days, trust)
     except UntrustedRule as exc:
-        return {"identical": False, "error": f"the recording names the rule {exc.spec}, not the experiment's"}
+        return Resettled(identical=False, error=f"the recording names the rule {exc.spec}, not the experiment's")
     except ValueError as exc:
-        return {"identical": False, "error": str(exc)}
-    return {"identical": not found, "differences": found}
+        return Resettled(identical=False, error=str(exc))
+    return Resettled(identical=not found, differences=found)
 
 
 def wait_for_run(roles: Roles, watch: _Watch, leave_s: float = 60.0, remote: Iterable[str] = (),

@@ -15,7 +15,10 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from dmo.operator.report import ReportedDay
+
 from .order import natural
+from .report import RunReport
 from .style import figure
 
 SEED = "seed"  # the swept key whose runs are replications of one setting
@@ -25,22 +28,21 @@ SETTLED = ("energy_charge", "deviation_penalty", "credit", "total", "award_mwh",
 REALISED = {"operating_cost": "total", "curtailment_mwh": "curtailment_mwh"}  # column -> field of a realised day
 
 
-def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: float, result: dict | None,
+def sweep_rows(settings: dict[str, object], label: str, run_dir: str, wall_s: float, result: RunReport | None,
                error: str | None = None) -> list[dict]:
     """The rows of one run: one per agent of its result (``dmosim run --json``), or one saying why it failed
     (``error``, used only when there is no result). A result whose verdict is not ok is ``untrusted``, its problems
     the error of each of its rows."""
-    found = (result or {}).get("verdict", {}).get("problems", [])
+    found = result.verdict.problems if result is not None else []
     status = "failed" if result is None else "untrusted" if found else "ok"
     head = {**{key: _cell(value) for key, value in settings.items()}, "label": label, "status": status,
             "run_dir": run_dir, "wall_s": round(wall_s, 1)}
     if result is None:
         return [{**head, "agent": None, **dict.fromkeys([*SETTLED, *REALISED]), "error": error}]
-    realised = result.get("realised", {})
-    return [{**head, "agent": agent, **{k: s.get(k) for k in SETTLED},
-             **{column: _realised_sum(realised.get(agent), field) for column, field in REALISED.items()},
+    return [{**head, "agent": agent, **{k: getattr(s, k) for k in SETTLED},
+             **{column: _realised_sum(result.realised.get(agent), field) for column, field in REALISED.items()},
              "error": "; ".join(found) or None}
-            for agent, s in sorted(result["settlement"].items(), key=lambda item: natural(item[0]))]
+            for agent, s in sorted(result.settlement.items(), key=lambda item: natural(item[0]))]
 
 
 def seed_summary(table: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
@@ -66,9 +68,9 @@ def seed_summary(table: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _realised_sum(days: list[dict] | None, field: str) -> float | None:
+def _realised_sum(days: list[ReportedDay] | None, field: str) -> float | None:
     """A realised quantity summed over the agent's days; None if it logged none (it did not finish a day)."""
-    return round(sum(d[field] for d in days), 6) if days else None
+    return round(sum(getattr(d, field) for d in days), 6) if days else None
 
 
 def _cell(value):

@@ -16,6 +16,7 @@ from dmo.operator.state import DayState
 from messages import Bid, GridState, MeterReport, Registration, decode, encode, sha256
 from messages.schemas import AgentDay, MessageCounts
 from scenarios.horizon import HOURS
+from tests.dmosim.synthetic import typed
 
 DAY = "2026-07-01"
 CAP = 10.0
@@ -147,16 +148,16 @@ def test_a_realised_day_is_taken_once_its_day_is_operated_whatever_the_phase_and
 
 def test_the_dmos_result_gives_each_agents_realised_days_in_order_and_none_for_an_agent_that_sent_none():
     finished = FinishedDays()  # where the DMO keeps them as the run goes
-    for day in ({"day": 1, "market_day": "2026-06-30"}, {"day": 2, "market_day": DAY}):
+    for day in typed({"days": [{"day": 1, "market_day": "2026-06-30"}, {"day": 2, "market_day": DAY}]}).days:
         finished.day(day)
     finished.realised(agent_day(DAY, 215.0))  # in the order they came, not of their days
     finished.realised(agent_day("2026-06-30"))
     days, taken = finished.read()
     result = RunResult(days, "paper", ["mg1", "mg2"], taken)
     realised = result.realised_days(["mg1", "mg2"])
-    assert [(d["day"], d["market_day"], d["total"]) for d in realised["mg1"]] == [(1, "2026-06-30", 115.0),
-                                                                                 (2, DAY, 215.0)]
-    assert realised["mg2"] == [] and "sender" not in realised["mg1"][0] and realised["mg1"][0]["messages"]["asked"] == 0
+    assert [(d.day, d.market_day, d.total) for d in realised["mg1"]] == [(1, "2026-06-30", 115.0), (2, DAY, 215.0)]
+    assert realised["mg2"] == [] and "sender" not in realised["mg1"][0].model_dump()
+    assert realised["mg1"][0].messages.asked == 0
 
 
 FEEDER_BUSES = ("0", "1", "2", "3", "4")  # feeder5: substation 0

@@ -113,9 +113,9 @@ def test_the_dmo_holds_no_more_messages_on_its_last_day_than_on_its_first_and_st
     # what the days before would keep: 8 more a day (2 bids, schedules, statements and realised days)
     assert counted[DAYS] == counted[1], counted
     report = result.report("flat1", {})
-    assert [d["day"] for d in report["days"]] == list(range(1, DAYS + 1)) and report["incidents"] == []
-    assert report["accepted_messages"]["meter_report"] == DAYS * HOURS * len(AGENTS)
-    assert {a: [(d["day"], d["total"]) for d in days] for a, days in report["realised"].items()} == {
+    assert [d.day for d in report.days] == list(range(1, DAYS + 1)) and report.incidents == []
+    assert report.accepted_messages["meter_report"] == DAYS * HOURS * len(AGENTS)
+    assert {a: [(d.day, d.total) for d in days] for a, days in report.realised.items()} == {
         a: [(d, 115.0) for d in range(1, DAYS + 1)] for a in AGENTS}
     assert result.last.state.day == DAYS and set(result.last.statements) == set(AGENTS)
 
@@ -150,7 +150,7 @@ def test_realised_days_reported_while_the_dmo_lingers_are_counted_in_the_last_da
     market = MarketDay(bus, config, lambda phase, hour: None)
     bus.events = market.events
     report = market.run().report("late1", {})
-    assert report["market_days"] == ["2026-07-01", LAST_DAY]
-    assert [d["accepted_messages"].get("agent_day", 0) for d in report["days"]] == [0, 2 * len(AGENTS)]
-    assert {a: [d["market_day"] for d in days] for a, days in report["realised"].items()} == {
+    assert report.market_days == ["2026-07-01", LAST_DAY]
+    assert [d.accepted_messages.get("agent_day", 0) for d in report.days] == [0, 2 * len(AGENTS)]
+    assert {a: [d.market_day for d in days] for a, days in report.realised.items()} == {
         a: ["2026-07-01", LAST_DAY] for a in AGENTS}

@@ -351,8 +351,10 @@ def test_the_days_islanding_is_one_seeded_event_of_whole_hours():
 def test_schedules_stopped_short_are_listed_per_agent_and_day_with_their_gap_and_said_in_the_summary():
     """A schedule whose solve stopped short of its gap (a time limit) is never silent: each day lists it with its
     certified gap, a run of several days lists each with its market day, and the summary names them."""
+    from dmo.operator.report import DayReport  # noqa: PLC0415
     from dmo.operator.results import RunResult, stopped_short  # noqa: PLC0415
     from dmosim.cli.run import summary_table  # noqa: PLC0415
+    from dmosim.results.report import RunReport  # noqa: PLC0415
     from messages import Schedule  # noqa: PLC0415
 
     def schedule(agent: str, status: str, gap: float | None) -> Schedule:
@@ -361,20 +363,27 @@ def test_schedules_stopped_short_are_listed_per_agent_and_day_with_their_gap_and
 
     day = stopped_short({"mg2": schedule("mg2", "time_limit", 0.0113), "mg1": schedule("mg1", "optimal", 0.004),
                          "mg3": schedule("mg3", "interrupted", None)})
-    assert day == [{"agent": "mg2", "status": "time_limit", "mip_gap": 0.0113},
-                   {"agent": "mg3", "status": "interrupted", "mip_gap": None}]
+    assert [s.model_dump() for s in day] == [{"agent": "mg2", "status": "time_limit", "mip_gap": 0.0113},
+                                             {"agent": "mg3", "status": "interrupted", "mip_gap": None}]
     settlement = {"mg1": {"energy_charge": 1.0, "deviation_penalty": 0.0, "credit": 0.0, "total": 1.0,
                           "award_mwh": 1.0, "import_mwh": 1.0, "deviation_mwh": 0.0, "missing_subperiods": 0}}
-    days = [{"day": d, "market_day": f"2026-07-0{d}", "islanded_hours": [], "clearing_prices": [40.0] * HOURS,
-             "congestion": ["none"] * HOURS, "awards": {"mg1": [0.0] * HOURS}, "settlement": settlement,
-             "rejected_messages": 0, "rejected_by_code": {}, "accepted_messages": {}, "received_again": 0,
-             "dropped_messages": {}, "locked_out": [], "incidents": [], "schedules_stopped_short": short}
-            for d, short in ((1, day), (2, []))]
+    totals = {"agents": ["mg1"], "energy_charge": 1.0, "deviation_penalty": 0.0, "credit": 0.0, "total": 1.0,
+              "deviation_mwh": 0.0, "missing_subperiods": 0, "agents_without_meter": []}
+    days = [DayReport.model_validate({
+        "day": d, "market_day": f"2026-07-0{d}", "islanded_hours": [], "clearing_prices": [40.0] * HOURS,
+        "congestion": ["none"] * HOURS, "awards": {"mg1": [0.0] * HOURS}, "settlement": settlement,
+        "day_summary": totals, "expected_cost": {"mg1": 100.0}, "phase_s": {},
+        "rejected_messages": 0, "rejected_by_code": {}, "accepted_messages": {}, "received_again": 0,
+        "dropped_messages": {}, "locked_out": [], "incidents": [], "schedules_stopped_short": short})
+        for d, short in ((1, day), (2, []))]
     run = RunResult(days, "paper", ["mg1"]).report("run-1", {})
-    assert run["schedules_stopped_short"] == [{**s, "market_day": "2026-07-01"} for s in day]
-    assert RunResult(days[:1], "paper", ["mg1"]).report("run-1", {})["schedules_stopped_short"] == day
-    ran = {"settlement_rule": "paper", "run_dir": "run", "verdict": {"ok": True, "problems": []}}
-    text = summary_table({**run, **ran})
+    assert [s.model_dump() for s in run.schedules_stopped_short] == [
+        {**s.model_dump(), "market_day": "2026-07-01"} for s in day]
+    assert RunResult(days[:1], "paper", ["mg1"]).report("run-1", {}).schedules_stopped_short == day
+    ran = {"experiment": "run", "wall_s": 1.0, "run_dir": "run", "logs": "run/logs", "recording": None,
+           "faults": [], "restarts": {}, "verdict": {"ok": True, "problems": []}}
+    text = summary_table(RunReport.model_validate({**dict(run), **ran}))
     assert ("schedules stopped short of their gap: 2 (mg2 2026-07-01 time_limit at gap 1.13%, "
             "mg3 2026-07-01 interrupted)") in text.splitlines()
-    assert "stopped short" not in summary_table({**RunResult(days[1:], "paper", ["mg1"]).report("run-1", {}), **ran})
+    assert "stopped short" not in summary_table(
+        RunReport.model_validate({**dict(RunResult(days[1:], "paper", ["mg1"]).report("run-1", {})), **ran}))

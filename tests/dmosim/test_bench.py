@@ -21,6 +21,7 @@ from dmosim.bench import recovery
 from dmosim.bench.day import agents_reported, run_and_read, split_day
 from dmosim.bench.week import summarise
 from dmosim.cli import main
+from tests.dmosim.synthetic import realised_day, typed
 
 
 def bench_json(capsys, *argv: str) -> dict:
@@ -151,8 +152,8 @@ def test_the_week_splits_each_day_by_its_own_compute_and_compares_the_last_day_w
                     "mg1": {"rss_mib": 200.5, "peak_mib": 250.0, "pss_mib": None}},
               "3": {"dmo": {"rss_mib": 91.8, "peak_mib": 110.0, "pss_mib": 61.2},
                     "mg1": {"rss_mib": 201.0, "peak_mib": 250.0, "pss_mib": None}}}
-    result = {"agents": ["mg1"], "days": [day(1), day(2), day(3)], "memory_mib": memory,
-              "recorded": {"bytes": 30_000}}
+    result = typed({"agents": ["mg1"], "days": [day(1), day(2), day(3)], "memory_mib": memory,
+                    "recorded": {"bytes": 30_000, "complete": True, "recorder": None}})
     report = summarise(result, compute, cores=2)
     assert [d["compute_s"] for d in report["days"]] == [1.5, 1.8, 1.2]  # each day its own entries only
     assert report["days"][0]["overhead_pct"] == pytest.approx(100 * (5.4 - 1.5) / 5.4, abs=0.01)
@@ -175,8 +176,10 @@ def test_an_experiment_alone_is_split_over_all_its_days_and_run_as_processes_onl
     phase_s = {"registration": 3.0, "bidding": 1.0, "scheduling": 6.0, "realtime": 3.0}
     entry = lambda d, kind, at, wall: {"kind": kind, "hour": None, "day": d, "wall_s": wall, "cpu_s": wall,  # noqa: E731
                                        "started_at": int(at * 1e9), "turn_s": 0.0}
-    result = {"days": [{"phase_s": phase_s}, {"phase_s": {**phase_s, "registration": 0.0}}], "settlement": {},
-              "schedules_stopped_short": [{"agent": "mg1", "status": "time_limit", "mip_gap": 0.02}]}
+    days = [{"phase_s": phase_s, "market_day": "2026-07-01"},
+            {"phase_s": {**phase_s, "registration": 0.0}, "market_day": "2026-07-02"}]
+    result = typed({"days": days, "settlement": {},
+                    "schedules_stopped_short": [{"agent": "mg1", "status": "time_limit", "mip_gap": 0.02}]})
     compute = {"mg1": [entry(1, "award", 100.0, 5.0), entry(2, "award", 200.0, 4.0)]}
     calls = []
 
@@ -200,17 +203,14 @@ def test_compute_and_counts_come_from_the_agents_realised_days_in_the_result():
     """What the agents reported in their agent_day messages, as the DMO's result gives it: never a log line."""
     counts = lambda n: {"published": 9, "received": 9, "rejected": {}, "handler_errors": 0, "ignored": {},  # noqa: E731
                         "sent_again": n, "asked": 0, "faults_injected": {"drop": n}}
-    entry = {"kind": "award", "hour": None, "wall_s": 0.5, "cpu_s": 0.4}
-    result = {"agents": ["mg1", "mg2"], "realised": {
-        "mg1": [{"day": 1, "compute": [entry], "messages": counts(1)},
-                {"day": 2, "compute": [entry], "messages": counts(3)}],
-        "mg2": [{"day": 1, "compute": [], "messages": counts(0)}]}}
-    compute, messages = agents_reported(result)
+    entry = {"kind": "award", "hour": None, "wall_s": 0.5, "cpu_s": 0.4, "started_at": None, "turn_s": 0.0}
+    realised = {"mg1": [realised_day(1, [entry], counts(1)), realised_day(2, [entry], counts(3))],
+                "mg2": [realised_day(1, [], counts(0))]}
+    compute, messages = agents_reported(typed({"agents": ["mg1", "mg2"], "realised": realised}))
     assert compute == {"mg1": [{**entry, "day": 1}, {**entry, "day": 2}], "mg2": []}
     assert messages["mg1"]["sent_again"] == 3 and messages["mg2"]["faults_injected"] == {"drop": 0}  # the last day's
-    result["realised"]["mg2"] = []
     with pytest.raises(RuntimeError, match="no realised day from mg2"):
-        agents_reported(result)
+        agents_reported(typed({"agents": ["mg1", "mg2"], "realised": {**realised, "mg2": []}}))
 
 
 @pytest.mark.slow  # a benchmark's run: every route, SCIP's included, on two seeds

@@ -31,6 +31,7 @@ from messages import HOURS, Incident, Keys, MessageError, decode, encode, make_r
 from messages.schemas import AgentDay, HandlingTime, MessageCounts
 from messages.keys import new_run_id
 from messages.recording import RecordingWriter, read_recording, select
+from tests.dmosim.synthetic import typed
 
 ROOT = Path(__file__).resolve().parents[2]
 DAY, NEXT_DAY = "2026-07-01", "2026-07-02"
@@ -562,6 +563,6 @@ def test_tables_and_the_runs_summary_list_agents_in_natural_order(tmp_path):
                            "total"], 0.0)
     result = {"days": [{"market_day": DAY, "islanded_hours": []}], "run_id": run_id, "run_dir": str(tmp_path),
               "settlement": {name: money for name in sorted(names)}, "settlement_rule": "paper",
-              "rejected_messages": 0, "incidents": [], "verdict": {"problems": []}}
-    listed = [line.split()[0] for line in summary_table(result).splitlines() if line.startswith("mg")]
+              "rejected_messages": 0, "incidents": [], "verdict": {"ok": True, "problems": []}}
+    listed = [line.split()[0] for line in summary_table(typed(result)).splitlines() if line.startswith("mg")]
     assert listed == names

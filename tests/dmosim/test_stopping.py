@@ -24,6 +24,8 @@ import pytest
 
 from dmosim.bench.fleet import role_of
 from dmosim.launch.processes import descendants, proc_stat
+from dmosim.results.report import result_text
+from tests.dmosim.synthetic import typed
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -36,12 +38,13 @@ SLOW = ('faults = ["delay:agent/mg1/meter:5"]\n' + TINY + "[market]\nsubperiods 
         "gap = 0.05\ntime_limit = 60.0\n[deadlines]\nbid = 120.0\nschedule = 120.0\nhour = 60.0\n")
 BIG = 2 << 20  # bytes of BIG_RUN's --json: more than 1 MiB, and far more than a pipe holds (64 KiB)
 
-# A `dmosim run --json` that writes 256 KiB on stderr, then a result of BIG bytes on stdout.
+# A `dmosim run --json` that writes 256 KiB on stderr, then a result of BIG bytes on stdout (a whole result, whose
+# `logs` is BIG bytes long).
 BIG_RUN = f"""
 import json, sys
 sys.stderr.write("e" * (256 << 10) + "\\n")
-json.dump({{"settlement": {{"mg1": {{"total": 12.5}}}}, "verdict": {{"ok": True, "problems": []}},
-           "padding": "x" * {BIG}}}, sys.stdout)
+result = json.loads({result_text(typed({"settlement": {"mg1": {"total": 12.5}}}))!r})
+json.dump({{**result, "logs": "x" * {BIG}}}, sys.stdout)
 """
 
 # A `dmosim run` that ignores SIGTERM, has started a process in a group of its own (as a run's roles are) that

@@ -22,6 +22,7 @@ from dmosim.results.verdict import SHOWN_PROBLEMS, one_line, problems, verdict
 from messages import decode
 from messages.keys import new_run_id
 from messages.recording import RecordingWriter, read_recording
+from tests.dmosim.synthetic import typed
 
 ROOT = Path(__file__).resolve().parents[2]
 DAY, NEXT = "2026-07-01", "2026-07-02"
@@ -35,6 +36,12 @@ def result(*days: dict, agents=("mg1", "mg2"), **extra) -> dict:
     return {"agents": list(agents), "days": list(days), **extra}
 
 
+def judged(res: dict, **given) -> list[str]:
+    """The verdict's problems with a synthetic result, its recording and reproduction as the run's result says."""
+    report = typed(res)
+    return problems(report, recording=report.recorded, reproduced=report.reproduced, **given)
+
+
 def recorded_all(res: dict) -> set[tuple[str, str]]:
     return {(d["market_day"], a) for d in res["days"] for a in d["settlement"]}
 
@@ -44,33 +51,30 @@ def recorded_all(res: dict) -> set[tuple[str, str]]:
 def test_a_clean_run_has_no_problem_and_a_missing_locked_out_field_counts_as_empty():
     res = result(day(1, DAY), day(2, NEXT, locked_out=[]), recorded={"complete": True, "recorder": None},
                  reproduced={"source": "a.mcap", "identical": True, "differences": []})
-    assert problems(res, agents=["mg1", "mg2"], days=2, recorded=recorded_all(res)) == []
-    assert verdict([]) == {"ok": True, "problems": []}
+    assert judged(res, agents=["mg1", "mg2"], days=2, recorded=recorded_all(res)) == []
+    assert verdict([]).model_dump() == {"ok": True, "problems": []}
 
 
 def test_an_agent_locked_out_on_a_day_is_a_problem_naming_it_and_the_day():
     res = result(day(1, DAY), day(2, NEXT, locked_out=["mg2"]))
-    found = problems(res, agents=["mg1", "mg2"], days=2)
+    found = judged(res, agents=["mg1", "mg2"], days=2)
     assert found == [f"mg2 was locked out on {NEXT}: its process talked to the DMO while the DMO was not taking its "
                      "messages"]
-    assert verdict(found)["ok"] is False
-    # an entry may also be an object naming the agent
-    assert problems(result(day(1, DAY, locked_out=[{"agent": "mg1", "hour": 7}])), agents=["mg1", "mg2"],
-                    days=1)[0].startswith(f"mg1 was locked out on {DAY}")
+    assert verdict(found).ok is False
 
 
 def test_a_day_not_settled_and_agents_without_a_statement_are_problems():
     res = result(day(1, DAY, agents=("mg1",)))  # mg2 registered, but has no statement; day 2 never came
-    assert problems(res, agents=["mg1", "mg2", "mg3"], days=2) == [
+    assert judged(res, agents=["mg1", "mg2", "mg3"], days=2) == [
         "day 2 of 2 was not settled", f"mg2 has no statement for {DAY}", f"mg3 has no statement for {DAY}"]
 
 
 def test_a_complete_recording_must_hold_every_statement_the_dmo_settled():
     res = result(day(1, DAY), day(2, NEXT))
     held = recorded_all(res) - {(NEXT, "mg1")}
-    assert problems(res, agents=["mg1", "mg2"], days=2, recorded=held) == [
+    assert judged(res, agents=["mg1", "mg2"], days=2, recorded=held) == [
         f"the recording lacks mg1's statement for {NEXT}"]
-    assert problems(res, agents=["mg1", "mg2"], days=2, recorded=None) == []  # incomplete: nothing asked of it
+    assert judged(res, agents=["mg1", "mg2"], days=2, recorded=None) == []  # incomplete: nothing asked of it
 
 
 @pytest.mark.parametrize("recorded, expected", [
@@ -81,7 +85,7 @@ def test_a_complete_recording_must_hold_every_statement_the_dmo_settled():
     ({"complete": False, "recorder": None, "messages": 3}, "the recording is incomplete"),
 ])
 def test_a_failed_recorder_or_a_bad_recording_is_a_problem(recorded, expected):
-    assert problems(result(day(1, DAY), recorded=recorded), agents=["mg1", "mg2"], days=1) == [expected]
+    assert judged(result(day(1, DAY), recorded=recorded), agents=["mg1", "mg2"], days=1) == [expected]
 
 
 @pytest.mark.parametrize("resettled, expected", [
@@ -94,7 +98,7 @@ def test_a_failed_recorder_or_a_bad_recording_is_a_problem(recorded, expected):
 ])
 def test_a_complete_recording_that_does_not_resettle_to_the_published_statements_is_a_problem(resettled, expected):
     recorded = {"complete": True, "recorder": None, "resettled": resettled}
-    assert problems(result(day(1, DAY), recorded=recorded), agents=["mg1", "mg2"], days=1) == expected
+    assert judged(result(day(1, DAY), recorded=recorded), agents=["mg1", "mg2"], days=1) == expected
 
 
 def test_the_run_resettles_its_recording_and_finds_a_meter_report_the_recording_lost(tmp_path):
@@ -104,12 +108,12 @@ def test_the_run_resettles_its_recording_and_finds_a_meter_report_the_recording_
     whole = synthetic_day(run_id, 2, 2)
     experiment = Experiment()
     rec = read_recording(write(tmp_path / "whole.mcap", run_id, whole))
-    assert resettled(rec, [DAY], experiment) == {"identical": True, "differences": []}
+    assert resettled(rec, [DAY], experiment).model_dump() == {"identical": True, "differences": []}
     lost = [m for m in whole if not (m[0].endswith("agent/mg2/meter") and decode(m[1]).hour == 3)]
     again = resettled(read_recording(write(tmp_path / "lost.mcap", run_id, lost)), [DAY], experiment)
-    assert again["identical"] is False and again["differences"]
-    assert all(d.startswith(f"{DAY}: mg2 ") for d in again["differences"]), again["differences"]
-    found = problems(result(day(1, DAY), recorded={"complete": True, "recorder": None, "resettled": again}),
+    assert again.identical is False and again.differences
+    assert all(d.startswith(f"{DAY}: mg2 ") for d in again.differences), again.differences
+    found = judged(result(day(1, DAY), recorded={"complete": True, "recorder": None, "resettled": again}),
                      agents=["mg1", "mg2"], days=1)
     assert len(found) == 1 and found[0].startswith("the recording does not re-settle as the DMO settled")
 
@@ -117,11 +121,11 @@ def test_the_run_resettles_its_recording_and_finds_a_meter_report_the_recording_
 def test_a_from_run_that_did_not_reproduce_is_a_problem_with_its_first_difference():
     diffs = [f"mg1 {DAY} hour 5: total 1385.1 then, 185.1 now", f"mg1 {DAY} hour 6: total 1418.0 then, 218.0 now"]
     res = result(day(1, DAY), reproduced={"source": "a.mcap", "identical": False, "differences": diffs})
-    assert problems(res, agents=["mg1", "mg2"], days=1) == [
+    assert judged(res, agents=["mg1", "mg2"], days=1) == [
         f"--from a.mcap: 2 statement line(s) differ from the recording, first {diffs[0]}"]
     unreadable = result(day(1, DAY), reproduced={"source": "a.mcap", "identical": False, "differences": [],
                                                  "error": "a.mcap: no such file"})
-    assert problems(unreadable, agents=["mg1", "mg2"], days=1) == ["--from a.mcap: cannot compare: a.mcap: no such file"]
+    assert judged(unreadable, agents=["mg1", "mg2"], days=1) == ["--from a.mcap: cannot compare: a.mcap: no such file"]
 
 
 def test_the_one_line_names_the_first_problems_and_counts_the_rest():
@@ -138,8 +142,8 @@ def test_the_one_line_names_the_first_problems_and_counts_the_rest():
 
 def test_a_sweep_tables_an_untrusted_run_with_its_money_and_its_problems():
     settled = {"mg1": {"total": 10.0, "energy_charge": 10.0}}
-    ok = sweep_rows({"seed": 1}, "seed=1", "r1", 3.0, {"settlement": settled, "verdict": verdict([])})
-    bad = sweep_rows({"seed": 2}, "seed=2", "r2", 3.0, {"settlement": settled, "verdict": verdict(["a", "b"])},
+    ok = sweep_rows({"seed": 1}, "seed=1", "r1", 3.0, typed({"settlement": settled, "verdict": verdict([])}))
+    bad = sweep_rows({"seed": 2}, "seed=2", "r2", 3.0, typed({"settlement": settled, "verdict": verdict(["a", "b"])}),
                      "failed: the run is not to be trusted: a; b")
     failed = sweep_rows({"seed": 3}, "seed=3", "r3", 3.0, None, "failed: mg1 failed")
     assert [(r["status"], r["total"], r["error"]) for r in ok + bad + failed] == [
@@ -157,7 +161,7 @@ def test_a_sweep_of_seeds_gives_per_setting_the_mean_and_95_percent_interval_of_
         for seed, total in ((1, 9.0), (2, 10.0), (3, 11.0)):
             settled = {"mg1": {"total": penalty + total, "deviation_mwh": 1.0}, "mg2": {"total": 5.0}}
             rows += sweep_rows({"market.penalty": penalty, "seed": seed}, f"{penalty}-{seed}", "r", 1.0,
-                               {"settlement": settled, "verdict": verdict([])})
+                               typed({"settlement": settled, "verdict": verdict([])}))
     rows += sweep_rows({"market.penalty": 100, "seed": 4}, "100-4", "r", 1.0, None, "failed: mg1 failed")
     table = pd.DataFrame(rows)
     summary = seed_summary(table, ["market.penalty", "seed"]).set_index(["market.penalty", "agent"])
@@ -263,7 +267,7 @@ def test_the_sweep_figure_plots_bills_and_penalties_against_the_setting_with_its
             settled = {agent: {"total": 1000.0 + seed, "deviation_penalty": penalty + 10.0 * seed}
                        for agent in ("mg1", "mg2", "mg3")}
             rows += sweep_rows({"market.penalty": penalty, "seed": seed}, f"{penalty}-{seed}", "r", 1.0,
-                               {"settlement": settled, "verdict": verdict([])})
+                               typed({"settlement": settled, "verdict": verdict([])}))
     figure = sweep_figure(pd.DataFrame(rows), ["market.penalty", "seed"])
     top, bottom = figure.axes[:2]
     assert bottom.get_xlabel() == "market.penalty ($/MWh)" and "$" in top.get_ylabel() and "$" in bottom.get_ylabel()
