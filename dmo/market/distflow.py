@@ -768,10 +768,8 @@ def _shared(hour: _Hour, sol: _Solution, bus_price: np.ndarray,
     while True:
         res = linprog(volume, A_ub=ub_a if len(ub_b) else None, b_ub=ub_b if len(ub_b) else None, A_eq=eq_a,
                       b_eq=eq_b, bounds=bounds, method="highs", options={"presolve": False})
-        if res.status != 0:  # only by rounding: the LP's own solution, its steps at their prices pro rata per class
-            step_mw = decided.copy()
-            step_mw[mine] = _equal_shares(sol.step_mw[mine], klass, q[mine])
-            return step_mw, sol.shed(n_buses), sol.p0, sol.flow
+        if res.status != 0:  # the LP's own solution: sharing it out per class could break a limit it does not hold
+            return sol.step_mw.copy(), sol.shed(n_buses), sol.p0, sol.flow
         step_mw = decided.copy()
         step_mw[mine] = q[mine] * res.x[klass]
         shed = np.zeros(n_buses)

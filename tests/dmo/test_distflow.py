@@ -632,3 +632,16 @@ def test_equal_sellers_settled_at_one_bus_share_alike_whatever_their_order():
     swapped = clear_network(bids[::-1], net, {"s": "1", "t": "1"}, 40.0, WIDE, WIDE, method="ac")
     assert at(pair)["s"] == at(pair)["t"] == at(swapped)["s"] == at(swapped)["t"] < -0.1
     assert at(pair)["s"] + at(pair)["t"] == pytest.approx(at(alone)["s"], abs=1e-6)
+
+
+def test_where_the_shares_lp_fails_the_lps_own_plan_stands_and_keeps_every_limit():
+    # Found by the permutation property: $10 buyers at buses 1 and 4 set the price with the import limit full; the
+    # line to bus 4 binds with no dual, and the LP of the shares is infeasible. Sharing the LP's plan out pro rata
+    # per class, as before, put 3.26 MW behind that 3 MW line.
+    bids = [one_hour("mg2", [(0.0, 1.0)], 20), one_hour("mg3", [(0.0, 1.0), (10.0, 4.0)], 20),
+            one_hour("mg4", [(0.0, 1.0), (10.0, 2.0), (0.0, 1.0)], 20)]
+    where = {"mg2": "2", "mg3": "4", "mg4": "1"}
+    r = clear_network(bids, TIGHT, where, 0.0, 6.0, 0.0)
+    network_limits_hold(TIGHT, r)
+    awards_follow_prices(bids, r)
+    assert r.congested[20] == "import" and r.price[20] == 10.0
